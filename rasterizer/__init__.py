@@ -1,0 +1,1 @@
+"""Numpy Gaussian renderer for ERP, Yin/Yang and perspective views (no torch)."""

@@ -1,0 +1,202 @@
+"""The Gaussians container and covariance <-> scale/rotation conversions.
+
+One set of 3D Gaussians in world space, stored as activated float32 arrays:
+
+==========  ==========  ===================================================
+field       shape       meaning
+==========  ==========  ===================================================
+means       (N, 3)      centres, world frame (metres)
+scales      (N, 3)      standard deviations along the local axes, > 0
+quats       (N, 4)      unit rotation quaternions (w, x, y, z), local->world
+opacities   (N,)        alpha in [0, 1]
+sh          (N, K, 3)   SH coefficients, K = (degree + 1)^2; sh[:, 0] is DC,
+                        colour = 0.5 + 0.28209479177387814 * DC
+==========  ==========  ===================================================
+
+The PLY file stores the pre-activation form (log-scale, logit opacity); see
+:mod:`rasterizer.ply`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+SH_C0 = 0.28209479177387814
+
+
+class GaussiansError(ValueError):
+    """Gaussian arrays of the wrong shape, or with NaN/Inf."""
+
+
+def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:
+    """SH DC coefficient that renders as colour ``rgb``."""
+    return (np.asarray(rgb, dtype=np.float32) - 0.5) / np.float32(SH_C0)
+
+
+def sh_dc_to_rgb(dc: np.ndarray) -> np.ndarray:
+    """Colour of an SH DC coefficient (no clamping)."""
+    return np.float32(0.5) + np.float32(SH_C0) * np.asarray(dc, dtype=np.float32)
+
+
+def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) of quaternions (N, 4) in (w, x, y, z) order.
+
+    The quaternions are normalised first; a zero quaternion gives the identity.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    q = np.where(n > 1e-12, q / np.maximum(n, 1e-12), np.array([1.0, 0.0, 0.0, 0.0]))
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=-2,
+    )
+
+
+def rotmat_to_quat(rot: np.ndarray) -> np.ndarray:
+    """Unit quaternions (w, x, y, z) with w >= 0 of rotation matrices (N, 3, 3).
+
+    Uses the largest-diagonal branch for each matrix, so it is stable for
+    every rotation (including 180-degree turns).
+    """
+    r = np.asarray(rot, dtype=np.float64)
+    m00, m11, m22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
+    trace = m00 + m11 + m22
+    cand = np.stack(
+        [
+            np.stack([1 + trace, r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1),
+            np.stack([r[..., 2, 1] - r[..., 1, 2], 1 + m00 - m11 - m22, r[..., 0, 1] + r[..., 1, 0], r[..., 0, 2] + r[..., 2, 0]], -1),
+            np.stack([r[..., 0, 2] - r[..., 2, 0], r[..., 0, 1] + r[..., 1, 0], 1 - m00 + m11 - m22, r[..., 1, 2] + r[..., 2, 1]], -1),
+            np.stack([r[..., 1, 0] - r[..., 0, 1], r[..., 0, 2] + r[..., 2, 0], r[..., 1, 2] + r[..., 2, 1], 1 - m00 - m11 + m22], -1),
+        ],
+        axis=-2,
+    )
+    which = np.argmax(np.stack([trace, m00, m11, m22], -1), axis=-1)
+    q = np.take_along_axis(cand, which[..., None, None], axis=-2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def covariance_from_scale_rotation(scales: np.ndarray, quats: np.ndarray) -> np.ndarray:
+    """World covariances R diag(s^2) R^T, (N, 3, 3) float64."""
+    rot = quat_to_rotmat(quats)
+    s2 = np.asarray(scales, dtype=np.float64) ** 2
+    return np.einsum("nij,nj,nkj->nik", rot, s2, rot)
+
+
+def scale_rotation_from_covariance(cov: np.ndarray, min_scale: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
+    """Scales (N, 3) and quaternions (N, 4) of symmetric PSD covariances (N, 3, 3).
+
+    Eigen-decomposition; negative round-off eigenvalues and rank-deficient
+    covariances are floored at ``min_scale**2`` so log-scales stay finite.
+    Reflections are turned into proper rotations by flipping one axis.
+    """
+    cov = np.asarray(cov, dtype=np.float64)
+    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    evals, evecs = np.linalg.eigh(cov)
+    det = np.linalg.det(evecs)
+    evecs[..., :, 2] *= np.where(det < 0, -1.0, 1.0)[..., None]
+    scales = np.sqrt(np.maximum(evals, min_scale**2))
+    return scales, rotmat_to_quat(evecs)
+
+
+@dataclass(frozen=True)
+class Gaussians:
+    """A set of world-space 3D Gaussians (see the module docstring for fields)."""
+
+    means: np.ndarray
+    scales: np.ndarray
+    quats: np.ndarray
+    opacities: np.ndarray
+    sh: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = np.shape(self.means)[0] if np.ndim(self.means) == 2 else -1
+        expected = {
+            "means": (n, 3),
+            "scales": (n, 3),
+            "quats": (n, 4),
+            "opacities": (n,),
+        }
+        for name, shape in expected.items():
+            arr = np.ascontiguousarray(getattr(self, name), dtype=np.float32)
+            if arr.shape != shape or n < 0:
+                raise GaussiansError(f"{name} must have shape {shape}, got {arr.shape}")
+            object.__setattr__(self, name, arr)
+        sh = np.ascontiguousarray(self.sh, dtype=np.float32)
+        if sh.ndim == 2 and sh.shape == (n, 3):
+            sh = sh[:, None, :]
+        k = sh.shape[1] if sh.ndim == 3 else 0
+        if sh.ndim != 3 or sh.shape[0] != n or sh.shape[2] != 3 or k not in (1, 4, 9, 16):
+            raise GaussiansError(f"sh must have shape (N, K, 3) with K in 1, 4, 9, 16; got {sh.shape}")
+        object.__setattr__(self, "sh", sh)
+
+    # -- construction -----------------------------------------------------
+    @classmethod
+    def from_covariances(cls, means, covariances, opacities, rgb=None, sh=None) -> "Gaussians":
+        """Build from world covariances (N, 3, 3) and either colours or SH."""
+        scales, quats = scale_rotation_from_covariance(covariances)
+        if sh is None:
+            sh = rgb_to_sh_dc(rgb)[:, None, :]
+        return cls(means, scales, quats, opacities, sh)
+
+    @classmethod
+    def empty(cls, sh_degree: int = 0) -> "Gaussians":
+        k = (sh_degree + 1) ** 2
+        return cls(np.zeros((0, 3)), np.ones((0, 3)), np.tile([1.0, 0, 0, 0], (0, 1)), np.zeros(0), np.zeros((0, k, 3)))
+
+    # -- views --------------------------------------------------------------
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def sh_degree(self) -> int:
+        return int(round(np.sqrt(self.sh.shape[1]))) - 1
+
+    @property
+    def rgb(self) -> np.ndarray:
+        """View-independent colour (SH DC only), (N, 3), not clamped."""
+        return sh_dc_to_rgb(self.sh[:, 0, :])
+
+    def covariances(self) -> np.ndarray:
+        """World covariances (N, 3, 3) float64."""
+        return covariance_from_scale_rotation(self.scales, self.quats)
+
+    def subset(self, index) -> "Gaussians":
+        """The Gaussians selected by a boolean mask or integer index array."""
+        return Gaussians(*(getattr(self, f.name)[index] for f in fields(self)))
+
+    def with_(self, **changes) -> "Gaussians":
+        """A copy with some fields replaced (validated again)."""
+        return replace(self, **changes)
+
+    @staticmethod
+    def concatenate(parts: "list[Gaussians]") -> "Gaussians":
+        if not parts:
+            return Gaussians.empty()
+        k = max(p.sh.shape[1] for p in parts)
+        shs = [np.pad(p.sh, ((0, 0), (0, k - p.sh.shape[1]), (0, 0))) for p in parts]
+        return Gaussians(
+            np.concatenate([p.means for p in parts]),
+            np.concatenate([p.scales for p in parts]),
+            np.concatenate([p.quats for p in parts]),
+            np.concatenate([p.opacities for p in parts]),
+            np.concatenate(shs),
+        )
+
+    def check_finite(self) -> None:
+        """Raise :class:`GaussiansError` naming the first field with NaN/Inf or bad range."""
+        for f in fields(self):
+            arr = getattr(self, f.name)
+            if not np.all(np.isfinite(arr)):
+                raise GaussiansError(f"{f.name} contains NaN or Inf")
+        if np.any(self.scales < 0):
+            raise GaussiansError("scales must be non-negative")
+        if np.any((self.opacities < 0) | (self.opacities > 1)):
+            raise GaussiansError("opacities must lie in [0, 1]")
