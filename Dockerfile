@@ -1,0 +1,49 @@
+# syntax=docker/dockerfile:1
+# omnisplat: two ERP panoramas -> 3D Gaussians, served over HTTP on the CPU.
+#
+#   docker build -t omnisplat .
+#   docker run -p 8000:8000 -v omnisplat-scenes:/data omnisplat
+#
+# Stage 1 (export) installs torch and builds the ONNX model; stage 2 (runtime) copies only
+# the .onnx file and installs the runtime dependencies: no torch in the final image.
+# On Linux, PyPI's torch wheel pulls CUDA packages; to build faster, pass a CPU-only wheel
+# index:  --build-arg PIP_EXTRA_INDEX_URL=<your PyTorch CPU wheel index>
+
+ARG PYTHON_IMAGE=python:3.11-slim
+
+FROM ${PYTHON_IMAGE} AS export
+ARG PIP_EXTRA_INDEX_URL=""
+ARG MODEL_HEIGHT=512
+ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_EXTRA_INDEX_URL=${PIP_EXTRA_INDEX_URL}
+WORKDIR /src
+COPY pyproject.toml README.md ./
+COPY rasterizer ./rasterizer
+COPY export ./export
+COPY service ./service
+RUN pip install ".[export]"
+RUN python -m service.cli export /models/omnisplat-default.onnx --height ${MODEL_HEIGHT}
+
+FROM ${PYTHON_IMAGE} AS runtime
+ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 \
+    OMP_NUM_THREADS=2 OPENBLAS_NUM_THREADS=2 MKL_NUM_THREADS=2 \
+    OMNISPLAT_HOST=0.0.0.0 OMNISPLAT_PORT=8000 \
+    OMNISPLAT_MODEL_PATH=/models/omnisplat-default.onnx \
+    OMNISPLAT_STORE_DIR=/data/scenes
+WORKDIR /app
+COPY pyproject.toml README.md ./
+COPY rasterizer ./rasterizer
+COPY export/__init__.py ./export/__init__.py
+COPY service ./service
+# Runtime dependencies only (pyproject [project].dependencies): numpy, onnxruntime, fastapi, ...
+RUN pip install . \
+    && python -c "import importlib.util, sys; sys.exit(importlib.util.find_spec('torch') is not None)"
+COPY --from=export /models/omnisplat-default.onnx /models/omnisplat-default.onnx
+RUN useradd --create-home --uid 10001 omnisplat && mkdir -p /data/scenes && chown -R omnisplat /data
+USER omnisplat
+VOLUME ["/data"]
+EXPOSE 8000
+HEALTHCHECK --interval=30s --timeout=5s --start-period=60s --retries=3 \
+    CMD python -c "import os, urllib.request; urllib.request.urlopen(f'http://127.0.0.1:{os.environ.get(\"OMNISPLAT_PORT\", \"8000\")}/healthz', timeout=4)" || exit 1
+# Port and every other setting come from OMNISPLAT_* variables (see service/config.py).
+CMD ["omnisplat", "serve", "--no-build"]

@@ -1,0 +1,95 @@
+"""Edge-aware, all-convolutional filtering: box / guided filters, push-pull fill.
+
+Everything is separable average pooling and elementwise maths with static
+shapes, so it exports to ONNX and runs fast in onnxruntime. Tensors are
+(N, C, h, w); the guide is (N, 1, h, w) grey in [0, 1]. ``wrap=True``
+treats the width axis as periodic (ERP longitude).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+def box_filter(x: torch.Tensor, radius: int, wrap: bool = False) -> torch.Tensor:
+    """Mean over a (2r+1)^2 window, separable; borders average the pixels inside."""
+    k = 2 * radius + 1
+    if wrap:
+        x = torch.cat([x[..., -radius:], x, x[..., :radius]], dim=-1)
+        x = F.avg_pool2d(x, (1, k), stride=1, padding=0)
+    else:
+        x = F.avg_pool2d(x, (1, k), stride=1, padding=(0, radius), count_include_pad=False)
+    return F.avg_pool2d(x, (k, 1), stride=1, padding=(radius, 0), count_include_pad=False)
+
+
+def guided_filter_coeffs(guide: torch.Tensor, src: torch.Tensor, radius: int, eps: float, wrap: bool = False):
+    """He et al. linear coefficients (a, b) with q = a * guide + b, per channel of src."""
+    mean_i = box_filter(guide, radius, wrap)
+    mean_p = box_filter(src, radius, wrap)
+    mean_ip = box_filter(guide * src, radius, wrap)
+    var_i = box_filter(guide * guide, radius, wrap) - mean_i * mean_i
+    a = (mean_ip - mean_i * mean_p) / (var_i + eps)
+    b = mean_p - a * mean_i
+    return a, b
+
+
+def guided_filter(guide: torch.Tensor, src: torch.Tensor, radius: int, eps: float, wrap: bool = False) -> torch.Tensor:
+    """Edge-preserving smoothing of every channel of ``src`` guided by ``guide``."""
+    a, b = guided_filter_coeffs(guide, src, radius, eps, wrap)
+    return box_filter(a, radius, wrap) * guide + box_filter(b, radius, wrap)
+
+
+class CostAggregation(nn.Module):
+    """Multi-scale guided-filter aggregation of a cost volume (N, D, h, w).
+
+    Each plane of the volume is filtered with the target image as guide at
+    every radius in ``radii`` and the results are averaged: support grows
+    over flat, same-coloured areas without bleeding across image edges.
+    """
+
+    def __init__(self, radii=(2, 6), eps: float = 1e-3, wrap: bool = False) -> None:
+        super().__init__()
+        self.radii = tuple(radii)
+        self.eps = float(eps)
+        self.wrap = wrap
+
+    def forward(self, cost: torch.Tensor, guide: torch.Tensor) -> torch.Tensor:
+        out = None
+        for r in self.radii:
+            q = guided_filter(guide, cost, r, self.eps, self.wrap)
+            out = q if out is None else out + q
+        return out / len(self.radii)
+
+
+def pyramid_levels(height: int, width: int, min_size: int = 2) -> int:
+    """How many times both sides can be halved exactly while staying >= min_size."""
+    levels = 0
+    while height % 2 == 0 and width % 2 == 0 and min(height, width) // 2 >= min_size:
+        height, width, levels = height // 2, width // 2, levels + 1
+    return levels
+
+
+def push_pull(value: torch.Tensor, weight: torch.Tensor, levels: int, fallback: torch.Tensor,
+              saturation: float = 0.5) -> torch.Tensor:
+    """Confidence-weighted normalised-convolution pyramid fill of (N, 1, h, w) maps.
+
+    Push: average (w x) and w down ``levels`` halvings. Pull: from coarse to
+    fine, a pixel keeps its own weighted mean where its weight is high and
+    takes the upsampled coarser estimate where it is low (blend by
+    min(w / saturation, 1)). Where no weight exists at all the result
+    tends to ``fallback`` (scalar tensor).
+    """
+    num, den = [value * weight], [weight]
+    for _ in range(levels):
+        num.append(F.avg_pool2d(num[-1], 2))
+        den.append(F.avg_pool2d(den[-1], 2))
+    eps = 1e-4
+    est = (num[-1] + eps * fallback) / (den[-1] + eps)
+    for lvl in range(levels - 1, -1, -1):
+        up = F.interpolate(est, size=num[lvl].shape[-2:], mode="bilinear", align_corners=False)
+        own = num[lvl] / den[lvl].clamp(min=1e-6)
+        alpha = (den[lvl] / saturation).clamp(max=1.0)
+        est = alpha * own + (1.0 - alpha) * up
+    return est

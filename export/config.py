@@ -1,0 +1,127 @@
+"""Settings of the training-free encoder (one exported model per setting).
+
+Everything that changes the graph's shapes or constants lives here; the
+pose-dependent inputs (warp grids, near/far) are runtime inputs instead.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+
+#: Named settings on the error/run-time curve (see export/benchmark_depth.py).
+#: Measured on m3d_bedroom (export/benchmark_depth.py): at 64x192 features
+#: 32 -> 64 planes lowers AbsRel 0.16/0.09 -> 0.12/0.06 (refs 00/02); 96 and
+#: 128 planes do not help further, and 128x384 features (downscale 2) with
+#: the same window sizes were worse and 4-6x slower, so both presets keep
+#: downscale 4 and differ in plane count.
+PRESETS: dict[str, dict] = {
+    "fast": {"downscale": 4, "num_planes": 32},
+    "quality": {"downscale": 4, "num_planes": 64},
+}
+
+
+@dataclass(frozen=True)
+class EncoderConfig:
+    """Shape and algorithm settings of :class:`export.model.OmniSplatEncoder`.
+
+    height, width: ERP input size (W = 2H). The Yin/Yang grids are
+    (H/2) x (3H/2) at full resolution; features and the cost volume live on
+    grids ``downscale`` times smaller. ``erp_encoder`` runs the same pipeline
+    on the raw ERP (paper Table 3 ablation).
+    """
+
+    height: int = 512
+    width: int = 1024
+    num_planes: int = 64
+    downscale: int = 4
+    erp_encoder: bool = False
+    # features and matching (export/features.py, export/cost_volume.py):
+    # "window" = ZNCC + census on the warped grey image in target windows,
+    # "descriptor" = per-pixel ZNCC/census descriptors warped and correlated
+    matcher: str = "window"
+    zncc_radius: int = 2
+    census_radii: tuple[int, ...] = (1, 3)
+    census_sigma: float = 0.03
+    zncc_eps: float = 0.02
+    zncc_weight: float = 0.5
+    # aggregation (export/aggregation.py)
+    agg_radii: tuple[int, ...] = (2, 6)
+    agg_eps: float = 1e-3
+    # read-out (export/readout.py)
+    readout: str = "wta"  # "wta" (parabolic sub-plane) | "softargmin"
+    softargmin_beta: float = 50.0
+    peak_margin_scale: float = 0.05
+    lr_tol_planes: float = 1.5
+    # fill and upsampling
+    fill_min_weight: float = 0.05
+    upsample: str = "guided"  # "guided" | "bilinear"
+    upsample_radius: int = 2
+    upsample_eps: float = 1e-3
+    # Gaussian head (export/gaussian_head.py)
+    scale_factor: float = 0.75
+    ray_scale_ratio: float = 0.1
+    opacity_min: float = 0.35
+    opacity_max: float = 0.98
+    # defaults for the runtime near/far (metres)
+    near_default: float = 0.3
+    far_default: float = 20.0
+    name: str = "omnisplat-trainingfree"
+    version: str = "0.1.0"
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.width != 2 * self.height:
+            raise ValueError(f"ERP width must be 2 x height, got {self.height}x{self.width}")
+        full_h, full_w = self.full_size
+        if full_h % self.downscale or full_w % self.downscale:
+            raise ValueError(f"grid size {full_h}x{full_w} is not divisible by downscale={self.downscale}")
+        if self.matcher not in ("window", "descriptor"):
+            raise ValueError(f"matcher must be 'window' or 'descriptor', got {self.matcher!r}")
+        if self.readout not in ("wta", "softargmin"):
+            raise ValueError(f"readout must be 'wta' or 'softargmin', got {self.readout!r}")
+        if self.upsample not in ("guided", "bilinear"):
+            raise ValueError(f"upsample must be 'guided' or 'bilinear', got {self.upsample!r}")
+        if self.num_planes < 3:
+            raise ValueError(f"num_planes must be >= 3, got {self.num_planes}")
+
+    @property
+    def grids(self) -> tuple[str, ...]:
+        return ("erp",) if self.erp_encoder else ("yin", "yang")
+
+    @property
+    def full_size(self) -> tuple[int, int]:
+        """Size of one Gaussian grid (Yin/Yang or ERP), one Gaussian per pixel."""
+        if self.erp_encoder:
+            return self.height, self.width
+        return self.height // 2, 3 * self.height // 2
+
+    @property
+    def feature_size(self) -> tuple[int, int]:
+        """Size of the feature / cost-volume grid."""
+        h, w = self.full_size
+        return h // self.downscale, w // self.downscale
+
+    @property
+    def num_gaussians(self) -> int:
+        h, w = self.full_size
+        return 2 * len(self.grids) * h * w
+
+    def with_(self, **changes) -> "EncoderConfig":
+        return replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d.pop("extra")
+        d.update(self.extra)
+        return d
+
+
+def make_config(preset: str | None = None, **overrides) -> EncoderConfig:
+    """An :class:`EncoderConfig` from a named preset plus explicit overrides."""
+    base: dict = {}
+    if preset is not None:
+        if preset not in PRESETS:
+            raise ValueError(f"unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
+        base.update(PRESETS[preset])
+    base.update({k: v for k, v in overrides.items() if v is not None})
+    return EncoderConfig(**base)

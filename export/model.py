@@ -1,0 +1,187 @@
+"""The training-free OmniSplat encoder as one torch module (exported to ONNX).
+
+Stages (each its own module, so a learned MVSplat-style backbone or cost
+refinement can replace a stage without touching the geometry):
+
+1. :class:`YinYangSampler` - ERP -> full-resolution Yin and Yang images
+   (or the ERP itself in the ``erp_encoder`` ablation);
+2. average pooling by ``downscale`` -> feature-grid colour; grey guide;
+3. :class:`TrainingFreeFeatures` - per-pixel ZNCC + census descriptors;
+4. :class:`SweepCostVolume` - A<-B and B<-A sphere sweeps, four pairings,
+   mask blend (paper eq. 4), correlation;
+5. :class:`CostAggregation` - multi-scale guided filter per plane;
+6. :class:`DepthReadout` - sub-plane depth + peak confidence;
+7. left-right check (A->B vs B->A) by warping, inside the graph;
+8. push-pull fill of unreliable pixels, guided-filter smoothing, guided
+   upsampling to the Gaussian grid;
+9. :class:`GaussianHead`.
+
+Graph inputs (see :mod:`rasterizer.sweep` for the pose-dependent ones):
+``erp_a``, ``erp_b`` (1, 3, H, W) float32 in [0, 1]; ``warp_grids``
+(2, G, G, D, h, w, 2); ``rel_rt`` (2, 3, 4); ``inv_depths`` (D,);
+``c2w`` (2, 4, 4); ``cam_quats`` (2, 4).
+Outputs: ``means``, ``scales``, ``quats``, ``opacities``, ``sh_dc`` (N, .),
+``range_maps``, ``confidence`` (2, G, Hg, Wg) on the Gaussian grid.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from rasterizer.geometry import grid_directions
+
+from .aggregation import CostAggregation, guided_filter, guided_filter_coeffs, pyramid_levels, push_pull
+from .config import EncoderConfig
+from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, domain_mask, sample_maps
+from .features import GreyFeatures, TrainingFreeFeatures
+from .gaussian_head import GaussianHead
+from .readout import DepthReadout, index_to_inverse
+from .yin_yang_sampling import YinYangSampler
+
+INPUT_NAMES = ("erp_a", "erp_b", "warp_grids", "rel_rt", "inv_depths", "c2w", "cam_quats")
+OUTPUT_NAMES = ("means", "scales", "quats", "opacities", "sh_dc", "range_maps", "confidence")
+
+_LUMA = (0.299, 0.587, 0.114)
+
+
+class OmniSplatEncoder(nn.Module):
+    """Two ERPs + sweep inputs -> Gaussians (module docstring)."""
+
+    def __init__(self, cfg: EncoderConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        wrap = cfg.erp_encoder
+        self.num_grids = len(cfg.grids)
+        self.full_h, self.full_w = cfg.full_size
+        self.feat_h, self.feat_w = cfg.feature_size
+        self.sampler = None if cfg.erp_encoder else YinYangSampler(cfg.height, self.full_h, self.full_w)
+        match_args = (cfg.zncc_radius, cfg.census_radii, cfg.census_sigma, cfg.zncc_eps, cfg.zncc_weight)
+        if cfg.matcher == "window":
+            self.features = GreyFeatures()
+            matcher = WindowMatcher(*match_args, wrap=wrap)
+        else:
+            self.features = TrainingFreeFeatures(*match_args, wrap=wrap)
+            matcher = CorrelationMatcher()
+        self.cost_volume = SweepCostVolume(self.num_grids, erp_source=wrap, matcher=matcher)
+        self.aggregation = CostAggregation(cfg.agg_radii, cfg.agg_eps, wrap=wrap)
+        self.readout = DepthReadout(cfg.readout, cfg.softargmin_beta, cfg.peak_margin_scale)
+        self.head = GaussianHead(cfg.grids, self.full_h, self.full_w, cfg.scale_factor,
+                                 cfg.ray_scale_ratio, cfg.opacity_min, cfg.opacity_max)
+        rays = np.stack([grid_directions(k, self.feat_h, self.feat_w) for k in cfg.grids]).astype(np.float32)
+        self.register_buffer("feat_rays", torch.from_numpy(rays), persistent=False)  # (G, h, w, 3)
+        self.register_buffer("luma", torch.tensor(_LUMA).view(1, 3, 1, 1), persistent=False)
+        self.levels = pyramid_levels(self.feat_h, self.feat_w)
+
+    # -- stages ------------------------------------------------------------
+    def grid_images(self, erp_a: torch.Tensor, erp_b: torch.Tensor) -> torch.Tensor:
+        """(2, G, 3, Hg, Wg) full-resolution images on the Gaussian grids."""
+        erps = torch.cat([erp_a, erp_b], dim=0)
+        if self.sampler is None:
+            return erps.unsqueeze(1)
+        return self.sampler(erps)
+
+    def lr_consistency(self, k, inv, warp_grids, rel_rt, inv_depths):
+        """1 where the A->B and B->A depths agree within ``lr_tol_planes``, else 0.
+
+        k, inv: (2, G, 1, h, w) plane index and inverse range per target map.
+        For each target pixel the source location at the nearest plane is
+        gathered from the warp grids; the source's own inverse range there
+        (mask-blended over its grids) is compared with the inverse of the
+        point's range from the source camera, |R d r + t|.
+        """
+        g_count, h, w = self.num_grids, self.feat_h, self.feat_w
+        d_count = inv_depths.shape[0]
+        step = (inv_depths[d_count - 1] - inv_depths[0]) / (d_count - 1)
+        idx = k.round().clamp(0, d_count - 1).to(torch.int64)  # (2, G, 1, h, w)
+        ok = []
+        for d in range(2):
+            rot, t = rel_rt[d, :, :3], rel_rt[d, :, 3]
+            for gt in range(g_count):
+                rng = 1.0 / inv[d, gt, 0].clamp(min=1e-6)  # (h, w)
+                u = torch.matmul(self.feat_rays[gt].reshape(h * w, 3), rot.transpose(0, 1)).reshape(h, w, 3)
+                pt = u * rng.unsqueeze(-1) + t
+                expected = 1.0 / torch.sqrt((pt * pt).sum(-1)).clamp(min=1e-6)
+                gather_idx = idx[d, gt, 0].reshape(1, h, w, 1).expand(1, h, w, 2)
+                num = torch.zeros_like(expected)
+                den = torch.zeros_like(expected)
+                for gs in range(g_count):
+                    loc = torch.gather(warp_grids[d, gt, gs], 0, gather_idx)  # (1, h, w, 2)
+                    seen = sample_maps(inv[1 - d, gs].unsqueeze(0), loc, self.cfg.erp_encoder)[0, 0]
+                    m = torch.ones_like(seen) if self.cfg.erp_encoder else domain_mask(loc[0])
+                    num = num + seen * m
+                    den = den + m
+                seen = num / den.clamp(min=1e-6)
+                ok.append(((seen - expected).abs() <= self.cfg.lr_tol_planes * step).to(k.dtype))
+        return torch.stack(ok).reshape(2, g_count, 1, h, w)
+
+    def observability(self, rel_rt, inv_depths):
+        """(2, G, 1, h, w) in [0, 1]: 0 where depth cannot be observed (epipoles).
+
+        The angle between the source-camera rays to a target pixel's nearest
+        and farthest candidates is the parallax the whole sweep can produce;
+        near the epipoles it vanishes and every plane matches equally well.
+        Ramp from ``2`` to ``8`` feature pixels of travel.
+        """
+        g_count, h, w = self.num_grids, self.feat_h, self.feat_w
+        d_count = inv_depths.shape[0]
+        pitch = float(np.pi / self.feat_h) if self.cfg.erp_encoder else float(0.5 * np.pi / self.feat_h)
+        out = []
+        for d in range(2):
+            rot, t = rel_rt[d, :, :3], rel_rt[d, :, 3]
+            u = torch.matmul(self.feat_rays.reshape(g_count * h * w, 3), rot.transpose(0, 1))
+            near = u / inv_depths[d_count - 1] + t
+            far = u / inv_depths[0] + t
+            cross = torch.linalg.cross(near, far)
+            sin = torch.sqrt((cross * cross).sum(-1)) / (
+                torch.sqrt((near * near).sum(-1) * (far * far).sum(-1)).clamp(min=1e-12))
+            dots = (near * far).sum(-1)
+            travel = torch.where(dots < 0, torch.full_like(sin, 2.0), sin) / pitch  # >90 deg: plenty
+            out.append(((travel - 2.0) / 6.0).clamp(0.0, 1.0).reshape(g_count, 1, h, w))
+        return torch.stack(out)
+
+    # -- forward -------------------------------------------------------------
+    def forward(self, erp_a, erp_b, warp_grids, rel_rt, inv_depths, c2w, cam_quats):
+        cfg = self.cfg
+        g_count, h, w = self.num_grids, self.feat_h, self.feat_w
+        wrap = cfg.erp_encoder
+        full = self.grid_images(erp_a, erp_b)  # (2, G, 3, Hg, Wg)
+        full_flat = full.reshape(2 * g_count, 3, self.full_h, self.full_w)
+        low = F.avg_pool2d(full_flat, cfg.downscale) if cfg.downscale > 1 else full_flat
+        grey_low = (low * self.luma).sum(1, keepdim=True)  # (2G, 1, h, w)
+        grey_full = (full_flat * self.luma).sum(1, keepdim=True)
+
+        feats = self.features(low).reshape(2, g_count, -1, h, w)
+        cost = self.cost_volume(feats, warp_grids)  # (2, G, D, h, w)
+        d_count = cost.shape[2]
+        cost = self.aggregation(cost.reshape(2 * g_count, d_count, h, w), grey_low)
+        k, conf = self.readout(cost)  # (2G, 1, h, w)
+        inv = index_to_inverse(k, inv_depths)
+
+        ok = self.lr_consistency(k.reshape(2, g_count, 1, h, w), inv.reshape(2, g_count, 1, h, w),
+                                 warp_grids, rel_rt, inv_depths)
+        obs = self.observability(rel_rt, inv_depths)
+        weight = conf * (ok * obs).reshape(2 * g_count, 1, h, w)
+        fallback = inv_depths.mean()
+        filled = push_pull(inv, weight, self.levels, fallback)
+        filled = guided_filter(grey_low, filled, 1, cfg.upsample_eps, wrap)
+
+        size = (self.full_h, self.full_w)
+        if cfg.upsample == "guided" and cfg.downscale > 1:
+            a, b = guided_filter_coeffs(grey_low, filled, cfg.upsample_radius, cfg.upsample_eps, wrap)
+            a = F.interpolate(a, size=size, mode="bilinear", align_corners=False)
+            b = F.interpolate(b, size=size, mode="bilinear", align_corners=False)
+            inv_full = a * grey_full + b
+        elif cfg.downscale > 1:
+            inv_full = F.interpolate(filled, size=size, mode="bilinear", align_corners=False)
+        else:
+            inv_full = filled
+        inv_full = inv_full.clamp(min=inv_depths[0], max=inv_depths[d_count - 1])
+        rng = (1.0 / inv_full).reshape(2, g_count, *size)
+        conf_full = weight if cfg.downscale == 1 else F.interpolate(weight, size=size, mode="bilinear", align_corners=False)
+        conf_full = conf_full.reshape(2, g_count, *size)
+
+        means, scales, quats, opac, sh_dc = self.head(rng, conf_full, full, c2w, cam_quats)
+        return means, scales, quats, opac, sh_dc, rng, conf_full

@@ -1,0 +1,58 @@
+"""Depth read-out from an aggregated cost volume, and its confidence.
+
+Cost (N, D, h, w) is a similarity (higher = better) over D candidates
+uniform in inverse range, ``inv_depths`` ascending (far ... near).
+
+* ``wta``: winner-take-all plus parabolic sub-plane refinement from the two
+  neighbouring planes (offset clamped to +-0.5 plane; none at the ends).
+* ``softargmin``: expectation of the plane index under softmax(beta cost).
+
+The result is a fractional plane index k; inverse range is linear in k.
+Confidence combines the peak margin (best minus the best plane that is not
+a neighbour of the winner) with a zero for near-plane picks, which the probe
+found to be the outliers that hurt rendering most.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+class DepthReadout(nn.Module):
+    """cost (N, D, h, w) -> (plane index (N,1,h,w) float, peak confidence (N,1,h,w) in [0,1])."""
+
+    def __init__(self, mode: str = "wta", beta: float = 50.0, margin_scale: float = 0.05) -> None:
+        super().__init__()
+        self.mode = mode
+        self.beta = float(beta)
+        self.margin_scale = float(margin_scale)
+
+    def forward(self, cost: torch.Tensor):
+        d_count = cost.shape[1]
+        planes = torch.arange(d_count, dtype=cost.dtype, device=cost.device).view(1, d_count, 1, 1)
+        idx = torch.argmax(cost, dim=1, keepdim=True)  # (N,1,h,w) int64
+        best = torch.gather(cost, 1, idx)
+        lo = torch.gather(cost, 1, (idx - 1).clamp(min=0))
+        hi = torch.gather(cost, 1, (idx + 1).clamp(max=d_count - 1))
+        if self.mode == "wta":
+            curv = lo - 2.0 * best + hi
+            inner = (idx > 0) & (idx < d_count - 1) & (curv < -1e-6)
+            offset = 0.5 * (lo - hi) / torch.where(inner, curv, torch.full_like(curv, -1.0))
+            offset = torch.where(inner, offset.clamp(-0.5, 0.5), torch.zeros_like(offset))
+            k = idx.to(cost.dtype) + offset
+        else:
+            p = torch.softmax(self.beta * cost, dim=1)
+            k = (p * planes).sum(dim=1, keepdim=True)
+        far_from_peak = (planes - idx.to(cost.dtype)).abs() > 1.5
+        second = torch.where(far_from_peak, cost, torch.full_like(cost, -2.0)).amax(dim=1, keepdim=True)
+        conf = 1.0 - torch.exp(-(best - second).clamp(min=0.0) / self.margin_scale)
+        conf = torch.where(idx == d_count - 1, torch.zeros_like(conf), conf)
+        return k, conf
+
+
+def index_to_inverse(k: torch.Tensor, inv_depths: torch.Tensor) -> torch.Tensor:
+    """Inverse range of a fractional plane index (candidates uniform in inverse range)."""
+    d_count = inv_depths.shape[0]
+    step = (inv_depths[d_count - 1] - inv_depths[0]) / (d_count - 1)
+    return inv_depths[0] + k * step

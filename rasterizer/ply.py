@@ -1,0 +1,170 @@
+"""Gaussian PLY files in the INRIA 3DGS layout (conventions section 5).
+
+Layout: ``binary_little_endian``, ``\\n`` line endings, one ``vertex`` element
+with float32 properties ``x y z nx ny nz f_dc_0..2 [f_rest_*] opacity
+scale_0..2 rot_0..3``. Stored pre-activation: ``opacity = logit(alpha)``,
+``scale_i = log(sigma_i)``, ``rot = (w, x, y, z)``; ``f_rest`` is
+channel-major (all R coefficients, then G, then B). Normals are written as 0.
+
+Writing builds one contiguous (N, F) float32 array and calls ``tobytes`` (no
+Python object per value). Rows with NaN/Inf in any field are dropped (or
+refused with ``drop_invalid=False``); opacity is clamped to
+[1e-12, 1 - 1e-12] before the logit and scales to >= 1e-30 before the log,
+so 0, 1 and rank-deficient Gaussians stay finite on disk.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .gaussians import Gaussians, GaussiansError
+
+_OPACITY_EPS = 1e-12
+_MIN_SCALE = 1e-30
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+
+
+class PlyError(ValueError):
+    """A PLY file that is not a readable Gaussian PLY."""
+
+
+def property_names(sh_coeffs: int) -> list[str]:
+    """Vertex property names, in file order, for ``sh_coeffs`` SH coefficients per channel."""
+    rest = [f"f_rest_{i}" for i in range(3 * (sh_coeffs - 1))]
+    return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + rest
+            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+
+
+def finite_rows(g: Gaussians) -> np.ndarray:
+    """(N,) bool: rows whose every field is finite."""
+    ok = np.isfinite(g.means).all(1) & np.isfinite(g.scales).all(1) & np.isfinite(g.quats).all(1)
+    ok &= np.isfinite(g.opacities) & np.isfinite(g.sh).all(axis=(1, 2))
+    return ok
+
+
+def _table(g: Gaussians, drop_invalid: bool) -> np.ndarray:
+    """The (N', F) float32 property table of ``g``."""
+    ok = finite_rows(g)
+    if not ok.all():
+        if not drop_invalid:
+            raise GaussiansError(f"{int((~ok).sum())} Gaussian rows contain NaN or Inf")
+        g = g.subset(ok)
+    n, k = len(g), g.sh.shape[1]
+    table = np.zeros((n, 17 + 3 * (k - 1)), dtype=np.float32)
+    table[:, 0:3] = g.means
+    table[:, 6:9] = g.sh[:, 0, :]
+    col = 9
+    if k > 1:
+        # (N, K-1, 3) -> channel-major (N, 3, K-1) -> (N, 3(K-1))
+        table[:, col:col + 3 * (k - 1)] = np.transpose(g.sh[:, 1:, :], (0, 2, 1)).reshape(n, -1)
+        col += 3 * (k - 1)
+    a = np.clip(g.opacities.astype(np.float64), _OPACITY_EPS, 1.0 - _OPACITY_EPS)
+    table[:, col] = np.log(a) - np.log1p(-a)
+    table[:, col + 1:col + 4] = np.log(np.maximum(g.scales.astype(np.float64), _MIN_SCALE))
+    table[:, col + 4:col + 8] = g.quats
+    return table
+
+
+def ply_bytes(g: Gaussians, *, drop_invalid: bool = True) -> bytes:
+    """The binary PLY file of ``g`` as bytes (see the module docstring)."""
+    table = _table(g, drop_invalid)
+    names = property_names(g.sh.shape[1])
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {table.shape[0]}"]
+    header += [f"property float {name}" for name in names]
+    header += ["end_header"]
+    return ("\n".join(header) + "\n").encode("ascii") + table.astype("<f4", copy=False).tobytes()
+
+
+def write_ply(path: str | os.PathLike, g: Gaussians, *, drop_invalid: bool = True) -> Path:
+    """Write ``g`` to ``path`` atomically (temp file + rename); returns the path."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(ply_bytes(g, drop_invalid=drop_invalid))
+    os.replace(tmp, path)
+    return path
+
+
+def _parse_header(data: bytes) -> tuple[int, np.dtype, int]:
+    """(vertex count, structured dtype of a vertex, byte offset of the body)."""
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise PlyError("not a PLY file (missing 'ply' magic or 'end_header')")
+    body = data.index(b"\n", end) + 1
+    lines = data[:end].decode("ascii", errors="replace").replace("\r", "").split("\n")
+    count, fields, element, fmt = None, [], None, None
+    for line in lines[1:]:
+        parts = line.split()
+        if not parts or parts[0] in ("comment", "obj_info"):
+            continue
+        if parts[0] == "format":
+            fmt = parts[1]
+        elif parts[0] == "element":
+            element = parts[1]
+            if element == "vertex":
+                count = int(parts[2])
+            elif count is not None:
+                break  # elements after vertex do not change the vertex layout
+            else:
+                raise PlyError(f"element {element!r} before 'vertex' is not supported")
+        elif parts[0] == "property" and element == "vertex":
+            if parts[1] == "list":
+                raise PlyError("list properties in 'vertex' are not supported")
+            if parts[1] not in _PLY_TYPES:
+                raise PlyError(f"unknown property type {parts[1]!r}")
+            fields.append((parts[2], "<" + _PLY_TYPES[parts[1]]))
+    if fmt != "binary_little_endian":
+        raise PlyError(f"only binary_little_endian PLY is supported, got {fmt!r}")
+    if count is None:
+        raise PlyError("PLY has no 'vertex' element")
+    return count, np.dtype(fields), body
+
+
+def read_ply(source: str | os.PathLike | bytes | bytearray | memoryview) -> Gaussians:
+    """Read a Gaussian PLY (path or bytes) into activated :class:`Gaussians`.
+
+    Accepts any float/int property types and extra properties; requires
+    x y z, f_dc_0..2, opacity, scale_0..2, rot_0..3. Missing f_rest means
+    SH degree 0.
+    """
+    data = bytes(source) if isinstance(source, (bytes, bytearray, memoryview)) else Path(source).read_bytes()
+    count, dtype, body = _parse_header(data)
+    if len(data) - body < count * dtype.itemsize:
+        raise PlyError(f"PLY body too short: {count} vertices need {count * dtype.itemsize} bytes")
+    v = np.frombuffer(data, dtype=dtype, count=count, offset=body)
+    names = set(dtype.names or ())
+    required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+                "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    missing = [n for n in required if n not in names]
+    if missing:
+        raise PlyError(f"PLY lacks Gaussian properties {missing}")
+
+    def cols(keys):
+        return np.stack([v[k].astype(np.float64) for k in keys], axis=1) if keys else np.zeros((count, 0))
+
+    n_rest = sum(1 for n in names if n.startswith("f_rest_"))
+    k = 1 + n_rest // 3
+    if n_rest % 3 or k not in (1, 4, 9, 16):
+        raise PlyError(f"PLY has {n_rest} f_rest properties; expected 0, 9, 24 or 45")
+    sh = np.empty((count, k, 3), dtype=np.float32)
+    sh[:, 0, :] = cols(["f_dc_0", "f_dc_1", "f_dc_2"])
+    if k > 1:
+        rest = cols([f"f_rest_{i}" for i in range(n_rest)])
+        sh[:, 1:, :] = rest.reshape(count, 3, k - 1).transpose(0, 2, 1)
+    logit = v["opacity"].astype(np.float64)
+    opacity = 0.5 * (1.0 + np.tanh(0.5 * logit))  # overflow-free sigmoid
+    return Gaussians(
+        means=cols(["x", "y", "z"]),
+        scales=np.exp(cols(["scale_0", "scale_1", "scale_2"])),
+        quats=cols(["rot_0", "rot_1", "rot_2", "rot_3"]),
+        opacities=opacity,
+        sh=sh,
+    )

@@ -1,0 +1,144 @@
+"""Render 3D Gaussians into ERP, Yin, Yang or perspective images (numpy, CPU).
+
+Public entry point: :func:`render`. Pipeline, two reusable phases:
+
+1. :func:`rasterizer.splat.footprints` (phase a): EWA projection with the
+   camera's exact analytic Jacobian + 0.3 px^2 low-pass, culling, and the
+   per-pixel front-to-back lists of (Gaussian, opacity-free weight g).
+2. :func:`rasterizer.composite.composite` (phase b): alpha compositing with
+   alpha = min(0.99, opacity * g), skip alpha < 1/255, stop at T < 1e-4.
+
+Frames and pixels follow ``shared/design/conventions.md`` section 1: poses
+are 4x4 OpenCV camera-to-world; pixel (r, c) centre at coordinate (c, r);
+ERP ``lon = (c + 0.5)/W 2pi - pi``; ranges are Euclidean distances from the
+camera centre (world units).
+
+ERP has two methods: ``"direct"`` splats straight into the ERP grid (columns
+wrap across the seam; footprints crossing a pole are mirrored over it);
+``"yinyang"`` (OmniSplat) renders the Yin and Yang grids (H/2 x 3H/2 each),
+merges premultiplied colour, alpha and range into the ERP with smooth
+weights in their overlap, then divides colour and range by alpha (0 where
+alpha < 1/255).
+
+Example::
+
+    out = render(g, np.eye(4), projection="erp", width=1024)
+    png = to_uint8(out.colour)
+"""
+
+from __future__ import annotations
+
+from typing import Literal, NamedTuple
+
+import numpy as np
+
+from .camera import DEFAULT_NEAR, PROJECTIONS, Camera
+from .composite import accumulate, composite, normalise_range
+from .gaussians import Gaussians
+from .sh import sh_to_rgb
+from .splat import ALPHA_MIN, Footprints, footprints
+from .yin_yang import yin_yang_to_erp
+
+__all__ = ["RenderOutput", "render", "render_camera", "to_uint8", "Camera", "footprints", "composite",
+           "Footprints"]
+
+Method = Literal["yinyang", "direct"]
+METHODS = ("yinyang", "direct")
+
+
+class RenderOutput(NamedTuple):
+    """colour (H, W, 3) float32; alpha (H, W) float32 in [0, 1]; range (H, W) float32 (0 where empty)."""
+
+    colour: np.ndarray
+    alpha: np.ndarray
+    range: np.ndarray
+
+
+def _check_gaussians(gaussians: Gaussians) -> None:
+    if not isinstance(gaussians, Gaussians):
+        raise TypeError(f"gaussians must be a rasterizer.gaussians.Gaussians, got {type(gaussians).__name__}")
+    gaussians.check_finite()
+
+
+def _premultiplied(gaussians: Gaussians, camera: Camera, colours: np.ndarray | None = None):
+    """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) of one camera."""
+    if colours is None:
+        colours = sh_to_rgb(gaussians.sh, gaussians.means, camera.centre)
+    fp = footprints(gaussians, camera, opacity_bound=gaussians.opacities)
+    return accumulate(fp, gaussians.opacities, colours)
+
+
+def render_camera(gaussians: Gaussians, camera: Camera) -> RenderOutput:
+    """Render one :class:`Camera` (any kind), colour composited over black."""
+    _check_gaussians(gaussians)
+    colour, alpha, range_sum = _premultiplied(gaussians, camera)
+    return RenderOutput(colour, alpha, normalise_range(range_sum, alpha))
+
+
+def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: int, near: float) -> RenderOutput:
+    h = max(1, int(round(height / 2)))
+    w = 3 * h
+    colours = None
+    stacks = []
+    for kind in ("yin", "yang"):
+        cam = Camera(kind, w, h, c2w, near=near)
+        if colours is None:
+            colours = sh_to_rgb(gaussians.sh, gaussians.means, cam.centre)
+        c, a, r = _premultiplied(gaussians, cam, colours)
+        stacks.append(np.concatenate([c, a[:, :, None], r[:, :, None]], axis=2))
+    merged = yin_yang_to_erp(stacks[0], stacks[1], height, width)
+    alpha = np.clip(merged[:, :, 3], 0.0, 1.0)
+    ok = alpha >= ALPHA_MIN
+    inv = np.zeros_like(alpha)
+    inv[ok] = 1.0 / merged[:, :, 3][ok]
+    colour = merged[:, :, :3] * inv[:, :, None]
+    rng = merged[:, :, 4] * inv
+    return RenderOutput(np.ascontiguousarray(colour), np.ascontiguousarray(alpha), np.ascontiguousarray(rng))
+
+
+def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, height: int | None = None,
+           fov_deg: float = 90.0, method: str = "yinyang", near: float = DEFAULT_NEAR) -> RenderOutput:
+    """Render Gaussians seen from pose ``c2w``.
+
+    Parameters
+    ----------
+    gaussians : Gaussians, world frame. NaN/Inf anywhere raises
+        :class:`~rasterizer.gaussians.GaussiansError` (a ValueError) naming the field.
+    c2w : 4x4 (or 3x4) OpenCV camera-to-world pose; validated by
+        :func:`rasterizer.geometry.as_c2w` (PoseError, a ValueError).
+    projection : "erp" | "yin" | "yang" | "perspective".
+    width, height : image size in pixels. Default height: W/2 (erp), W/3
+        (yin, yang), W (perspective).
+    fov_deg : horizontal field of view of the perspective camera.
+    method : ERP only. "yinyang" (default; colour = merged colour / alpha) or
+        "direct" (colour over black). Other projections ignore it.
+    near : Gaussians closer than this range (world units) are culled.
+
+    Returns
+    -------
+    RenderOutput(colour (H, W, 3) float32, alpha (H, W) float32 in [0, 1],
+    range (H, W) float32 expected Euclidean range, 0 where nothing was drawn).
+    """
+    if projection not in PROJECTIONS:
+        raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    width = int(width)
+    if width <= 0:
+        raise ValueError(f"width must be positive, got {width}")
+    if height is None:
+        height = {"erp": width // 2, "yin": width // 3, "yang": width // 3}.get(projection, width)
+    height = int(height)
+    if height <= 0:
+        raise ValueError(f"height must be positive, got {height}")
+    _check_gaussians(gaussians)
+    if projection == "erp" and method == "yinyang":
+        cam = Camera("erp", width, height, c2w, near=near)  # validates pose and sizes
+        return _render_yinyang(gaussians, cam.c2w, width, height, near)
+    return render_camera(gaussians, Camera(projection, width, height, c2w, fov_deg=fov_deg, near=near))
+
+
+def to_uint8(colour: np.ndarray) -> np.ndarray:
+    """Float colour (any range) to uint8: clip to [0, 1], scale by 255, round; NaN -> 0."""
+    c = np.nan_to_num(np.asarray(colour, dtype=np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+    return np.rint(np.clip(c, 0.0, 1.0) * 255.0).astype(np.uint8)

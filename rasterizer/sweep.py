@@ -1,0 +1,166 @@
+"""Pose-dependent inputs of the encoder's ONNX graph, computed in numpy.
+
+The sphere sweep needs, for every target pixel and depth candidate, where
+that 3D point lands in the *other* camera's grids. This depends only on the
+two poses, the grid sizes and the candidates, so it is computed here (float32,
+vectorised) instead of inside the graph: no matrix inverse, no ``atan2`` at
+singular points and no data-dependent shapes in ONNX (design doc
+ecosystem-reference E).
+
+Layout of the arrays fed to the graph (G = 2 grids ``("yin", "yang")`` or 1
+grid ``("erp",)``; D planes; feature grid h x w):
+
+==============  ======================  ==========================================
+name            shape                   meaning
+==============  ======================  ==========================================
+``warp_grids``  (2, G, G, D, h, w, 2)   [direction][target grid][source grid]:
+                                        ``grid_sample`` coordinates (x, y) in
+                                        [-1, 1] with ``align_corners=False``;
+                                        direction 0 = target A / source B,
+                                        1 = target B / source A. Out-of-domain
+                                        points have |x| > 1 or |y| > 1 (that
+                                        is the validity mask). ERP sources are
+                                        addressed in the source padded by
+                                        :data:`ERP_PAD` columns on each side
+                                        (circular wrap in longitude).
+``rel_rt``      (2, 3, 4)               [R | t] target camera -> source camera.
+``inv_depths``  (D,)                    candidate inverse ranges (1/m),
+                                        ascending: 1/far ... 1/near, uniform.
+``c2w``         (2, 4, 4)               camera-to-world of A and B (OpenCV).
+``cam_quats``   (2, 4)                  (w, x, y, z) of the c2w rotations.
+==============  ======================  ==========================================
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from .gaussians import rotmat_to_quat
+from .geometry import grid_directions, project_to_grid, rigid_inverse
+
+#: Columns of circular padding added on each side of an ERP before sampling.
+ERP_PAD = 2
+
+#: Below this baseline (metres, or scene units) depth cannot be triangulated.
+MIN_BASELINE = 1e-4
+
+
+def grids_for_mode(erp_encoder: bool) -> tuple[str, ...]:
+    """Grid kinds the encoder works on: ``("erp",)`` or ``("yin", "yang")``."""
+    return ("erp",) if erp_encoder else ("yin", "yang")
+
+
+def baseline(c2w_a: np.ndarray, c2w_b: np.ndarray) -> float:
+    """Distance between the two camera centres."""
+    return float(np.linalg.norm(np.asarray(c2w_a)[:3, 3] - np.asarray(c2w_b)[:3, 3]))
+
+
+def default_near_far(c2w_a: np.ndarray, c2w_b: np.ndarray, *, near: float = 0.3, far: float = 20.0) -> tuple[float, float]:
+    """Sweep range from the baseline b and indoor-scene defaults.
+
+    near = clip(0.3 b, 2/3 near, 2 near) and far = max(far, 20 b), i.e. with
+    the indoor defaults near in [0.2, 0.6] m. Tying near to b bounds the
+    angular disparity step per plane for wide baselines (a 4 m baseline
+    with near = 0.5 m would jump several pixels per plane) while close
+    furniture stays in range for a 1 m one.
+    """
+    b = baseline(c2w_a, c2w_b)
+    n = float(np.clip(0.3 * b, 2.0 / 3.0 * near, 2.0 * near))
+    f = float(max(far, 20.0 * b))
+    return n, f
+
+
+def inverse_depth_candidates(near: float, far: float, num_planes: int) -> np.ndarray:
+    """D inverse ranges uniform between 1/far and 1/near, ascending, float32."""
+    if not (0 < near < far) or not np.isfinite(far):
+        raise ValueError(f"need 0 < near < far < inf, got near={near}, far={far}")
+    if num_planes < 2:
+        raise ValueError(f"need at least 2 planes, got {num_planes}")
+    return np.linspace(1.0 / far, 1.0 / near, num_planes).astype(np.float32)
+
+
+def relative_pose(c2w_target: np.ndarray, c2w_source: np.ndarray) -> np.ndarray:
+    """4x4 transform from target-camera coordinates to source-camera coordinates."""
+    return rigid_inverse(c2w_source) @ np.asarray(c2w_target, dtype=np.float64)
+
+
+def normalised_coords(kind: str, col: np.ndarray, row: np.ndarray, height: int, width: int) -> np.ndarray:
+    """``grid_sample`` (x, y), align_corners=False, of pixel coords (centre of c at c).
+
+    For ERP the x coordinate addresses the source padded by :data:`ERP_PAD`
+    columns each side, and longitudes are wrapped into that padded range.
+    """
+    if kind == "erp":
+        col = np.mod(col + 0.5, width) - 0.5  # wrap into [-0.5, W - 0.5)
+        x = (2.0 * (col + ERP_PAD) + 1.0) / (width + 2 * ERP_PAD) - 1.0
+    else:
+        x = (2.0 * col + 1.0) / width - 1.0
+    y = (2.0 * row + 1.0) / height - 1.0
+    return np.stack([x, y], axis=-1).astype(np.float32)
+
+
+def warp_grids(
+    c2w_a: np.ndarray,
+    c2w_b: np.ndarray,
+    inv_depths: np.ndarray,
+    grids: tuple[str, ...],
+    height: int,
+    width: int,
+    workers: int = 2,
+) -> np.ndarray:
+    """Sampling coordinates of every (target pixel, candidate) in the source grids.
+
+    Returns (2, G, G, D, h, w, 2) float32 (see the module table). A candidate
+    point X = R (r_k d) + t in source-camera coordinates, r_k = 1/inv_depths[k].
+    """
+    inv = np.asarray(inv_depths, dtype=np.float32)
+    ranges = (1.0 / inv).astype(np.float32)[:, None, None, None]
+    d_count, g_count = len(inv), len(grids)
+    out = np.empty((2, g_count, g_count, d_count, height, width, 2), dtype=np.float32)
+
+    def one(direction: int, gt: int) -> None:
+        tgt, src = (c2w_a, c2w_b) if direction == 0 else (c2w_b, c2w_a)
+        rel = relative_pose(tgt, src).astype(np.float32)
+        rot, t = rel[:3, :3], rel[:3, 3]
+        rays = grid_directions(grids[gt], height, width).astype(np.float32) @ rot.T
+        points = rays[None] * ranges + t  # (D, h, w, 3)
+        for gs, kind_s in enumerate(grids):
+            col, row = project_to_grid(kind_s, points, height, width)
+            out[direction, gt, gs] = normalised_coords(kind_s, col, row, height, width)
+
+    # numpy ufuncs release the GIL: two threads use both cores of the target box
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        list(pool.map(lambda dg: one(*dg), [(d, g) for d in range(2) for g in range(g_count)]))
+    return out
+
+
+def sweep_inputs(
+    c2w_a: np.ndarray,
+    c2w_b: np.ndarray,
+    *,
+    near: float,
+    far: float,
+    num_planes: int,
+    feature_size: tuple[int, int],
+    erp_encoder: bool = False,
+) -> dict[str, np.ndarray]:
+    """All pose-dependent graph inputs (module table), keyed by input name."""
+    c2w_a = np.asarray(c2w_a, dtype=np.float64)
+    c2w_b = np.asarray(c2w_b, dtype=np.float64)
+    if baseline(c2w_a, c2w_b) < MIN_BASELINE:
+        raise ValueError("the two camera centres coincide: depth cannot be triangulated")
+    inv = inverse_depth_candidates(near, far, num_planes)
+    h, w = feature_size
+    grids = grids_for_mode(erp_encoder)
+    rel = np.stack([relative_pose(c2w_a, c2w_b)[:3], relative_pose(c2w_b, c2w_a)[:3]]).astype(np.float32)
+    c2w = np.stack([c2w_a, c2w_b]).astype(np.float32)
+    quats = rotmat_to_quat(np.stack([c2w_a[:3, :3], c2w_b[:3, :3]])).astype(np.float32)
+    return {
+        "warp_grids": warp_grids(c2w_a, c2w_b, inv, grids, h, w),
+        "rel_rt": rel,
+        "inv_depths": inv,
+        "c2w": c2w,
+        "cam_quats": quats,
+    }

@@ -1,0 +1,232 @@
+"""ERP <-> Yin/Yang image resampling and ERP resizing (numpy only).
+
+Grids and pixel centres are those of :mod:`rasterizer.geometry`
+(conventions section 1): an H x W ERP maps to Yin and Yang images of
+h x 3h with h = H // 2 by default. Sampling is bilinear at pixel centres.
+
+* Reading an ERP wraps in longitude (column W is column 0) and reflects
+  across the poles (row -1 is row 0 at longitude + pi), so Yang samples near
+  the poles are exact neighbours, not clamped copies.
+* Reading a Yin/Yang image clamps at its border (the blend weight there is 0).
+* :func:`yin_yang_to_erp` blends the two in their ~6% overlap with weight
+  ``w_yin = smoothstep(m_yin / (m_yin + m_yang))``, where ``m`` is the angular
+  margin of the direction inside each grid's domain plus a one-pixel feather.
+  The weight is 1 where only Yin sees the direction, 0 where only Yang does,
+  and continuous in between, so there is no seam.
+
+Images are (H, W) or (H, W, C) arrays of any float dtype (returned as
+float32); the sampling maps are cached per size.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from . import geometry as geo
+
+
+def _as_hwc(img: np.ndarray) -> tuple[np.ndarray, bool]:
+    a = np.asarray(img)
+    if a.ndim == 2:
+        return a[:, :, None], True
+    if a.ndim != 3:
+        raise ValueError(f"image must be (H, W) or (H, W, C), got shape {a.shape}")
+    return a, False
+
+
+def _gather(img: np.ndarray, idx: np.ndarray, wts: np.ndarray) -> np.ndarray:
+    """Weighted taps: (P, C) from img (H, W, C), idx/wts (P, T) flat indices."""
+    flat = img.reshape(-1, img.shape[2]).astype(np.float32, copy=False)
+    out = flat[idx[:, 0]] * wts[:, 0:1]
+    for t in range(1, idx.shape[1]):
+        out += flat[idx[:, t]] * wts[:, t:t + 1]
+    return out
+
+
+def _erp_taps(col: np.ndarray, row: np.ndarray, height: int, width: int, nearest: bool = False):
+    """Bilinear (or nearest) taps into an ERP at continuous (col, row), wrap + pole reflection."""
+    col = np.asarray(col, dtype=np.float64).ravel()
+    row = np.asarray(row, dtype=np.float64).ravel()
+    if nearest:
+        c = np.rint(col).astype(np.int64)[:, None]
+        r = np.rint(row).astype(np.int64)[:, None]
+        w = np.ones((col.size, 1), dtype=np.float32)
+    else:
+        c0 = np.floor(col)
+        r0 = np.floor(row)
+        fc = (col - c0)[:, None]
+        fr = (row - r0)[:, None]
+        c = c0.astype(np.int64)[:, None] + np.array([0, 1, 0, 1])
+        r = r0.astype(np.int64)[:, None] + np.array([0, 0, 1, 1])
+        w = np.concatenate([(1 - fc) * (1 - fr), fc * (1 - fr), (1 - fc) * fr, fc * fr], axis=1)
+    # reflect across the poles (row -1 - k is row k at longitude + pi)
+    north, south = r < 0, r >= height
+    r = np.where(north, -1 - r, np.where(south, 2 * height - 1 - r, r))
+    c = np.where(north | south, c + width // 2, c)
+    r = np.clip(r, 0, height - 1)
+    c = np.mod(c, width)
+    return r * width + c, w.astype(np.float32)
+
+
+def _grid_taps(col: np.ndarray, row: np.ndarray, height: int, width: int):
+    """Bilinear taps into a Yin/Yang image at continuous (col, row), clamped to the border."""
+    col = np.clip(np.asarray(col, dtype=np.float64).ravel(), 0, width - 1)
+    row = np.clip(np.asarray(row, dtype=np.float64).ravel(), 0, height - 1)
+    c0 = np.minimum(np.floor(col), max(width - 2, 0))
+    r0 = np.minimum(np.floor(row), max(height - 2, 0))
+    fc = (col - c0)[:, None]
+    fr = (row - r0)[:, None]
+    c = np.minimum(c0.astype(np.int64)[:, None] + np.array([0, 1, 0, 1]), width - 1)
+    r = np.minimum(r0.astype(np.int64)[:, None] + np.array([0, 0, 1, 1]), height - 1)
+    w = np.concatenate([(1 - fc) * (1 - fr), fc * (1 - fr), (1 - fc) * fr, fc * fr], axis=1)
+    return r * width + c, w.astype(np.float32)
+
+
+@lru_cache(maxsize=16)
+def _to_grid_maps(kind: str, h: int, w: int, height: int, width: int, nearest: bool):
+    d = geo.grid_directions(kind, h, w).reshape(-1, 3)
+    col, row = geo.project_to_grid("erp", d, height, width)
+    idx, wts = _erp_taps(col, row, height, width, nearest)
+    idx.setflags(write=False)
+    wts.setflags(write=False)
+    return idx, wts
+
+
+def erp_to_yin_yang(erp: np.ndarray, *, height: int | None = None, nearest: bool = False):
+    """Sample the Yin and Yang images of an ERP image.
+
+    erp: (H, W[, C]) ERP image. height: Yin/Yang height h (default H // 2);
+    both outputs are (h, 3h[, C]) float32. ``nearest=True`` picks the nearest
+    ERP pixel instead of bilinear weights (for depth maps, so no range is
+    invented across depth edges).
+    """
+    img, squeeze = _as_hwc(erp)
+    big_h, big_w = img.shape[:2]
+    h = int(height) if height is not None else big_h // 2
+    if h < 1:
+        raise ValueError(f"Yin/Yang height must be >= 1, got {h}")
+    outs = []
+    for kind in ("yin", "yang"):
+        idx, wts = _to_grid_maps(kind, h, 3 * h, big_h, big_w, bool(nearest))
+        out = _gather(img, idx, wts).reshape(h, 3 * h, img.shape[2])
+        outs.append(out[:, :, 0] if squeeze else out)
+    return outs[0], outs[1]
+
+
+#: Blend feather in Yin/Yang pixel pitches (see :func:`blend_weight_yin`).
+FEATHER_PIXELS = 1.0
+
+
+def _margin(kind: str, d: np.ndarray) -> np.ndarray:
+    """Angular margin (radians, <0 outside) of directions inside a Yin/Yang domain."""
+    lat, lon = geo.lat_lon_from_direction(geo.to_grid_frame(kind, d))
+    return np.minimum(geo.YIN_LAT_MAX - np.abs(lat), (geo.YIN_LON_MAX - np.abs(lon)) * np.cos(lat))
+
+
+def blend_weight_yin(d: np.ndarray, feather: float = 0.0) -> np.ndarray:
+    """Yin blend weight in [0, 1] of camera-frame directions (..., 3); Yang gets 1 - w.
+
+    ``feather`` (radians) widens both domains for the blend: along the parts
+    of the boundary where Yin's and Yang's edges coincide (lon = +-3pi/4 near
+    the equator) the overlap has zero width, so without it the merge would
+    switch sources between two pixels. Samples up to ``feather`` outside a
+    grid read its clamped border pixel.
+    """
+    m_yin = np.maximum(_margin("yin", d) + feather, 0.0)
+    m_yang = np.maximum(_margin("yang", d) + feather, 0.0)
+    tot = m_yin + m_yang
+    t = np.where(tot > 0, m_yin / np.where(tot > 0, tot, 1.0), 0.5)
+    return t * t * (3.0 - 2.0 * t)
+
+
+@lru_cache(maxsize=16)
+def _from_grid_maps(h: int, w: int, height: int, width: int):
+    """Merged taps (P, 8) into the stacked [Yin; Yang] pixels for every ERP pixel."""
+    d = geo.grid_directions("erp", height, width).reshape(-1, 3)
+    wy = blend_weight_yin(d, feather=FEATHER_PIXELS * 2 * geo.YIN_LAT_MAX / h).astype(np.float32)[:, None]
+    taps = []
+    for kind, scale in (("yin", wy), ("yang", 1.0 - wy)):
+        col, row = geo.project_to_grid(kind, d, h, w)
+        idx, wts = _grid_taps(col, row, h, w)
+        if kind == "yang":
+            idx = idx + h * w
+        taps.append((idx, wts * scale))
+    idx = np.concatenate([taps[0][0], taps[1][0]], axis=1)
+    wts = np.concatenate([taps[0][1], taps[1][1]], axis=1)
+    idx, wts = np.ascontiguousarray(idx), np.ascontiguousarray(wts)
+    idx.setflags(write=False)
+    wts.setflags(write=False)
+    return idx, wts
+
+
+def yin_yang_to_erp(yin: np.ndarray, yang: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Merge Yin and Yang images (h, w[, C]) into an ERP image (height, width[, C]) float32.
+
+    Bilinear sampling of each grid at every ERP pixel centre, blended with
+    :func:`blend_weight_yin` (weights sum to 1). To merge rendered images with
+    partial coverage, pass premultiplied colour and alpha as channels and
+    divide afterwards (what :func:`rasterizer.render.render` does).
+    """
+    a, squeeze = _as_hwc(yin)
+    b, _ = _as_hwc(yang)
+    if a.shape != b.shape:
+        raise ValueError(f"Yin and Yang images differ in shape: {a.shape} vs {b.shape}")
+    h, w, c = a.shape
+    idx, wts = _from_grid_maps(h, w, int(height), int(width))
+    both = np.concatenate([a.reshape(-1, c), b.reshape(-1, c)]).astype(np.float32, copy=False)
+    out = _gather(both[:, None, :], idx, wts).reshape(int(height), int(width), c)
+    return out[:, :, 0] if squeeze else out
+
+
+# ---------------------------------------------------------------------------
+# ERP resizing
+# ---------------------------------------------------------------------------
+
+@lru_cache(maxsize=32)
+def _axis_taps(n_in: int, n_out: int, wrap: bool):
+    """Resampling taps (n_out, T) along one axis: area average when shrinking, bilinear otherwise.
+
+    Pixel-centre convention: output pixel j covers [j, j+1) * n_in / n_out of
+    the input axis. ``wrap`` makes the axis periodic (ERP longitude);
+    otherwise the edge pixel is repeated.
+    """
+    if n_out < n_in:
+        s = n_in / n_out
+        t = int(np.ceil(s)) + 1
+        lo = np.arange(n_out) * s
+        first = np.floor(lo).astype(np.int64)
+        k = first[:, None] + np.arange(t)
+        left = np.maximum(k, lo[:, None])
+        right = np.minimum(k + 1, lo[:, None] + s)
+        wts = np.maximum(right - left, 0.0) / s
+    else:
+        x = (np.arange(n_out) + 0.5) * n_in / n_out - 0.5
+        x0 = np.floor(x)
+        f = x - x0
+        k = x0.astype(np.int64)[:, None] + np.array([0, 1])
+        wts = np.stack([1 - f, f], axis=1)
+    k = np.mod(k, n_in) if wrap else np.clip(k, 0, n_in - 1)
+    return k, wts.astype(np.float32)
+
+
+def resize_erp(img: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Resize an ERP image (H, W[, C]) to (height, width[, C]) float32.
+
+    Area averaging when shrinking an axis, bilinear when enlarging it;
+    longitude wraps, latitude repeats the edge row. Same size: a float32 copy.
+    """
+    a, squeeze = _as_hwc(img)
+    if height < 1 or width < 1:
+        raise ValueError(f"target size must be positive, got {height}x{width}")
+    a = a.astype(np.float32)
+    h, w, c = a.shape
+    if h != height:
+        k, wts = _axis_taps(h, int(height), False)
+        a = np.einsum("ot,otwc->owc", wts, a[k])
+    if w != width:
+        k, wts = _axis_taps(w, int(width), True)
+        a = np.einsum("ot,hotc->hoc", wts, a[:, k])
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    return a[:, :, 0] if squeeze else a

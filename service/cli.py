@@ -1,0 +1,307 @@
+"""The ``omnisplat`` command line.
+
+    omnisplat serve                       # HTTP API on 127.0.0.1:8000 (builds the model first if missing)
+    omnisplat reconstruct SCENE_DIR -o scene.ply
+    omnisplat reconstruct a.jpg b.jpg --poses poses.json -o scene.ply
+    omnisplat render scene.ply --c2w 1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1 -o view.png
+    omnisplat export --help               # build an ONNX model (needs the `export` extra, i.e. torch)
+    omnisplat bench render --json         # renderer timings; `bench quality`, `bench stability`
+
+Heavy modules (onnxruntime, the renderer, torch for `export`) are imported only by the
+sub-command that needs them, so `omnisplat --help` is instant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+#: Sub-commands handled by another module's ``main(argv)``: name -> (module, what to install if absent).
+FORWARDED = {
+    "export": ("export.onnx_export", "the export extra: pip install -e '.[export]' (torch)"),
+    "refine": ("service.refine_cli", "a release with refinement (not implemented yet)"),
+}
+BENCH = {
+    "render": ("rasterizer.benchmark", "renderer timings (error against run time of the rasterizer)"),
+    "quality": ("service.bench_quality", "reconstruction quality against run time on scene folders"),
+    "stability": ("service.bench_stability", "stability of outputs under input perturbations"),
+}
+
+
+class CliError(Exception):
+    """A user-facing error: printed as one line, exit status 2."""
+
+
+def _say(msg: str) -> None:
+    print(f"[omnisplat] {msg}", file=sys.stderr, flush=True)
+
+
+def _forward(module: str, hint: str, argv: list[str]) -> int:
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name and (module == exc.name or module.startswith(exc.name + ".")):
+            raise CliError(f"not available: module {module} is not installed in this checkout ({hint})") from None
+        raise CliError(f"not available: {module} needs {exc.name!r}, which is not installed ({hint})") from None
+    result = mod.main(argv)
+    return int(result or 0)
+
+
+# -- serve ----------------------------------------------------------------------
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from .app import create_app
+    from .config import Settings
+    from .model_files import ModelUnavailable, ensure_model
+
+    overrides = {k: v for k, v in {
+        "host": args.host, "port": args.port, "store_dir": args.store, "model_path": args.model,
+        "models_dir": args.models_dir, "ort_threads": args.threads,
+        "max_upload_bytes": None if args.max_upload_mb is None else int(args.max_upload_mb * 1024 * 1024),
+    }.items() if v is not None}
+    settings = Settings(**overrides)
+    try:
+        ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build)
+    except ModelUnavailable as exc:
+        raise CliError(str(exc)) from None
+    _say(f"model {settings.resolved_model_path}; scenes in {settings.store_dir}")
+    _say(f"serving on http://{settings.host}:{settings.port} (docs at /docs; /readyz turns 200 after warm-up)")
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=args.log_level,
+                timeout_keep_alive=30, limit_concurrency=args.limit_concurrency)
+    return 0
+
+
+# -- reconstruct -------------------------------------------------------------------
+
+def _load_pair(args: argparse.Namespace):
+    """(erp_a, erp_b, c2w_a, c2w_b, description) from a scene folder or two images + poses JSON."""
+    from rasterizer.geometry import PoseError
+    from rasterizer.scene_folder import load_image, load_scene
+
+    from .inputs import parse_poses
+
+    inputs = [Path(p) for p in args.inputs]
+    if len(inputs) == 1:
+        if not (inputs[0] / "scene.json").is_file():
+            raise CliError(f"{inputs[0]} is not a scene folder (no scene.json); pass a folder or two images")
+        try:
+            scene = load_scene(inputs[0])
+        except (PoseError, ValueError, KeyError) as exc:
+            raise CliError(f"{inputs[0]}: {exc}") from None
+        if args.refs:
+            refs = tuple(args.refs.split(","))
+        elif scene.splits:
+            refs = scene.splits[min(args.split, len(scene.splits) - 1)].references
+        else:
+            refs = tuple(list(scene.frames)[:2])
+        if len(refs) != 2 or any(r not in scene.frames for r in refs):
+            raise CliError(f"references {refs} are not two frames of {inputs[0]} (frames: {list(scene.frames)})")
+        fa, fb = scene.frames[refs[0]], scene.frames[refs[1]]
+        return fa.image(), fb.image(), fa.c2w, fb.c2w, {"scene": str(inputs[0]), "references": list(refs)}
+    if len(inputs) == 2:
+        if args.poses is None:
+            raise CliError("two images need --poses FILE.json: {\"convention\": \"opencv\", \"c2w\": [A, B]}")
+        from .errors import ServiceError
+
+        try:
+            poses = parse_poses(Path(args.poses).read_bytes())
+        except ServiceError as exc:
+            raise CliError(f"{args.poses}: {exc.message}") from None
+        except OSError as exc:
+            raise CliError(f"cannot read {args.poses}: {exc}") from None
+        try:
+            a, b = load_image(inputs[0]), load_image(inputs[1])
+        except OSError as exc:
+            raise CliError(f"cannot read image: {exc}") from None
+        return a, b, poses.c2w_a, poses.c2w_b, {"images": [str(p) for p in inputs]}
+    raise CliError("reconstruct takes a scene folder, or two images with --poses")
+
+
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from rasterizer.ply import write_ply
+
+    from .config import Settings
+    from .model_files import ModelUnavailable, ensure_model
+
+    erp_a, erp_b, c2w_a, c2w_b, source = _load_pair(args)  # bad inputs fail before any model build
+    for name, img in (("image A", erp_a), ("image B", erp_b)):
+        if img.shape[1] != 2 * img.shape[0]:
+            raise CliError(f"{name} is {img.shape[1]}x{img.shape[0]}; an ERP panorama must be exactly 2:1")
+    settings = Settings(**({"model_path": args.model} if args.model else {}))
+    try:
+        model = ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build)
+    except ModelUnavailable as exc:
+        raise CliError(str(exc)) from None
+    _say(f"loading model {model}")
+    from .encoder import EncoderInputError, OnnxEncoder
+
+    t0 = time.perf_counter()
+    encoder = OnnxEncoder(model, threads=args.threads)
+    load_s = time.perf_counter() - t0
+    _say(f"reconstructing {erp_a.shape[1]}x{erp_a.shape[0]} + {erp_b.shape[1]}x{erp_b.shape[0]} panoramas")
+    t0 = time.perf_counter()
+    try:
+        rec = encoder.reconstruct(erp_a, erp_b, c2w_a, c2w_b, near=args.near, far=args.far)
+    except EncoderInputError as exc:
+        raise CliError(str(exc)) from None
+    total = time.perf_counter() - t0
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_ply(out, rec.gaussians)
+    from .store import json_safe
+
+    summary = json_safe({
+        "ply": str(out), "num_gaussians": len(rec.gaussians), "source": source,
+        "model": {k: encoder.metadata.get(k) for k in ("name", "version", "sha256")},
+        "timings": {**(rec.timings or {}), "model_load": load_s, "total": total}, "info": rec.info,
+    })
+    text = json.dumps(summary, indent=2)
+    if args.json:
+        Path(args.json).write_text(text + "\n")
+    print(text)
+    _say(f"wrote {len(rec.gaussians)} Gaussians to {out} in {total:.2f} s")
+    return 0
+
+
+# -- render -------------------------------------------------------------------
+
+def _pose_from_args(args: argparse.Namespace):
+    from .errors import ServiceError
+    from .inputs import parse_c2w_query
+
+    if (args.c2w is None) == (args.pose is None):
+        raise CliError("give exactly one of --c2w '16 numbers' or --pose FILE.json")
+    try:
+        if args.c2w is not None:
+            return parse_c2w_query(args.c2w)
+        from rasterizer.geometry import PoseError, as_c2w
+
+        obj = json.loads(Path(args.pose).read_text())
+        matrix = obj["c2w"] if isinstance(obj, dict) else obj
+        convention = obj.get("convention", "opencv") if isinstance(obj, dict) else "opencv"
+        try:
+            return as_c2w(matrix, convention)
+        except PoseError as exc:
+            raise CliError(f"{args.pose}: {exc}") from None
+    except ServiceError as exc:
+        raise CliError(exc.message) from None
+    except (OSError, ValueError, KeyError) as exc:
+        raise CliError(f"cannot read pose: {exc}") from None
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    c2w = _pose_from_args(args)
+    from rasterizer.ply import read_ply
+    from rasterizer.render import render
+
+    from .images import encode, to_uint8_safe
+
+    try:
+        gaussians = read_ply(args.ply)
+    except (OSError, ValueError) as exc:
+        raise CliError(f"cannot read {args.ply}: {exc}") from None
+    fmt = "jpeg" if Path(args.output).suffix.lower() in (".jpg", ".jpeg") else "png"
+    kwargs = {"projection": args.projection, "width": args.width}
+    if args.projection == "perspective":
+        kwargs.update(height=args.height, fov_deg=args.fov_deg)
+    _say(f"rendering {len(gaussians)} Gaussians, {args.projection} {args.width} px wide")
+    t0 = time.perf_counter()
+    out = render(gaussians, c2w, **kwargs)
+    data = encode(to_uint8_safe(out.colour), fmt)
+    Path(args.output).write_bytes(data)
+    _say(f"wrote {args.output} in {time.perf_counter() - t0:.2f} s")
+    return 0
+
+
+# -- parser ---------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="omnisplat",
+        description="Two 360-degree panoramas (equirectangular, width = 2 x height) and their camera poses "
+                    "-> 3D Gaussians in one forward pass of an ONNX model on the CPU; render any view.",
+        epilog="Poses are camera-to-world 4x4 (or 3x4) matrices, OpenCV axes: x right, y down, z forward; "
+               "'opengl' (x right, y up, z backward) is accepted where a convention can be given. "
+               "Run 'omnisplat COMMAND --help' for a command's options.",
+    )
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    s = sub.add_parser("serve", help="run the HTTP API (builds the default model first if it is missing)",
+                       description="Run the HTTP API. Settings come from OMNISPLAT_* environment variables "
+                                   "(see service/config.py); these flags override them.")
+    s.add_argument("--host", help="interface to bind (default 127.0.0.1; 0.0.0.0 in containers)")
+    s.add_argument("--port", type=int, help="port (default 8000)")
+    s.add_argument("--store", type=Path, help="scene store folder (default ~/.omnisplat/scenes)")
+    s.add_argument("--model", type=Path, help="ONNX model file (default <models-dir>/omnisplat-default.onnx)")
+    s.add_argument("--models-dir", type=Path, help="where the default model is built (default ~/.omnisplat/models)")
+    s.add_argument("--no-build", action="store_true", help="fail instead of building a missing model")
+    s.add_argument("--threads", type=int, help="onnxruntime threads (default 2)")
+    s.add_argument("--max-upload-mb", type=float, help="request body limit in MiB (default 100)")
+    s.add_argument("--limit-concurrency", type=int, default=64,
+                   help="open connections before uvicorn answers 503 (default 64)")
+    s.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+    s.set_defaults(func=cmd_serve)
+
+    r = sub.add_parser("reconstruct", help="scene folder or two images + poses -> Gaussian PLY and a JSON summary",
+                       description="Reconstruct 3D Gaussians from two ERP panoramas, without the HTTP service.")
+    r.add_argument("inputs", nargs="+", help="a scene folder (scene.json), or two image files")
+    r.add_argument("--poses", help='with two images: JSON file {"convention": "opencv"|"opengl", "c2w": [A, B]}')
+    r.add_argument("--split", type=int, default=0, help="scene folder: which split's references (default 0)")
+    r.add_argument("--refs", help="scene folder: two frame names, e.g. 00,02 (overrides --split)")
+    r.add_argument("-o", "--output", default="scene.ply", help="output PLY (default scene.ply)")
+    r.add_argument("--json", help="also write the summary JSON to this file")
+    r.add_argument("--model", type=Path, help="ONNX model (default: the one `serve` uses, built if missing)")
+    r.add_argument("--no-build", action="store_true", help="fail instead of building a missing model")
+    r.add_argument("--near", type=float, help="nearest depth in metres (default from the baseline)")
+    r.add_argument("--far", type=float, help="farthest depth in metres")
+    r.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
+    r.set_defaults(func=cmd_reconstruct)
+
+    v = sub.add_parser("render", help="Gaussian PLY + camera pose -> image",
+                       description="Render a view of a Gaussian PLY with the CPU rasterizer.")
+    v.add_argument("ply", help="3DGS PLY file")
+    v.add_argument("--c2w", help="camera-to-world as 16 (or 12) comma-separated numbers, row-major, OpenCV")
+    v.add_argument("--pose", help='JSON file with a 4x4 matrix or {"convention": ..., "c2w": M}')
+    v.add_argument("--projection", default="erp", choices=["erp", "perspective", "yin", "yang"])
+    v.add_argument("--width", type=int, default=1024, help="image width (ERP height = width/2)")
+    v.add_argument("--height", type=int, help="perspective only (default = width)")
+    v.add_argument("--fov-deg", type=float, default=90.0, help="perspective only: horizontal field of view")
+    v.add_argument("-o", "--output", default="view.png", help="output .png or .jpg (default view.png)")
+    v.set_defaults(func=cmd_render)
+
+    sub.add_parser("export", help="build an ONNX model (needs torch: the export extra); see 'export --help'",
+                   add_help=False)
+    sub.add_parser("refine", help="refine a scene's colours/opacities (not available yet)", add_help=False)
+    b = sub.add_parser("bench", help="benchmarks: 'bench render', 'bench quality', 'bench stability'",
+                       description="Benchmarks; each forwards its options to its own parser.")
+    b.add_argument("which", choices=list(BENCH), help="; ".join(f"{k}: {v[1]}" for k, v in BENCH.items()))
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        if argv and argv[0] in FORWARDED:
+            module, hint = FORWARDED[argv[0]]
+            return _forward(module, hint, argv[1:])
+        if len(argv) >= 2 and argv[0] == "bench" and argv[1] in BENCH:
+            return _forward(BENCH[argv[1]][0], f"bench {argv[1]} is provided by {BENCH[argv[1]][0]}", argv[2:])
+        args = build_parser().parse_args(argv)
+        return int(args.func(args) or 0)
+    except CliError as exc:
+        print(f"omnisplat: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

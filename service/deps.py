@@ -1,0 +1,58 @@
+"""Dependencies shared by the routes, as ``Annotated`` aliases (state lives on ``app.state``)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Depends, Path, Request
+
+from .config import Settings
+from .errors import Busy
+from .inputs import SCENE_ID_PATTERN
+from .limits import WorkGate
+from .metrics import ServiceMetrics
+from .runtime import ModelRuntime
+from .store import SceneStore
+
+
+def _settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def _store(request: Request) -> SceneStore:
+    return request.app.state.store
+
+
+def _metrics(request: Request) -> ServiceMetrics:
+    return request.app.state.metrics
+
+
+def _runtime(request: Request) -> ModelRuntime:
+    return request.app.state.runtime
+
+
+def _ready_runtime(request: Request) -> ModelRuntime:
+    runtime: ModelRuntime = request.app.state.runtime
+    if not runtime.ready:
+        why = f"model failed to load: {runtime.error}" if runtime.error else "the model is still loading"
+        raise Busy(f"not ready: {why}", retry_after=request.app.state.settings.retry_after_s, code="not_ready")
+    return runtime
+
+
+def _inference_gate(request: Request) -> WorkGate:
+    return request.app.state.inference_gate
+
+
+def _render_gate(request: Request) -> WorkGate:
+    return request.app.state.render_gate
+
+
+SettingsDep = Annotated[Settings, Depends(_settings)]
+StoreDep = Annotated[SceneStore, Depends(_store)]
+MetricsDep = Annotated[ServiceMetrics, Depends(_metrics)]
+RuntimeDep = Annotated[ModelRuntime, Depends(_runtime)]
+ReadyRuntimeDep = Annotated[ModelRuntime, Depends(_ready_runtime)]
+InferenceGateDep = Annotated[WorkGate, Depends(_inference_gate)]
+RenderGateDep = Annotated[WorkGate, Depends(_render_gate)]
+SceneId = Annotated[str, Path(pattern=SCENE_ID_PATTERN, description="32 lower-case hex digits",
+                              examples=["0123456789abcdef0123456789abcdef"])]

@@ -1,0 +1,190 @@
+"""Runtime wrapper of the exported encoder: numpy + onnxruntime only (no torch).
+
+``OnnxEncoder(path).reconstruct(erp_a, erp_b, c2w_a, c2w_b)`` validates the
+inputs, resamples both panoramas to the model's size, computes the
+pose-dependent graph inputs (:mod:`rasterizer.sweep`), runs the graph and
+wraps the outputs in :class:`rasterizer.gaussians.Gaussians`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from rasterizer.gaussians import Gaussians
+from rasterizer.geometry import PoseError, as_c2w
+from rasterizer.yin_yang import resize_erp
+from rasterizer.sweep import MIN_BASELINE, baseline, default_near_far, sweep_inputs
+
+INPUT_NAMES = ("erp_a", "erp_b", "warp_grids", "rel_rt", "inv_depths", "c2w", "cam_quats")
+OUTPUT_NAMES = ("means", "scales", "quats", "opacities", "sh_dc", "range_maps", "confidence")
+KNOWN_OPTIONS = ("min_opacity",)
+
+
+class EncoderInputError(ValueError):
+    """An input the encoder cannot use (bad image, pose or option); the message says why."""
+
+
+@dataclass
+class Reconstruction:
+    """Result of :meth:`OnnxEncoder.reconstruct`.
+
+    gaussians: world-space Gaussians of both views (SH DC only).
+    timings: seconds per stage (resample, sweep_inputs, onnx, gaussians, total).
+    info: near, far, baseline, counts, model name/version/sha256.
+    range_maps, confidence: (2, G, Hg, Wg) per view and grid (Yin, Yang or ERP),
+    range in scene units along each pixel ray, confidence in [0, 1].
+    """
+
+    gaussians: Gaussians
+    timings: dict[str, float]
+    info: dict
+    range_maps: np.ndarray
+    confidence: np.ndarray = field(repr=False)
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _as_image(img, name: str) -> np.ndarray:
+    """Validated float32 (H, W, 3) in [0, 1] from uint8 or float input."""
+    arr = np.asarray(img)
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise EncoderInputError(f"{name} must be an (H, W, 3) RGB array, got shape {arr.shape}")
+    h, w = arr.shape[:2]
+    if h < 2 or w != 2 * h:
+        raise EncoderInputError(f"{name} must be an equirectangular panorama with width = 2 x height, got {w}x{h}")
+    if arr.dtype == np.uint8:
+        return arr.astype(np.float32) / np.float32(255.0)
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise EncoderInputError(f"{name} must be uint8 or float in [0, 1], got dtype {arr.dtype}")
+    if not np.all(np.isfinite(arr)):
+        raise EncoderInputError(f"{name} contains NaN or Inf")
+    lo, hi = float(arr.min()), float(arr.max())
+    if lo < -1e-3 or hi > 1.0 + 1e-3:
+        raise EncoderInputError(f"{name} float values must lie in [0, 1], got [{lo:.3g}, {hi:.3g}]")
+    return np.clip(arr, 0.0, 1.0).astype(np.float32)
+
+
+class OnnxEncoder:
+    """onnxruntime session of an exported encoder (CPU, explicit threading).
+
+    ``threads`` intra-op threads, one inter-op thread, sequential execution,
+    spinning off (the service shares the CPU with rendering).
+    """
+
+    def __init__(self, model_path, *, threads: int = 2) -> None:
+        self.path = Path(model_path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"encoder model not found: {self.path}")
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = int(threads)
+        so.inter_op_num_threads = 1
+        so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        so.add_session_config_entry("session.inter_op.allow_spinning", "0")
+        self.session = ort.InferenceSession(str(self.path), so, providers=["CPUExecutionProvider"])
+        props = dict(self.session.get_modelmeta().custom_metadata_map)
+        names = tuple(i.name for i in self.session.get_inputs())
+        if names != INPUT_NAMES:
+            raise ValueError(f"{self.path} is not an omnisplat encoder (inputs {names})")
+        self._meta = {**props, "sha256": _sha256(self.path), "path": str(self.path), "threads": int(threads)}
+        self.height = int(props["input_height"])
+        self.width = int(props["input_width"])
+        self.num_planes = int(props["num_planes"])
+        self.feature_size = (int(props["feature_height"]), int(props["feature_width"]))
+        self.erp_encoder = props.get("erp_encoder", "false") == "true"
+        self.near_default = float(props.get("near_default", 0.3))
+        self.far_default = float(props.get("far_default", 20.0))
+
+    @property
+    def metadata(self) -> dict:
+        """metadata_props of the model (strings; JSON fields decoded) plus sha256 and path."""
+        out = dict(self._meta)
+        for key in ("settings", "inputs"):
+            if key in out:
+                out[key] = json.loads(out[key])
+        return out
+
+    def warmup(self) -> float:
+        """Run one reconstruction on synthetic input; returns its seconds."""
+        rng = np.random.default_rng(0)
+        img = rng.random((self.height, self.width, 3), dtype=np.float32)
+        c2w_b = np.eye(4)
+        c2w_b[2, 3] = 1.0
+        return self.reconstruct(img, img, np.eye(4), c2w_b).timings["total"]
+
+    def reconstruct(self, erp_a, erp_b, c2w_a, c2w_b, *, near: float | None = None,
+                    far: float | None = None, **options) -> Reconstruction:
+        """Gaussians of two posed ERP panoramas (see the module docstring).
+
+        erp_a, erp_b: (H, W, 3) uint8 or float in [0, 1], W = 2H, any size
+        (the two may differ). c2w_a, c2w_b: 4x4 (or 3x4) OpenCV camera-to-world.
+        near, far: sweep range in scene units (default from the baseline,
+        :func:`rasterizer.sweep.default_near_far`). options: ``min_opacity``
+        drops Gaussians below that opacity. Raises :class:`EncoderInputError`.
+        """
+        unknown = sorted(set(options) - set(KNOWN_OPTIONS))
+        if unknown:
+            raise EncoderInputError(f"unknown encoder option(s) {unknown}; known: {list(KNOWN_OPTIONS)}")
+        t_start = time.perf_counter()
+        timings: dict[str, float] = {}
+        img_a, img_b = _as_image(erp_a, "erp_a"), _as_image(erp_b, "erp_b")
+        try:
+            pa, pb = as_c2w(c2w_a), as_c2w(c2w_b)
+        except PoseError as exc:
+            raise EncoderInputError(str(exc)) from None
+        b = baseline(pa, pb)
+        if b < MIN_BASELINE:
+            raise EncoderInputError("the two camera centres coincide: depth cannot be triangulated "
+                                    f"(baseline {b:.3g})")
+        n_def, f_def = default_near_far(pa, pb, near=self.near_default, far=self.far_default)
+        near = n_def if near is None else float(near)
+        far = f_def if far is None else float(far)
+        if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
+            raise EncoderInputError(f"need 0 < near < far, finite; got near={near}, far={far}")
+
+        t = time.perf_counter()
+        chw = [np.ascontiguousarray(resize_erp(im, self.height, self.width).transpose(2, 0, 1)[None]) for im in (img_a, img_b)]
+        timings["resample"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        feeds = sweep_inputs(pa, pb, near=near, far=far, num_planes=self.num_planes,
+                             feature_size=self.feature_size, erp_encoder=self.erp_encoder)
+        feeds["erp_a"], feeds["erp_b"] = chw
+        timings["sweep_inputs"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        out = dict(zip(OUTPUT_NAMES, self.session.run(list(OUTPUT_NAMES), {k: feeds[k] for k in INPUT_NAMES})))
+        timings["onnx"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        keep = None
+        min_opacity = float(options.get("min_opacity", 0.0))
+        if min_opacity > 0:
+            keep = out["opacities"] >= min_opacity
+        arrays = [out[k] if keep is None else out[k][keep] for k in ("means", "scales", "quats", "opacities", "sh_dc")]
+        arrays[4] = arrays[4][:, None, :]
+        gaussians = Gaussians(*arrays)
+        timings["gaussians"] = time.perf_counter() - t
+        timings["total"] = time.perf_counter() - t_start
+        info = {
+            "near": near, "far": far, "baseline": b, "num_planes": self.num_planes,
+            "num_gaussians": len(gaussians), "num_gaussians_raw": int(out["means"].shape[0]),
+            "grids": self._meta.get("grids"), "input_size": [self.height, self.width],
+            "mean_confidence": float(out["confidence"].mean()),
+            "model": {k: self._meta.get(k) for k in ("name", "version", "sha256")},
+        }
+        return Reconstruction(gaussians, timings, info, out["range_maps"], out["confidence"])

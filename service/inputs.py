@@ -1,0 +1,198 @@
+"""Parse and validate the non-image inputs: poses JSON, options JSON, render queries, scene ids.
+
+Every function raises :class:`service.errors.BadInput` (422) with a message naming the
+field and the problem; nothing here touches the store or the model.
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import math
+import re
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from rasterizer.geometry import PoseError, as_c2w
+
+from .errors import BadInput
+
+SCENE_ID_PATTERN = r"^[0-9a-f]{32}$"
+_SCENE_ID_RE = re.compile(SCENE_ID_PATTERN)
+MIN_BASELINE = 1e-6  # camera centres closer than this count as identical
+
+Projection = Literal["erp", "perspective", "yin", "yang"]
+ImageFormat = Literal["png", "jpeg"]
+
+
+def check_scene_id(scene_id: str) -> str:
+    """Scene ids are 32 lower-case hex digits; anything else (``..``, slashes) is refused."""
+    if not isinstance(scene_id, str) or not _SCENE_ID_RE.match(scene_id):
+        raise BadInput(f"malformed scene id {str(scene_id)[:80]!r}; expected 32 lower-case hex digits",
+                       code="invalid_scene_id")
+    return scene_id
+
+
+def _reject_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not allowed")
+
+
+def _json_object(text: str | bytes, field: str) -> Any:
+    try:
+        return json.loads(text, parse_constant=_reject_constant)
+    except (ValueError, RecursionError) as exc:
+        raise BadInput(f"{field}: not valid JSON ({exc})", code=f"invalid_{field}") from None
+
+
+@dataclass(frozen=True)
+class Poses:
+    convention: str
+    c2w_a: np.ndarray  # 4x4 OpenCV float64
+    c2w_b: np.ndarray
+
+    def as_json(self) -> dict:
+        return {"convention": "opencv", "input_convention": self.convention,
+                "c2w": [self.c2w_a.tolist(), self.c2w_b.tolist()]}
+
+
+def parse_poses(text: str | bytes) -> Poses:
+    """``{"convention": "opencv"|"opengl", "c2w": [A, B]}`` with 4x4 or 3x4 rigid matrices."""
+    obj = _json_object(text, "poses")
+    if not isinstance(obj, dict):
+        raise BadInput('poses: expected a JSON object {"convention": ..., "c2w": [A, B]}', code="invalid_poses")
+    convention = obj.get("convention", "opencv")
+    if convention not in ("opencv", "opengl"):
+        raise BadInput(f"poses.convention: expected 'opencv' or 'opengl', got {str(convention)[:40]!r}",
+                       code="invalid_poses")
+    mats = obj.get("c2w")
+    if not isinstance(mats, list) or len(mats) != 2:
+        raise BadInput("poses.c2w: expected a list of exactly two matrices [A, B]", code="invalid_poses")
+    out = []
+    for name, m in zip("AB", mats):
+        if not (isinstance(m, list) and all(isinstance(r, list) for r in m)
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool) for r in m for v in r)):
+            raise BadInput(f"poses.c2w[{name}]: expected a 4x4 or 3x4 list of numbers", code="invalid_pose")
+        try:
+            out.append(as_c2w(m, convention))
+        except PoseError as exc:
+            raise BadInput(f"poses.c2w[{name}]: {exc}", code="invalid_pose") from None
+    baseline = float(np.linalg.norm(out[0][:3, 3] - out[1][:3, 3]))
+    if not baseline > MIN_BASELINE:
+        raise BadInput(f"poses: the two camera centres are identical (baseline {baseline:.3g}); "
+                       "two views from one point carry no depth", code="identical_camera_centres")
+    return Poses(convention, out[0], out[1])
+
+
+def parse_options(text: str | bytes | None, accepted: set[str] | None) -> dict[str, Any]:
+    """Options JSON object; ``near``/``far`` must be positive with near < far.
+
+    ``accepted`` lists the keyword options the encoder takes (None: anything goes).
+    """
+    if text is None or (isinstance(text, (str, bytes)) and not text.strip()):
+        return {}
+    obj = _json_object(text, "options")
+    if not isinstance(obj, dict):
+        raise BadInput("options: expected a JSON object", code="invalid_options")
+    if len(obj) > 32:
+        raise BadInput("options: too many keys", code="invalid_options")
+    for key, value in obj.items():
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                  or not math.isfinite(value)):
+            raise BadInput(f"options.{key}: expected a finite number or null", code="invalid_options")
+    if accepted is not None:
+        unknown = sorted(set(obj) - accepted)
+        if unknown:
+            raise BadInput(f"options: unknown option(s) {unknown}; accepted: {sorted(accepted)}",
+                           code="invalid_options")
+    for key in ("near", "far"):
+        v = obj.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0):
+            raise BadInput(f"options.{key}: expected a positive number of metres", code="invalid_options")
+    mo = obj.get("min_opacity")
+    if mo is not None and not 0 <= mo < 1:
+        raise BadInput("options.min_opacity: expected a number in [0, 1)", code="invalid_options")
+    if obj.get("near") is not None and obj.get("far") is not None and not obj["near"] < obj["far"]:
+        raise BadInput("options: near must be smaller than far", code="invalid_options")
+    return obj
+
+
+def encoder_options(reconstruct) -> set[str] | None:
+    """Keyword options a ``reconstruct`` callable accepts (None when it takes ``**kwargs``)."""
+    try:
+        sig = inspect.signature(reconstruct)
+    except (TypeError, ValueError):
+        return None
+    names = set()
+    for p in list(sig.parameters.values())[4:]:  # skip erp_a, erp_b, c2w_a, c2w_b
+        if p.kind is inspect.Parameter.VAR_KEYWORD:
+            return None
+        if p.kind in (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD):
+            names.add(p.name)
+    return names
+
+
+def parse_c2w_query(text: str) -> np.ndarray:
+    """``c2w`` query: 16 or 12 comma-separated numbers, row-major, OpenCV camera-to-world."""
+    parts = [p.strip() for p in str(text).split(",")]
+    if len(parts) not in (12, 16):
+        raise BadInput(f"c2w: expected 16 (4x4) or 12 (3x4) comma-separated numbers, got {len(parts)}",
+                       code="invalid_pose")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise BadInput("c2w: every entry must be a number", code="invalid_pose") from None
+    if not all(math.isfinite(v) for v in values):
+        raise BadInput("c2w: contains NaN or Inf", code="invalid_pose")
+    try:
+        return as_c2w(np.array(values).reshape(-1, 4), "opencv")
+    except PoseError as exc:
+        raise BadInput(f"c2w: {exc}", code="invalid_pose") from None
+
+
+@dataclass(frozen=True)
+class RenderQuery:
+    c2w: np.ndarray
+    projection: str
+    width: int
+    height: int | None
+    fov_deg: float
+    format: str
+
+    def output_size(self) -> tuple[int, int]:
+        """(height, width) of the rendered image."""
+        if self.projection == "erp":
+            return self.width // 2, self.width
+        if self.projection in ("yin", "yang"):
+            return self.width // 3, self.width
+        return (self.height if self.height is not None else self.width), self.width
+
+
+def check_render_query(c2w: str, projection: str, width: int, height: int | None, fov_deg: float, fmt: str,
+                       *, max_width: int, max_pixels: int) -> RenderQuery:
+    pose = parse_c2w_query(c2w)
+    if projection not in ("erp", "perspective", "yin", "yang"):
+        raise BadInput(f"projection: expected erp, perspective, yin or yang, got {projection!r}",
+                       code="invalid_render_query")
+    if fmt not in ("png", "jpeg"):
+        raise BadInput(f"format: expected png or jpeg, got {fmt!r}", code="invalid_render_query")
+    min_width = {"erp": 8, "yin": 6, "yang": 6}.get(projection, 1)
+    if not (min_width <= width <= max_width):
+        raise BadInput(f"width: must be between {min_width} and {max_width}, got {width}", code="invalid_render_query")
+    if projection == "erp" and width % 2:
+        raise BadInput(f"width: an ERP render needs an even width (W = 2H), got {width}", code="invalid_render_query")
+    if projection in ("yin", "yang") and width % 3:
+        raise BadInput(f"width: a {projection} render needs a width divisible by 3 (w = 3h), got {width}",
+                       code="invalid_render_query")
+    if height is not None and projection != "perspective":
+        raise BadInput("height: only a perspective render takes a height", code="invalid_render_query")
+    if height is not None and not (1 <= height <= max_width):
+        raise BadInput(f"height: must be between 1 and {max_width}, got {height}", code="invalid_render_query")
+    if not (math.isfinite(fov_deg) and 1.0 <= fov_deg <= 170.0):
+        raise BadInput(f"fov_deg: must be between 1 and 170 degrees, got {fov_deg}", code="invalid_render_query")
+    query = RenderQuery(pose, projection, int(width), None if height is None else int(height), float(fov_deg), fmt)
+    h, w = query.output_size()
+    if h * w > max_pixels:
+        raise BadInput(f"render size {w}x{h} exceeds the limit of {max_pixels} pixels", code="invalid_render_query")
+    return query

@@ -1,0 +1,136 @@
+"""Back-pressure: a request-body cap enforced while streaming, and bounded work queues.
+
+* :class:`BodySizeLimit` is pure ASGI middleware. A declared ``Content-Length`` over the cap
+  is refused before any byte is read; a chunked body is counted as it streams in and
+  refused the moment it passes the cap (whatever the app answered is replaced by the 413).
+* :class:`WorkGate` runs blocking work in worker threads through its own anyio
+  ``CapacityLimiter`` (not Starlette's shared pool), with at most ``concurrency`` jobs
+  running and ``queue`` waiting; one more is refused at once with 503 + Retry-After.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any, Callable, TypeVar
+
+import anyio
+import anyio.to_thread
+
+from .errors import Busy, error_body, translate
+
+T = TypeVar("T")
+
+
+class _TooLarge(Exception):
+    pass
+
+
+class BodySizeLimit:
+    """ASGI middleware: 413 JSON error for request bodies over ``max_bytes``."""
+
+    def __init__(self, app, max_bytes: int, on_reject: Callable[[], None] | None = None) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+        self.on_reject = on_reject
+
+    async def _reject(self, send) -> None:
+        if self.on_reject is not None:
+            self.on_reject()
+        body = json.dumps(error_body(
+            "payload_too_large", f"request body exceeds the limit of {self.max_bytes} bytes")).encode()
+        await send({"type": "http.response.start", "status": 413,
+                    "headers": [(b"content-type", b"application/json"),
+                                (b"content-length", str(len(body)).encode()), (b"connection", b"close")]})
+        await send({"type": "http.response.body", "body": body})
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        for name, value in scope.get("headers", ()):
+            if name == b"content-length":
+                try:
+                    declared = int(value)
+                except ValueError:
+                    declared = -1
+                if declared > self.max_bytes:
+                    await self._reject(send)
+                    return
+        received = 0
+        exceeded = False
+        started = False
+
+        async def counting_receive():
+            nonlocal received, exceeded
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    exceeded = True
+                    raise _TooLarge()
+            return message
+
+        async def guarded_send(message):
+            nonlocal started
+            if exceeded:  # the app reacted to _TooLarge in its own way: answer 413 instead
+                return
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        try:
+            await self.app(scope, counting_receive, guarded_send)
+        except _TooLarge:
+            pass
+        except Exception:
+            if not exceeded:
+                raise
+        if exceeded and not started:
+            await self._reject(send)
+
+
+class WorkGate:
+    """Bounded thread-pool access for one kind of heavy work (inference, rendering)."""
+
+    def __init__(self, name: str, concurrency: int, queue: int, retry_after: int,
+                 on_reject: Callable[[], None] | None = None) -> None:
+        self.name = name
+        self.on_reject = on_reject
+        self.concurrency = concurrency
+        self.queue = queue
+        self.retry_after = retry_after
+        self.limiter = anyio.CapacityLimiter(concurrency)
+        self.admitted = 0  # running + waiting; only touched on the event loop thread
+        self.rejected = 0
+
+    @property
+    def running(self) -> int:
+        return int(self.limiter.borrowed_tokens)
+
+    @property
+    def waiting(self) -> int:
+        return max(0, self.admitted - self.running)
+
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        """Run ``fn(*args)`` in a worker thread, or raise :class:`Busy` if the queue is full."""
+        if self.admitted >= self.concurrency + self.queue:
+            self.rejected += 1
+            if self.on_reject is not None:
+                self.on_reject()
+            raise Busy(f"{self.name} queue is full ({self.concurrency} running, {self.queue} waiting); "
+                       f"retry in {self.retry_after} s", retry_after=self.retry_after, code="busy")
+        self.admitted += 1
+        try:
+            return await anyio.to_thread.run_sync(_translated, fn, args, limiter=self.limiter)
+        finally:
+            self.admitted -= 1
+
+
+def _translated(fn: Callable[..., T], args: tuple) -> T:
+    try:
+        return fn(*args)
+    except Exception as exc:  # domain errors leave the worker as ServiceErrors
+        mapped = translate(exc)
+        if mapped is exc:
+            raise
+        raise mapped from exc

@@ -1,0 +1,62 @@
+"""Find or build the ONNX model file the service runs.
+
+Building needs torch (the ``export`` extra); it is imported here only when a build is
+actually needed, so the runtime (and the Docker runtime stage) never imports it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+
+class ModelUnavailable(RuntimeError):
+    """The model file is missing and cannot be built here."""
+
+
+def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _say(msg: str) -> None:
+    print(f"[omnisplat] {msg}", file=sys.stderr, flush=True)
+
+
+def ensure_model(path: str | Path, *, build_if_missing: bool = True,
+                 progress: Callable[[str], None] = _say, **export_kwargs) -> Path:
+    """Return ``path`` if it exists; otherwise export the default model there (needs torch).
+
+    The export writes to a temporary name and renames, so an interrupted build never
+    leaves a half-written model that a later start would load.
+    """
+    path = Path(path)
+    if path.is_file():
+        return path
+    if not build_if_missing:
+        raise ModelUnavailable(f"model file {path} does not exist")
+    try:
+        from export.onnx_export import export_model  # imports torch
+    except ImportError as exc:
+        raise ModelUnavailable(
+            f"model file {path} does not exist and cannot be built here ({exc}). "
+            "Install the export extra (pip install -e '.[export]') or pass --model PATH to a prebuilt .onnx"
+        ) from None
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.building.onnx")
+    progress(f"building the ONNX model -> {path} (one-off, needs torch; this can take a minute)")
+    start = time.perf_counter()
+    try:
+        built = Path(export_model(tmp, **export_kwargs))
+        os.replace(built, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    progress(f"model built in {time.perf_counter() - start:.1f} s ({path.stat().st_size / 1e6:.1f} MB)")
+    return path

@@ -1,0 +1,1 @@
+"""One router per resource: scenes, jobs (refinement, added later), health/info/metrics."""

@@ -1,0 +1,47 @@
+"""Liveness, readiness, Prometheus metrics and service/model info."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request, Response
+from fastapi.responses import JSONResponse
+
+from .. import __version__
+from ..deps import MetricsDep, RuntimeDep, SettingsDep, StoreDep
+from ..schemas import Health, Info, Ready
+from ..store import json_safe
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/healthz", response_model=Health, summary="Liveness: the process answers")
+@router.get("/v2/health/live", response_model=Health, include_in_schema=False)
+async def healthz() -> Health:
+    return Health(status="ok")
+
+
+@router.get("/readyz", response_model=Ready, summary="Readiness: model loaded and warmed up",
+            responses={503: {"model": Ready, "description": "not ready yet (or the model failed to load)"}})
+@router.get("/v2/health/ready", response_model=Ready, include_in_schema=False)
+async def readyz(runtime: RuntimeDep, settings: SettingsDep) -> Response:
+    body = Ready(ready=runtime.ready, error=runtime.error)
+    if runtime.ready:
+        return JSONResponse(body.model_dump())
+    return JSONResponse(body.model_dump(), status_code=503, headers={"Retry-After": str(settings.retry_after_s)})
+
+
+@router.get("/metrics", summary="Prometheus metrics (text exposition format)",
+            response_class=Response, responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}})
+async def metrics(request: Request, metrics: MetricsDep, store: StoreDep) -> Response:
+    gates = [request.app.state.inference_gate, request.app.state.render_gate]
+    data, content_type = metrics.render(store, gates)
+    return Response(data, media_type=content_type)
+
+
+@router.get("/v1/info", response_model=Info, summary="Model name, version, sha256 and the service settings")
+async def info(runtime: RuntimeDep, settings: SettingsDep) -> Info:
+    model = json_safe(runtime.metadata)
+    model.setdefault("path", str(runtime.model_path))
+    model["load_seconds"] = runtime.load_seconds
+    model["warmup_seconds"] = runtime.warmup_seconds
+    return Info(service="omnisplat", service_version=__version__, model=model, ready=runtime.ready,
+                settings=settings.public())

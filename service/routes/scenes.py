@@ -1,0 +1,134 @@
+"""``/v1/scenes``: create from two panoramas, render, download the PLY, read metadata, delete."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Annotated
+
+import anyio.to_thread
+from fastapi import APIRouter, File, Form, Query, Response, UploadFile
+from fastapi.responses import FileResponse
+
+from .. import scenes as work
+from ..deps import (InferenceGateDep, MetricsDep, ReadyRuntimeDep, RenderGateDep, SceneId, SettingsDep,
+                    StoreDep)
+from ..errors import NotFound
+from ..images import MEDIA_TYPES
+from ..inputs import ImageFormat, Projection, check_render_query, parse_options, parse_poses
+from ..schemas import SceneCreated, SceneMeta, error_responses
+
+router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
+
+_IDENTITY = "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1"
+_POSES_EXAMPLE = json.dumps({"convention": "opencv", "c2w": [
+    [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
+    [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]]})
+_IMMUTABLE = "public, max-age=31536000, immutable"
+
+
+def _require_scene(store, scene_id: str) -> None:
+    if not store.exists(scene_id):
+        raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
+
+
+@router.post(
+    "", status_code=201, response_model=SceneCreated, summary="Reconstruct a scene from two ERP panoramas",
+    responses=error_responses(400, 413, 422, 503),
+)
+async def create_scene(
+    response: Response,
+    image_a: Annotated[UploadFile, File(description="first ERP panorama (PNG/JPEG/WebP/TIFF/BMP, width = 2 x height)")],
+    image_b: Annotated[UploadFile, File(description="second ERP panorama (any 2:1 size)")],
+    poses: Annotated[str, Form(description='JSON {"convention": "opencv"|"opengl", "c2w": [A, B]}, '
+                                           "each camera-to-world 4x4 or 3x4", examples=[_POSES_EXAMPLE])],
+    settings: SettingsDep,
+    store: StoreDep,
+    runtime: ReadyRuntimeDep,
+    gate: InferenceGateDep,
+    metrics: MetricsDep,
+    options: Annotated[str | None, Form(description='optional JSON object, e.g. {"near": 0.5, "far": 20, '
+                                                          '"min_opacity": 0.05}; numbers only')] = None,
+) -> SceneCreated:
+    parsed_poses = parse_poses(poses)
+    parsed_options = parse_options(options, runtime.accepted_options)
+    data_a, data_b = await image_a.read(), await image_b.read()
+    limits = work.UploadLimits(settings.max_image_pixels, settings.min_image_height)
+    await anyio.to_thread.run_sync(work.precheck_uploads, data_a, data_b, limits)
+    scene_id = await anyio.to_thread.run_sync(
+        work.scene_id_for, runtime.sha256, data_a, data_b, parsed_poses, parsed_options)
+    response.headers["Location"] = f"/v1/scenes/{scene_id}"
+    if store.exists(scene_id):
+        meta = store.meta(scene_id)
+        return SceneCreated(id=scene_id, num_gaussians=meta["num_gaussians"], timings=meta.get("timings", {}),
+                            links=work.links(scene_id), cached=True)
+    meta, timings = await gate.run(work.create_scene, runtime, store, scene_id, data_a, data_b,
+                                   parsed_poses, parsed_options, limits)
+    metrics.observe_stages(timings)
+    metrics.scenes_created.inc()
+    return SceneCreated(id=scene_id, num_gaussians=meta["num_gaussians"], timings=timings,
+                        links=work.links(scene_id))
+
+
+_IMAGE_CONTENT = {t: {"schema": {"type": "string", "format": "binary"}} for t in MEDIA_TYPES.values()}
+
+
+@router.get(
+    "/{scene_id}/render", response_class=Response, summary="Render a novel view",
+    responses={200: {"content": _IMAGE_CONTENT, "description": "the rendered image"},
+               **error_responses(404, 422, 503)},
+)
+async def render_scene(
+    scene_id: SceneId,
+    store: StoreDep,
+    settings: SettingsDep,
+    gate: RenderGateDep,
+    metrics: MetricsDep,
+    c2w: Annotated[str, Query(description="camera-to-world, 16 (4x4) or 12 (3x4) comma-separated numbers, "
+                                          "row-major, OpenCV (x right, y down, z forward)",
+                              examples=[_IDENTITY])],
+    width: Annotated[int, Query(description="image width in pixels (ERP: height = width/2; yin/yang: width/3)")] = 1024,
+    projection: Annotated[Projection, Query()] = "erp",
+    height: Annotated[int | None, Query(description="perspective only; default = width")] = None,
+    fov_deg: Annotated[float, Query(description="perspective only: horizontal field of view")] = 90.0,
+    format: Annotated[ImageFormat, Query()] = "png",
+) -> Response:
+    query = check_render_query(c2w, projection, width, height, fov_deg, format,
+                               max_width=settings.max_render_width, max_pixels=settings.max_render_pixels)
+    _require_scene(store, scene_id)
+    data, timings = await gate.run(work.render_scene, store, scene_id, query)
+    metrics.observe_stages({f"render_{k}": v for k, v in timings.items()})
+    etag = hashlib.sha256(f"{scene_id}|{query.c2w.round(9).tolist()}|{projection}|{width}|{height}|"
+                          f"{fov_deg}|{format}".encode()).hexdigest()[:32]
+    return Response(data, media_type=MEDIA_TYPES[format],
+                    headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{etag}"',
+                             "Server-Timing": ", ".join(f"{k};dur={v * 1000:.1f}" for k, v in timings.items())})
+
+
+@router.get(
+    "/{scene_id}/gaussians.ply", response_class=FileResponse, summary="The Gaussians as a 3DGS PLY",
+    responses={200: {"content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
+                     "description": "binary little-endian INRIA 3DGS PLY in the input world frame"},
+               **error_responses(404, 422, 503)},
+)
+async def scene_ply(scene_id: SceneId, store: StoreDep, gate: RenderGateDep) -> FileResponse:
+    _require_scene(store, scene_id)
+    path = await gate.run(work.ply_path, store, scene_id)
+    return FileResponse(path, media_type="application/octet-stream", filename=f"{scene_id}.ply",
+                        headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{scene_id}-ply"'})
+
+
+@router.get("/{scene_id}", response_model=SceneMeta, summary="Scene metadata",
+            responses=error_responses(404, 422))
+async def scene_meta(scene_id: SceneId, store: StoreDep) -> SceneMeta:
+    _require_scene(store, scene_id)
+    meta = await anyio.to_thread.run_sync(store.meta, scene_id)
+    return SceneMeta(**{**meta, "links": work.links(scene_id)})
+
+
+@router.delete("/{scene_id}", status_code=204, response_class=Response, summary="Delete a scene",
+               responses=error_responses(404, 422))
+async def delete_scene(scene_id: SceneId, store: StoreDep) -> Response:
+    if not await anyio.to_thread.run_sync(store.delete, scene_id):
+        raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
+    return Response(status_code=204)

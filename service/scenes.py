@@ -1,0 +1,123 @@
+"""Scene work, independent of HTTP: build a scene from two uploads, render it, export its PLY.
+
+Functions here are blocking (numpy, onnxruntime, disk) and run in worker threads through
+a :class:`service.limits.WorkGate`; routes only parse, dispatch and shape responses.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ServiceError
+from .images import check_header, decode_rgb, encode, to_uint8_safe
+from .inputs import Poses, RenderQuery
+from .runtime import ModelRuntime
+from .store import SceneStore, content_id
+
+
+def links(scene_id: str) -> dict[str, str]:
+    base = f"/v1/scenes/{scene_id}"
+    return {"self": base, "render": f"{base}/render", "ply": f"{base}/gaussians.ply"}
+
+
+def scene_id_for(model_sha256: str, image_a: bytes, image_b: bytes, poses: Poses, options: dict) -> str:
+    """Content hash: same image bytes + poses + options + model file give the same id."""
+    pose_key = json.dumps([np.round(poses.c2w_a, 9).tolist(), np.round(poses.c2w_b, 9).tolist()])
+    return content_id("scene/v1", model_sha256, hashlib.sha256(image_a).hexdigest(),
+                      hashlib.sha256(image_b).hexdigest(), pose_key, json.dumps(options, sort_keys=True))
+
+
+@dataclass(frozen=True)
+class UploadLimits:
+    max_pixels: int
+    min_height: int
+
+
+def precheck_uploads(image_a: bytes, image_b: bytes, limits: UploadLimits) -> None:
+    """Header-only checks (format, 2:1, size, pixel cap): fast 4xx before queueing for the model."""
+    for field, data in (("image_a", image_a), ("image_b", image_b)):
+        check_header(data, field, max_pixels=limits.max_pixels, min_height=limits.min_height)
+
+
+def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_a: bytes, image_b: bytes,
+                 poses: Poses, options: dict, limits: UploadLimits) -> tuple[dict, dict[str, float]]:
+    """Decode, reconstruct and store; returns (scene metadata, this run's stage timings)."""
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    erp_a, head_a = decode_rgb(image_a, "image_a", max_pixels=limits.max_pixels, min_height=limits.min_height)
+    erp_b, head_b = decode_rgb(image_b, "image_b", max_pixels=limits.max_pixels, min_height=limits.min_height)
+    timings["decode"] = time.perf_counter() - t0
+
+    opts = dict(options)
+    near, far = opts.pop("near", None), opts.pop("far", None)
+    t0 = time.perf_counter()
+    rec = runtime.encoder.reconstruct(erp_a, erp_b, poses.c2w_a, poses.c2w_b, near=near, far=far, **opts)
+    total_model = time.perf_counter() - t0
+    for stage, seconds in (getattr(rec, "timings", None) or {}).items():
+        timings[str(stage)] = float(seconds)
+    timings.setdefault("reconstruct", total_model)
+
+    gaussians = rec.gaussians
+    finite = np.all(np.isfinite(gaussians.means), axis=1) & np.isfinite(gaussians.opacities)
+    finite &= np.all(np.isfinite(gaussians.scales), axis=1) & np.all(np.isfinite(gaussians.quats), axis=1)
+    finite &= np.all(np.isfinite(gaussians.sh.reshape(len(gaussians), -1)), axis=1)
+    dropped = int(len(gaussians) - finite.sum())
+    if dropped:
+        gaussians = gaussians.subset(finite)
+
+    meta = {
+        "model": {k: runtime.metadata.get(k) for k in ("name", "version", "sha256")},
+        "inputs": {"image_a": {**head_a.describe(), "sha256": hashlib.sha256(image_a).hexdigest()},
+                   "image_b": {**head_b.describe(), "sha256": hashlib.sha256(image_b).hexdigest()}},
+        "poses": poses.as_json(),
+        "options": options,
+        "info": {**(getattr(rec, "info", None) or {}), "dropped_non_finite": dropped},
+        "parent": None,
+        "created_at": time.time(),
+    }
+    t0 = time.perf_counter()
+    meta["timings"] = timings
+    stored = store.put(scene_id, gaussians, meta)
+    timings["store"] = time.perf_counter() - t0
+    return stored, timings
+
+
+def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[bytes, dict[str, float]]:
+    """Render one view of a stored scene to PNG/JPEG bytes; never returns NaN pixels."""
+    from rasterizer.render import render  # renderer owner's module; numpy only
+
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    gaussians = store.gaussians(scene_id)
+    timings["load"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    kwargs = {"projection": query.projection, "width": query.width}
+    if query.projection == "perspective":
+        kwargs.update(height=query.height, fov_deg=query.fov_deg)
+    out = render(gaussians, query.c2w, **kwargs)
+    timings["render"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    rgb = to_uint8_safe(out.colour)
+    h, w = query.output_size()
+    if rgb.shape[:2] != (h, w):
+        raise ServiceError(f"renderer returned {rgb.shape[:2]}, expected {(h, w)}", code="render_failed",
+                           status=500)
+    data = encode(rgb, query.format)
+    timings["encode"] = time.perf_counter() - t0
+    return data, timings
+
+
+def ply_path(store: SceneStore, scene_id: str) -> Path:
+    """The scene's PLY on disk, written (atomically) on first request."""
+    existing = store.artifact(scene_id, "gaussians.ply")
+    if existing is not None:
+        return existing
+    from rasterizer.ply import ply_bytes
+
+    return store.put_artifact(scene_id, "gaussians.ply", ply_bytes(store.gaussians(scene_id)))

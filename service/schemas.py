@@ -1,0 +1,70 @@
+"""Response schemas of the HTTP API (documented in the OpenAPI at /docs)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class ErrorDetail(BaseModel):
+    code: str = Field(examples=["bad_aspect_ratio"])
+    message: str
+
+
+class ErrorResponse(BaseModel):
+    error: ErrorDetail
+
+
+class Links(BaseModel):
+    self: str
+    render: str
+    ply: str
+
+
+class SceneCreated(BaseModel):
+    id: str = Field(description="content hash of inputs, options and model: same inputs, same id")
+    num_gaussians: int
+    timings: dict[str, float] = Field(description="seconds per stage of this request")
+    links: Links
+    cached: bool = Field(False, description="true when the scene already existed and nothing was recomputed")
+
+
+class SceneMeta(BaseModel):
+    """Stored metadata of a scene (more keys may appear; unknown ones are passed through)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    id: str
+    num_gaussians: int
+    created_at: float
+    model: dict[str, Any]
+    poses: dict[str, Any]
+    options: dict[str, Any]
+    timings: dict[str, float]
+    parent: str | None = None
+    links: Links
+
+
+class Health(BaseModel):
+    status: str
+
+
+class Ready(BaseModel):
+    ready: bool
+    error: str | None = None
+
+
+class Info(BaseModel):
+    service: str
+    service_version: str
+    model: dict[str, Any]
+    ready: bool
+    settings: dict[str, Any]
+
+
+def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """``responses=`` entries declaring the JSON error body for the given statuses."""
+    text = {400: "Malformed input", 404: "Unknown scene", 413: "Upload or image too large",
+            422: "Invalid input", 503: "Busy or not ready (see Retry-After)"}
+    return {c: {"model": ErrorResponse, "description": text.get(c, "Error")} for c in codes}

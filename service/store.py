@@ -1,0 +1,291 @@
+"""On-disk scene store with an in-memory LRU of decoded scenes.
+
+Layout under ``root``::
+
+    scenes/<id>/gaussians.npz   # means, scales, quats, opacities, sh (float32, uncompressed)
+    scenes/<id>/meta.json       # inputs, poses, options, model, timings, parent...
+    scenes/<id>/gaussians.ply   # written on first download (atomic), optional
+    tmp/                        # scenes being written; cleared at start-up
+    trash/                      # scenes being deleted; cleared at start-up
+
+A scene is written into ``tmp/<random>/`` (each file fsynced), then renamed to
+``scenes/<id>`` in one ``os.replace`` and the parent directory fsynced: a crash leaves
+either no scene or a whole one, never half. Ids are content hashes (see
+:func:`content_id`), so two writers of one id write the same thing and the second one
+simply drops its copy. Nothing here knows about HTTP or the model: a derived scene
+(e.g. refined from another) is ``store.put(content_id("refine", parent_id, params), ...)``
+with ``meta["parent"] = parent_id``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import threading
+import time
+import uuid
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from rasterizer.gaussians import Gaussians
+
+from .inputs import check_scene_id
+
+log = logging.getLogger("omnisplat.store")
+
+_FIELDS = ("means", "scales", "quats", "opacities", "sh")
+
+
+class SceneNotFound(KeyError):
+    """No scene with that id in the store."""
+
+    def __init__(self, scene_id: str) -> None:
+        super().__init__(scene_id)
+        self.scene_id = scene_id
+
+    def __str__(self) -> str:
+        return f"no scene with id {self.scene_id!r}"
+
+
+class StoreCorrupt(RuntimeError):
+    """A stored scene cannot be read back (disk damage or outside interference)."""
+
+
+def content_id(*parts: bytes | str) -> str:
+    """A 32-hex-digit id from a sequence of parts (length-prefixed, so parts cannot run together)."""
+    h = hashlib.sha256()
+    for part in parts:
+        b = part.encode() if isinstance(part, str) else bytes(part)
+        h.update(len(b).to_bytes(8, "little"))
+        h.update(b)
+    return h.hexdigest()[:32]
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _write_file(path: Path, writer: Callable[[Any], None]) -> None:
+    with open(path, "wb") as f:
+        writer(f)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def json_safe(obj: Any) -> Any:
+    """Convert numpy scalars/arrays (and Paths) nested in dicts/lists to plain JSON values."""
+    if isinstance(obj, dict):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return json_safe(obj.tolist()) if obj.size <= 64 else f"<array {obj.shape} {obj.dtype}>"
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    if obj is None or isinstance(obj, (bool, int, float, str)):
+        return obj
+    return str(obj)
+
+
+class _LRU:
+    """Bounded by entry count and by bytes; thread-safe."""
+
+    def __init__(self, max_items: int, max_bytes: int) -> None:
+        self.max_items, self.max_bytes = max_items, max_bytes
+        self._data: OrderedDict[str, tuple[Gaussians, int]] = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+        self.hits = self.misses = 0
+
+    def get(self, key: str) -> Gaussians | None:
+        with self._lock:
+            item = self._data.get(key)
+            if item is None:
+                self.misses += 1
+                return None
+            self._data.move_to_end(key)
+            self.hits += 1
+            return item[0]
+
+    def put(self, key: str, g: Gaussians) -> None:
+        size = sum(getattr(g, f).nbytes for f in _FIELDS)
+        with self._lock:
+            if key in self._data:
+                self._bytes -= self._data.pop(key)[1]
+            if self.max_items <= 0 or size > self.max_bytes:
+                return
+            self._data[key] = (g, size)
+            self._bytes += size
+            while len(self._data) > self.max_items or self._bytes > self.max_bytes:
+                _, (_, s) = self._data.popitem(last=False)
+                self._bytes -= s
+
+    def drop(self, key: str) -> None:
+        with self._lock:
+            item = self._data.pop(key, None)
+            if item is not None:
+                self._bytes -= item[1]
+
+    @property
+    def nbytes(self) -> int:
+        return self._bytes
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+
+class SceneStore:
+    """Scenes on local disk (durable, atomic) plus a bounded in-memory LRU of their Gaussians."""
+
+    def __init__(self, root: str | Path, *, cache_scenes: int = 8, cache_bytes: int = 1 << 30,
+                 max_scenes: int = 0) -> None:
+        self.root = Path(root)
+        self.scenes_dir = self.root / "scenes"
+        self.tmp_dir = self.root / "tmp"
+        self.trash_dir = self.root / "trash"
+        for d in (self.scenes_dir, self.tmp_dir, self.trash_dir):
+            d.mkdir(parents=True, exist_ok=True)
+        for d in (self.tmp_dir, self.trash_dir):  # leftovers of a crash: never visible as scenes
+            for child in d.iterdir():
+                shutil.rmtree(child, ignore_errors=True) if child.is_dir() else child.unlink(missing_ok=True)
+        self.max_scenes = max_scenes
+        self.cache = _LRU(cache_scenes, cache_bytes)
+        self._meta_cache: dict[str, dict] = {}
+        self._lock = threading.Lock()
+
+    # -- paths ------------------------------------------------------------------
+    def _dir(self, scene_id: str) -> Path:
+        return self.scenes_dir / check_scene_id(scene_id)
+
+    def exists(self, scene_id: str) -> bool:
+        return (self._dir(scene_id) / "meta.json").is_file()
+
+    def ids(self) -> list[str]:
+        return sorted(p.name for p in self.scenes_dir.iterdir() if (p / "meta.json").is_file())
+
+    def count(self) -> int:
+        return len(self.ids())
+
+    # -- write --------------------------------------------------------------------
+    def put(self, scene_id: str, gaussians: Gaussians, meta: dict) -> dict:
+        """Store a scene atomically and return its metadata (the existing one if the id is taken)."""
+        final = self._dir(scene_id)
+        if (final / "meta.json").is_file():
+            return self.meta(scene_id)
+        meta = json_safe({**meta, "id": scene_id, "num_gaussians": len(gaussians),
+                          "created_at": meta.get("created_at", time.time())})
+        staging = self.tmp_dir / f"{scene_id}-{uuid.uuid4().hex}"
+        staging.mkdir()
+        try:
+            arrays = {f: getattr(gaussians, f) for f in _FIELDS}
+            _write_file(staging / "gaussians.npz", lambda f: np.savez(f, **arrays))
+            text = json.dumps(meta, indent=1, sort_keys=True).encode()
+            _write_file(staging / "meta.json", lambda f: f.write(text))
+            _fsync_dir(staging)
+            try:
+                os.replace(staging, final)
+            except OSError:
+                if (final / "meta.json").is_file():  # a concurrent writer of the same id won
+                    shutil.rmtree(staging, ignore_errors=True)
+                    return self.meta(scene_id)
+                raise
+            _fsync_dir(self.scenes_dir)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        self.cache.put(scene_id, gaussians)
+        self._evict()
+        return meta
+
+    def put_artifact(self, scene_id: str, name: str, data: bytes) -> Path:
+        """Atomically add a derived file (e.g. the PLY) to an existing scene."""
+        folder = self._dir(scene_id)
+        if not folder.is_dir() or "/" in name or name.startswith("."):
+            raise SceneNotFound(scene_id)
+        target = folder / name
+        tmp = folder / f".{name}.{uuid.uuid4().hex}.tmp"
+        try:
+            _write_file(tmp, lambda f: f.write(data))
+            os.replace(tmp, target)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return target
+
+    def artifact(self, scene_id: str, name: str) -> Path | None:
+        path = self._dir(scene_id) / name
+        return path if path.is_file() else None
+
+    def delete(self, scene_id: str) -> bool:
+        """Remove a scene; it disappears in one rename, the files go afterwards."""
+        folder = self._dir(scene_id)
+        self.cache.drop(scene_id)
+        with self._lock:
+            self._meta_cache.pop(scene_id, None)
+        grave = self.trash_dir / f"{scene_id}-{uuid.uuid4().hex}"
+        try:
+            os.replace(folder, grave)
+        except FileNotFoundError:
+            return False
+        _fsync_dir(self.scenes_dir)
+        shutil.rmtree(grave, ignore_errors=True)
+        return True
+
+    def _evict(self) -> None:
+        if self.max_scenes <= 0:
+            return
+        ids = self.ids()
+        if len(ids) <= self.max_scenes:
+            return
+        ids.sort(key=lambda i: (self.scenes_dir / i).stat().st_mtime)
+        for victim in ids[: len(ids) - self.max_scenes]:
+            log.info("store full (%d scenes): evicting %s", self.max_scenes, victim)
+            self.delete(victim)
+
+    # -- read -------------------------------------------------------------------
+    def meta(self, scene_id: str) -> dict:
+        with self._lock:
+            cached = self._meta_cache.get(scene_id)
+        if cached is not None and self.exists(scene_id):
+            return cached
+        path = self._dir(scene_id) / "meta.json"
+        try:
+            meta = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise SceneNotFound(scene_id) from None
+        except ValueError as exc:
+            raise StoreCorrupt(f"scene {scene_id}: meta.json unreadable ({exc})") from None
+        with self._lock:
+            self._meta_cache[scene_id] = meta
+        return meta
+
+    def gaussians(self, scene_id: str) -> Gaussians:
+        g = self.cache.get(check_scene_id(scene_id))
+        if g is not None:
+            return g
+        path = self._dir(scene_id) / "gaussians.npz"
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                g = Gaussians(*(z[f] for f in _FIELDS))
+        except FileNotFoundError:
+            raise SceneNotFound(scene_id) from None
+        except Exception as exc:  # noqa: BLE001 - zip/shape errors all mean a damaged file
+            raise StoreCorrupt(f"scene {scene_id}: gaussians.npz unreadable ({exc})") from None
+        self.cache.put(scene_id, g)
+        return g

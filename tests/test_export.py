@@ -1,0 +1,121 @@
+"""ONNX export: checker, metadata, onnxruntime vs torch on real dev images, stage properties."""
+
+import json
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+
+from export.config import make_config
+from export.gaussian_head import GaussianHead
+from export.model import INPUT_NAMES, OUTPUT_NAMES, OmniSplatEncoder
+from export.onnx_export import export_model
+from export.yin_yang_sampling import YinYangSampler
+from rasterizer.depth_gaussians import gaussians_from_depth
+from rasterizer.scene_folder import load_scene
+from rasterizer.sweep import default_near_far, sweep_inputs
+from rasterizer.yin_yang import erp_to_yin_yang, resize_erp
+
+SMALL = dict(height=128, width=256, num_planes=8)
+# ORT vs torch: float32 graphs with identical ops; ranges in metres, others O(1).
+ATOL = {"means": 1e-3, "scales": 1e-5, "quats": 1e-5, "opacities": 1e-4, "sh_dc": 1e-4,
+        "range_maps": 1e-3, "confidence": 1e-4}
+
+
+@pytest.fixture(scope="module", params=[False, True], ids=["yinyang", "erp"])
+def exported(request, tmp_path_factory):
+    erp = request.param
+    path = export_model(tmp_path_factory.mktemp("onnx") / "enc.onnx", erp_encoder=erp, **SMALL)
+    return path, make_config("quality", erp_encoder=erp, **SMALL)
+
+
+def _feeds(m3d_dir, cfg):
+    scene = load_scene(m3d_dir)
+    fa, fb = scene.frames["00"], scene.frames["02"]
+    near, far = default_near_far(fa.c2w, fb.c2w)
+    si = sweep_inputs(fa.c2w, fb.c2w, near=near, far=far, num_planes=cfg.num_planes,
+                      feature_size=cfg.feature_size, erp_encoder=cfg.erp_encoder)
+    img = lambda f: np.ascontiguousarray(resize_erp(f.image(), cfg.height, cfg.width).transpose(2, 0, 1)[None])
+    return {"erp_a": img(fa), "erp_b": img(fb), **{k: si[k] for k in INPUT_NAMES[2:]}}
+
+
+def test_checker_and_metadata(exported):
+    path, cfg = exported
+    model = onnx.load(str(path))
+    onnx.checker.check_model(model)
+    meta = {p.key: p.value for p in model.metadata_props}
+    assert meta["input_height"] == "128" and meta["num_planes"] == "8"
+    assert meta["grids"] == ",".join(cfg.grids)
+    assert json.loads(meta["settings"])["erp_encoder"] is cfg.erp_encoder
+    assert [i.name for i in model.graph.input] == list(INPUT_NAMES)
+    assert [o.name for o in model.graph.output] == list(OUTPUT_NAMES)
+    ops = {n.op_type for n in model.graph.node}
+    assert not ops & {"Inverse", "Atan", "NonZero", "Loop"}
+
+
+def test_onnxruntime_matches_torch_on_dev_images(exported, m3d_dir):
+    path, cfg = exported
+    feeds = _feeds(m3d_dir, cfg)
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    got = dict(zip(OUTPUT_NAMES, sess.run(None, feeds)))
+    with torch.no_grad():
+        ref = OmniSplatEncoder(cfg).eval()(*[torch.from_numpy(feeds[k]) for k in INPUT_NAMES])
+    n = cfg.num_gaussians
+    assert got["means"].shape == (n, 3) and got["quats"].shape == (n, 4) and got["opacities"].shape == (n,)
+    for name, want in zip(OUTPUT_NAMES, ref):
+        assert np.all(np.isfinite(got[name])), name
+        np.testing.assert_allclose(got[name], want.numpy(), rtol=1e-4, atol=ATOL[name], err_msg=name)
+    # seam and pole pixels explicitly: first/last rows and columns of every grid
+    rng = got["range_maps"]
+    for sl in (np.s_[..., 0, :], np.s_[..., -1, :], np.s_[..., :, 0], np.s_[..., :, -1]):
+        np.testing.assert_allclose(rng[sl], ref[5].numpy()[sl], rtol=1e-4, atol=1e-3)
+        assert np.all(rng[sl] > 0)
+
+
+def test_yin_yang_sampler_matches_numpy_resampler(m3d_dir):
+    erp = load_scene(m3d_dir).frames["00"].image()[::4, ::4]  # 128 x 256
+    yin, yang = erp_to_yin_yang(erp)
+    sampler = YinYangSampler(128, 64, 192)
+    with torch.no_grad():
+        out = sampler(torch.from_numpy(np.ascontiguousarray(erp.transpose(2, 0, 1)[None])))[0].numpy()
+    for got, want in zip(out, (yin, yang)):
+        assert np.abs(got.transpose(1, 2, 0) - want).mean() < 2e-3
+        assert np.abs(got.transpose(1, 2, 0) - want).max() < 0.1
+
+
+@pytest.mark.parametrize("kind", ["yin", "yang", "erp"])
+def test_gaussian_head_matches_depth_gaussians(kind):
+    """Same means, scales and rotations as the rasterizer's GT-depth Gaussians."""
+    h, w = (8, 16) if kind == "erp" else (8, 24)
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.5, 5.0, (h, w)).astype(np.float32)
+    colour = rng.random((h, w, 3), dtype=np.float32)
+    c2w = np.eye(4)
+    c2w[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    c2w[:3, 3] = [1, 2, 3]
+    head = GaussianHead((kind,), h, w, scale_factor=0.5, ray_scale_ratio=0.1, opacity_min=0.0, opacity_max=1.0)
+    t = lambda a: torch.from_numpy(np.asarray(a, dtype=np.float32))
+    with torch.no_grad():
+        means, scales, quats, opac, dc = head(
+            t(np.stack([depth, depth])[:, None]), t(np.ones((2, 1, h, w))),
+            t(np.stack([colour, colour]).transpose(0, 3, 1, 2)[:, None]),
+            t(np.stack([c2w, c2w])), t(np.tile([np.sqrt(0.5), 0, 0, np.sqrt(0.5)], (2, 1))))
+    ref = gaussians_from_depth(colour, depth, c2w, kind, scale_factor=0.5, thickness=0.1)
+    n = h * w
+    np.testing.assert_allclose(means[:n].numpy(), ref.means, atol=1e-5)
+    np.testing.assert_allclose(scales[:n].numpy(), ref.scales, rtol=1e-4, atol=1e-6)
+    dots = np.abs((quats[:n].numpy() * ref.quats).sum(-1))
+    assert np.all(dots > 1 - 1e-5)
+    np.testing.assert_allclose(dc[:n].numpy(), ref.sh[:, 0], atol=1e-5)
+    assert np.allclose(opac.numpy(), 1.0)
+
+
+def test_config_rejects_bad_settings():
+    with pytest.raises(ValueError, match="2 x height"):
+        make_config("fast", height=100, width=300)
+    with pytest.raises(ValueError, match="preset"):
+        make_config("nope")
+    with pytest.raises(ValueError, match="readout"):
+        make_config("fast", readout="median")

@@ -1,0 +1,271 @@
+"""Renderer correctness: projection moments, compositing rules, seam, poles, Yin/Yang."""
+
+import zlib
+
+import numpy as np
+import pytest
+
+from rasterizer import geometry as geo
+from rasterizer.camera import Camera
+from rasterizer.composite import composite
+from rasterizer.gaussians import Gaussians, covariance_from_scale_rotation, rgb_to_sh_dc
+from rasterizer.render import RenderOutput, render, to_uint8
+from rasterizer.splat import ALPHA_MIN, Q_MAX, _polar, footprints, project
+
+
+def make_gaussians(means, scales, quats=None, opacities=None, rgb=None):
+    means = np.atleast_2d(np.asarray(means, dtype=np.float64))
+    n = len(means)
+    scales = np.broadcast_to(np.asarray(scales, dtype=np.float64), (n, 3))
+    quats = np.tile([1.0, 0, 0, 0], (n, 1)) if quats is None else np.atleast_2d(quats)
+    opacities = np.full(n, 0.5) if opacities is None else np.broadcast_to(opacities, (n,))
+    rgb = np.full((n, 3), 0.8) if rgb is None else np.broadcast_to(rgb, (n, 3))
+    return Gaussians(means, scales, quats, opacities, rgb_to_sh_dc(rgb)[:, None, :])
+
+
+def random_scene(rng, n, radius=(1.0, 4.0), size=(0.02, 0.2)):
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    means = d * rng.uniform(*radius, size=(n, 1))
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return make_gaussians(means, rng.uniform(*size, size=(n, 3)), q, rng.uniform(0.05, 1.0, n),
+                          rng.uniform(0, 1, (n, 3)))
+
+
+def pose(rng):
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    from rasterizer.gaussians import quat_to_rotmat
+    c2w = np.eye(4)
+    c2w[:3, :3] = quat_to_rotmat(q[None])[0]
+    c2w[:3, 3] = rng.normal(size=3) * 0.3
+    return c2w
+
+
+def truncation_factor(r2):
+    """Second moment of a 2-D Gaussian truncated at Mahalanobis radius^2 r2, relative to untruncated."""
+    e = np.exp(-r2 / 2)
+    return 1 - (r2 / 2) * e / (1 - e)
+
+
+def analytic_ellipse(kind, g, c2w, w, h, fov=90.0):
+    """Independent projection: centre via geometry, covariance J Sigma J^T + 0.3 I."""
+    p = geo.world_to_camera(g.means.astype(np.float64), c2w)
+    if kind == "perspective":
+        fx, fy, cx, cy = geo.pinhole_intrinsics(w, h, fov)
+        col, row = geo.pinhole_project(p, fx, fy, cx, cy)
+        jac = geo.pinhole_jacobian(p, fx, fy)
+    else:
+        col, row = geo.project_to_grid(kind, p, h, w)
+        jac = geo.grid_jacobian(kind, p, h, w)
+    jw = jac @ c2w[:3, :3].T
+    cov = jw @ covariance_from_scale_rotation(g.scales, g.quats) @ np.swapaxes(jw, 1, 2) + 0.3 * np.eye(2)
+    return np.array([col[0], row[0]]), cov[0]
+
+
+def image_moments(a):
+    h, w = a.shape
+    r, c = np.mgrid[0:h, 0:w]
+    s = a.sum()
+    mc, mr = (a * c).sum() / s, (a * r).sum() / s
+    cov = np.array([[(a * (c - mc) ** 2).sum(), (a * (c - mc) * (r - mr)).sum()],
+                    [(a * (c - mc) * (r - mr)).sum(), (a * (r - mr) ** 2).sum()]]) / s
+    return np.array([mc, mr]), cov
+
+
+@pytest.mark.parametrize("kind,direction", [
+    ("erp", (0.4, -0.3, 1.0)),
+    ("erp", (-1.0, 0.5, -0.6)),
+    ("yin", (0.5, 0.2, 1.0)),
+    ("yang", (0.3, 0.9, -0.8)),
+    ("perspective", (0.2, -0.1, 1.0)),
+])
+def test_single_gaussian_centre_and_second_moments_match_analytic_projection(kind, direction):
+    rng = np.random.default_rng(zlib.crc32(repr((kind, direction)).encode()))
+    c2w = pose(rng)
+    d = np.asarray(direction) / np.linalg.norm(direction)
+    mean_cam = 3.0 * d
+    q = rng.normal(size=4)
+    g = make_gaussians(c2w[:3, :3] @ mean_cam + c2w[:3, 3], [0.3, 0.15, 0.4], q / np.linalg.norm(q), 0.5)
+    w, h = (384, 192) if kind == "erp" else (384, 128) if kind in ("yin", "yang") else (256, 192)
+    out = render(g, c2w, projection=kind, width=w, height=h, method="direct")
+    assert out.colour.shape == (h, w, 3) and out.alpha.shape == (h, w)
+    centre, cov = analytic_ellipse(kind, g, c2w, w, h)
+    assert cov[0, 0] > 4 and cov[1, 1] > 4  # resolved by many pixels
+    # alpha = 0.5 g, cut where 0.5 g < 1/255: a Gaussian truncated at q = 2 ln(127.5)
+    m_centre, m_cov = image_moments(out.alpha.astype(np.float64))
+    assert np.allclose(m_centre, centre, atol=0.02)
+    assert np.allclose(m_cov, cov * truncation_factor(2 * np.log(127.5)), rtol=0.01, atol=0.01)
+    # colour is alpha * rgb over black, expected range is the centre's range
+    assert np.allclose(out.colour, out.alpha[..., None] * 0.8, atol=1e-5)
+    hit = out.alpha > 0
+    assert np.allclose(out.range[hit], 3.0, rtol=1e-5) and np.all(out.range[~hit] == 0)
+
+
+def test_yang_render_is_yin_render_of_the_yang_pose():
+    rng = np.random.default_rng(3)
+    g = random_scene(rng, 300)
+    c2w = pose(rng)
+    yang = render(g, c2w, projection="yang", width=192)
+    yin = render(g, geo.yang_pose(c2w), projection="yin", width=192)
+    assert yang.alpha.shape == (64, 192) and yang.alpha.max() > 0.5
+    assert np.allclose(yang.colour, yin.colour, atol=1e-5)
+    assert np.allclose(yang.alpha, yin.alpha, atol=1e-5)
+    assert np.allclose(yang.range, yin.range, rtol=1e-5, atol=1e-5)
+
+
+def reference_composite(fp_mean, fp_conic, ranges, opacities, colours, w, h, period=None):
+    """Slow per-pixel loop: evaluate every Gaussian, sort by range, apply the 3DGS rules."""
+    colour = np.zeros((h, w, 3))
+    alpha = np.zeros((h, w))
+    rng_img = np.zeros((h, w))
+    order = np.argsort(ranges, kind="stable")
+    for r in range(h):
+        for c in range(w):
+            t = 1.0
+            for i in order:
+                dx = c - fp_mean[i, 0]
+                if period is not None:
+                    dx = (dx + period / 2) % period - period / 2
+                dy = r - fp_mean[i, 1]
+                qv = fp_conic[i, 0] * dx * dx + 2 * fp_conic[i, 1] * dx * dy + fp_conic[i, 2] * dy * dy
+                g = np.exp(-0.5 * qv)
+                if g < ALPHA_MIN:
+                    continue  # outside the opacity-free footprint
+                a = min(0.99, opacities[i] * g)
+                if a < ALPHA_MIN:
+                    continue
+                if t * (1 - a) < 1e-4:
+                    break
+                colour[r, c] += t * a * colours[i]
+                alpha[r, c] += t * a
+                rng_img[r, c] += t * a * ranges[i]
+                t *= 1 - a
+    return colour, alpha, np.where(alpha > 0, rng_img / np.maximum(alpha, 1e-30), 0)
+
+
+@pytest.mark.parametrize("kind", ["perspective", "yin", "erp"])
+def test_footprints_and_composite_match_a_slow_reference_loop(kind):
+    rng = np.random.default_rng(11)
+    n = 40
+    d = rng.normal(size=(n, 3)) * [0.6, 0.3, 1]
+    d[:, 2] = np.abs(d[:, 2]) + 0.3
+    means = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(1.0, 3.0, (n, 1))
+    q = rng.normal(size=(n, 4))
+    g = make_gaussians(means, rng.uniform(0.02, 0.15, (n, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
+                       rng.uniform(0.0, 1.0, n), rng.uniform(0, 1, (n, 3)))
+    w, h = {"perspective": (24, 20), "yin": (36, 12), "erp": (48, 24)}[kind]
+    cam = Camera(kind, w, h, np.eye(4))
+    if kind == "erp":  # the reference is the pixel-space EWA: keep away from the polar path
+        g = g.subset(np.flatnonzero(np.isin(np.arange(n), project(g, cam).index[_polar(project(g, cam), cam)[0]])))
+        n = len(g)
+        assert n > 25
+    fp = footprints(g, cam)
+    colours = g.rgb
+    colour, alpha, rng_img = composite(fp, g.opacities, colours)
+    pr = project(g, cam)
+    full = np.zeros((n, 2))
+    conic = np.full((n, 3), [1e9, 0, 1e9])
+    ranges = np.zeros(n)
+    full[pr.index], conic[pr.index], ranges[pr.index] = pr.mean, pr.conic, pr.ranges
+    keep = np.zeros(n, bool)
+    keep[pr.index] = True
+    sel = np.flatnonzero(keep)
+    ref = reference_composite(full[sel], conic[sel], ranges[sel], g.opacities[sel], colours[sel], w, h,
+                              period=w if kind == "erp" else None)
+    assert alpha.max() > 0.5
+    assert np.allclose(colour, ref[0], atol=2e-5)
+    assert np.allclose(alpha, ref[1], atol=2e-5)
+    assert np.allclose(rng_img, ref[2], atol=1e-4)
+    # each pixel lists its Gaussians front to back
+    same = fp.pixel[1:] == fp.pixel[:-1]
+    r = fp.ranges[fp.gaussian]
+    assert np.all(np.diff(fp.pixel) >= 0) and np.all(r[1:][same] >= r[:-1][same])
+    assert np.all((fp.weight >= ALPHA_MIN * 0.999) & (fp.weight <= 1))
+
+
+def test_footprints_are_opacity_free_and_can_be_recomposited():
+    rng = np.random.default_rng(5)
+    g = random_scene(rng, 200)
+    cam = Camera("erp", 96, 48, np.eye(4))
+    fp = footprints(g, cam)  # no opacity bound: valid for any opacities
+    new_op = rng.uniform(0, 1, len(g)).astype(np.float32)
+    colour, alpha, rng_img = composite(fp, new_op, g.rgb)
+    out = render(g.with_(opacities=new_op), np.eye(4), projection="erp", width=96, method="direct")
+    assert np.allclose(colour, out.colour, atol=1e-5)
+    assert np.allclose(alpha, out.alpha, atol=1e-5)
+
+
+def test_erp_wraps_across_the_seam():
+    base = dict(scales=[0.3, 0.3, 0.05], opacities=0.7)
+    front = render(make_gaussians([0.0, 0.0, 2.0], **base), np.eye(4), projection="erp", width=128, method="direct")
+    # rotate the same Gaussian to lon = pi (behind): the image is rolled by W/2 and splits at the seam
+    back = render(make_gaussians([0.0, 0.0, -2.0], **base), np.eye(4), projection="erp", width=128, method="direct")
+    assert back.alpha[:, 0].max() > 0.3 and back.alpha[:, -1].max() > 0.3
+    assert np.allclose(np.roll(front.alpha, 64, axis=1), back.alpha, atol=1e-5)
+
+
+def test_erp_pole_gaussian_is_a_cap_and_cheap():
+    w, h = 128, 64
+    g = make_gaussians([0.0, -2.0, 0.0], [0.2, 0.2, 0.2], opacities=0.9)  # straight up
+    out = render(g, np.eye(4), projection="erp", width=w, method="direct")
+    top = out.alpha[:6]
+    assert top[0].min() > 0.5
+    assert np.allclose(top, top[:, :1], atol=1e-4)  # rotationally symmetric: rows constant
+    assert np.all(out.alpha[h // 2:] == 0)
+    fp = footprints(g, Camera("erp", w, h, np.eye(4)))
+    assert len(fp) <= w * 12  # a band of rows, each column once
+
+
+@pytest.mark.parametrize("lat_deg", [87.0, 80.0, -84.0])
+def test_erp_near_pole_direct_agrees_with_yinyang(lat_deg):
+    """Near the poles the direct ERP splat (wrapped, mirrored) matches the pole-free Yin-Yang path."""
+    lat, lon = np.radians(lat_deg), 0.7
+    d = geo.direction_from_lat_lon(lat, lon)
+    g = make_gaussians(2.0 * d, [0.12, 0.12, 0.02], opacities=0.8)
+    w = 256
+    direct = render(g, np.eye(4), projection="erp", width=w, method="direct")
+    yy = render(g, np.eye(4), projection="erp", width=w, method="yinyang")
+    # compare solid-angle-weighted alpha mass and its overlap
+    wrow = np.cos(geo.erp_lat_lon(w // 2, w)[0])
+    m_direct, m_yy = (direct.alpha * wrow).sum(), (yy.alpha * wrow).sum()
+    assert abs(m_direct / m_yy - 1) < 0.05
+    # the rest is the Yin-Yang path's bilinear resampling blur
+    assert (np.abs(direct.alpha - yy.alpha) * wrow).sum() / m_yy < 0.2
+
+
+def test_perspective_axis_and_behind_camera():
+    g = make_gaussians([[0.0, 0.0, 3.0], [0.0, 0.0, -3.0]], [0.1, 0.1, 0.1], opacities=0.9)
+    out = render(g, np.eye(4), projection="perspective", width=65, height=49, fov_deg=60)
+    centre, _ = image_moments(out.alpha.astype(np.float64))
+    assert np.allclose(centre, [32, 24], atol=1e-3)
+    assert out.range.max() == pytest.approx(3.0, rel=1e-5)  # the Gaussian behind is culled
+
+
+def test_yin_culls_gaussians_outside_its_domain():
+    g = make_gaussians([[0.0, 0.0, -3.0], [0.0, -3.0, 0.1]], [0.05, 0.05, 0.05], opacities=0.9)
+    out = render(g, np.eye(4), projection="yin", width=96)
+    assert out.alpha.max() == 0
+    assert len(project(g, Camera("yin", 96, 32, np.eye(4))).index) == 0
+
+
+def test_render_output_contract_and_to_uint8():
+    g = random_scene(np.random.default_rng(2), 50)
+    for kw in (dict(projection="erp", width=64), dict(projection="erp", width=64, method="direct"),
+               dict(projection="yin", width=60), dict(projection="perspective", width=40, height=30)):
+        out = render(g, np.eye(4), **kw)
+        assert isinstance(out, RenderOutput)
+        assert out.colour.dtype == out.alpha.dtype == out.range.dtype == np.float32
+        assert out.colour.shape[:2] == out.alpha.shape == out.range.shape
+        assert np.all((out.alpha >= 0) & (out.alpha <= 1))
+    u = to_uint8(np.array([[[-0.5, 0.5, 2.0], [np.nan, 1.0, 0.0]]], dtype=np.float32))
+    assert u.dtype == np.uint8 and u.tolist() == [[[0, 128, 255], [0, 255, 0]]]
+    with pytest.raises(ValueError, match="projection"):
+        render(g, np.eye(4), projection="fisheye", width=64)
+    with pytest.raises(ValueError, match="method"):
+        render(g, np.eye(4), projection="erp", width=64, method="magic")
+
+
+def test_truncation_constant():
+    assert Q_MAX == pytest.approx(2 * np.log(255))

@@ -1,0 +1,246 @@
+"""Input validation units: images, poses, options, render queries, body limit, work gate."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import anyio
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+from starlette.applications import Starlette
+from starlette.requests import Request
+from starlette.responses import JSONResponse
+from starlette.routing import Route
+
+from service.errors import BadInput, Busy, InvalidImage, PayloadTooLarge
+from service.images import check_header, decode_rgb, encode, to_uint8_safe
+from service.inputs import check_render_query, encoder_options, parse_c2w_query, parse_options, parse_poses
+from service.limits import BodySizeLimit, WorkGate
+
+LIMITS = {"max_pixels": 4096 * 2048, "min_height": 32}
+
+
+def png(w: int, h: int, mode: str = "RGB") -> bytes:
+    buf = io.BytesIO()
+    Image.new(mode, (w, h), 128).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def test_decode_good_png_and_jpeg():
+    arr, head = decode_rgb(png(256, 128), "image_a", **LIMITS)
+    assert arr.shape == (128, 256, 3) and arr.dtype == np.uint8 and head.format == "PNG"
+    buf = io.BytesIO()
+    Image.new("L", (200, 100), 10).save(buf, format="JPEG")
+    arr, head = decode_rgb(buf.getvalue(), "image_b", **LIMITS)
+    assert arr.shape == (100, 200, 3) and head.format == "JPEG"
+
+
+@pytest.mark.parametrize("w,h,exc,code", [
+    (300, 128, BadInput, "bad_aspect_ratio"),
+    (128, 128, BadInput, "bad_aspect_ratio"),
+    (257, 128, BadInput, "bad_aspect_ratio"),
+    (32, 16, BadInput, "image_too_small"),
+])
+def test_bad_sizes(w, h, exc, code):
+    with pytest.raises(exc) as info:
+        check_header(png(w, h), "image_a", **LIMITS)
+    assert info.value.code == code and "image_a" in info.value.message
+
+
+def test_pixel_cap_is_checked_from_the_header():
+    # a 16384x8192 PNG of one colour is tiny on disk but 134M pixels decoded
+    data = png(16384, 8192, "L")
+    assert len(data) < 1_000_000
+    with pytest.raises(PayloadTooLarge) as info:
+        decode_rgb(data, "image_a", **LIMITS)
+    assert info.value.code == "image_too_many_pixels"
+
+
+@pytest.mark.parametrize("data", [b"", b"not an image at all", b"\x89PNG\r\n\x1a\n" + b"\0" * 40])
+def test_unreadable(data):
+    with pytest.raises(InvalidImage):
+        decode_rgb(data, "image_b", **LIMITS)
+
+
+def test_truncated_png():
+    rng = np.random.default_rng(0)
+    buf = io.BytesIO()
+    Image.fromarray(rng.integers(0, 255, (128, 256, 3), dtype=np.uint8)).save(buf, format="PNG")
+    data = buf.getvalue()
+    check_header(data[: len(data) // 2], "image_a", **LIMITS)  # the header alone is fine...
+    with pytest.raises(InvalidImage) as info:  # ...the pixels are not
+        decode_rgb(data[: len(data) // 2], "image_a", **LIMITS)
+    assert "truncated" in info.value.message or "corrupt" in info.value.message
+
+
+def test_nan_never_reaches_pixels():
+    colour = np.full((4, 8, 3), np.nan, np.float32)
+    colour[0, 0] = [np.inf, -np.inf, 2.0]
+    out = to_uint8_safe(colour)
+    assert out.dtype == np.uint8 and out[1, 1].tolist() == [0, 0, 0] and out[0, 0].tolist() == [255, 0, 255]
+    assert Image.open(io.BytesIO(encode(out, "png"))).size == (8, 4)
+    assert Image.open(io.BytesIO(encode(out, "jpeg"))).format == "JPEG"
+
+
+I4 = np.eye(4).tolist()
+
+
+def _poses(a, b, convention="opencv"):
+    return json.dumps({"convention": convention, "c2w": [a, b]})
+
+
+def _moved(x=0.5):
+    m = np.eye(4)
+    m[0, 3] = x
+    return m.tolist()
+
+
+def test_poses_ok_and_opengl():
+    p = parse_poses(_poses(I4, _moved()))
+    assert np.allclose(p.c2w_b[:3, 3], [0.5, 0, 0])
+    g = parse_poses(_poses(I4, np.eye(4)[:3].tolist() and _moved(), "opengl"))
+    assert np.allclose(g.c2w_a, np.diag([1, -1, -1, 1]))
+    three_by_four = parse_poses(_poses(np.eye(4)[:3].tolist(), _moved()))
+    assert three_by_four.c2w_a.shape == (4, 4)
+
+
+@pytest.mark.parametrize("text,code", [
+    ("{", "invalid_poses"),
+    ("[]", "invalid_poses"),
+    (json.dumps({"convention": "colmap", "c2w": [I4, I4]}), "invalid_poses"),
+    (json.dumps({"c2w": [I4]}), "invalid_poses"),
+    (_poses(I4, I4), "identical_camera_centres"),
+    (_poses(I4, (2 * np.eye(4)).tolist()), "invalid_pose"),  # scaled, not rigid
+    (_poses(I4, np.diag([1, 1, -1, 1]).tolist()), "invalid_pose"),  # mirror
+    (_poses(I4, [[1, 0, 0]]), "invalid_pose"),
+    (_poses(I4, [["a", 0, 0, 0]] * 4), "invalid_pose"),
+    ('{"c2w": [[[NaN,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], []]}', "invalid_poses"),
+])
+def test_bad_poses(text, code):
+    with pytest.raises(BadInput) as info:
+        parse_poses(text)
+    assert info.value.code == code, info.value.message
+
+
+def test_nan_pose_in_matrix():
+    with pytest.raises(BadInput):
+        parse_poses(json.dumps({"c2w": [I4, [[float("nan")] * 4] * 4]}).replace("NaN", "1e999"))
+
+
+def test_options():
+    assert parse_options(None, None) == {}
+    assert parse_options('{"near": 0.2, "far": 9}', {"near", "far"}) == {"near": 0.2, "far": 9}
+    for bad in ['{"near": -1}', '{"near": 5, "far": 1}', '[1]', '{"x": [1]}', '{"near": "a"}',
+                '{"min_opacity": "abc"}', '{"min_opacity": 1.5}', '{"near": true}']:
+        with pytest.raises(BadInput):
+            parse_options(bad, None)
+    with pytest.raises(BadInput) as info:
+        parse_options('{"planes": 3}', {"near", "far"})
+    assert "planes" in info.value.message
+
+
+def test_encoder_options_from_signature():
+    def rec(erp_a, erp_b, c2w_a, c2w_b, *, near=None, far=None):
+        pass
+
+    def rec_kw(erp_a, erp_b, c2w_a, c2w_b, *, near=None, **kw):
+        pass
+
+    assert encoder_options(rec) == {"near", "far"}
+    assert encoder_options(rec_kw) is None
+
+
+def test_c2w_query():
+    assert parse_c2w_query(",".join(["1", "0", "0", "0", "0", "1", "0", "0", "0", "0", "1", "0"])).shape == (4, 4)
+    for bad in ["1,2,3", "nan," * 15 + "nan", ",".join(["x"] * 16), ",".join(["2"] * 16), "inf" + ",0" * 15]:
+        with pytest.raises(BadInput):
+            parse_c2w_query(bad)
+
+
+IDENT = ",".join(str(v) for v in np.eye(4).ravel())
+
+
+@pytest.mark.parametrize("projection,width,height,fov", [
+    ("erp", 0, None, 90), ("erp", 1023, None, 90), ("erp", 10**9, None, 90), ("yin", 100, None, 90),
+    ("perspective", 64, 0, 90), ("perspective", 64, 64, 0), ("perspective", 64, 64, float("nan")),
+    ("erp", 64, 32, 90), ("fisheye", 64, None, 90),
+])
+def test_bad_render_queries(projection, width, height, fov):
+    with pytest.raises(BadInput):
+        check_render_query(IDENT, projection, width, height, fov, "png", max_width=4096, max_pixels=4096 * 2048)
+
+
+def test_render_query_sizes():
+    q = check_render_query(IDENT, "yin", 96, None, 90, "png", max_width=4096, max_pixels=10**7)
+    assert q.output_size() == (32, 96)
+    q = check_render_query(IDENT, "perspective", 64, None, 60, "jpeg", max_width=4096, max_pixels=10**7)
+    assert q.output_size() == (64, 64)
+    with pytest.raises(BadInput):
+        check_render_query(IDENT, "perspective", 4096, 4096, 60, "png", max_width=4096, max_pixels=4096 * 2048)
+
+
+# -- ASGI body limit and work gate, on a bare Starlette app ------------------------------
+
+async def _echo(request: Request):
+    try:
+        body = await request.body()
+    except Exception:
+        return JSONResponse({"app": "error"}, status_code=400)
+    return JSONResponse({"n": len(body)})
+
+
+def _client(limit: int) -> httpx.AsyncClient:
+    app = BodySizeLimit(Starlette(routes=[Route("/", _echo, methods=["POST"])]), limit)
+    return httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t")
+
+
+def test_body_limit_content_length_and_streaming():
+    async def main():
+        async with _client(1000) as c:
+            ok = await c.post("/", content=b"x" * 1000)
+            assert ok.status_code == 200 and ok.json() == {"n": 1000}
+            big = await c.post("/", content=b"x" * 1001)
+            assert big.status_code == 413 and big.json()["error"]["code"] == "payload_too_large"
+
+            async def chunks():
+                for _ in range(10):
+                    yield b"y" * 300
+
+            streamed = await c.post("/", content=chunks())  # chunked: no Content-Length
+            assert streamed.status_code == 413, streamed.text
+            assert streamed.json()["error"]["code"] == "payload_too_large"
+
+    anyio.run(main)
+
+
+def test_work_gate_rejects_past_queue():
+    async def main():
+        gate = WorkGate("inference", concurrency=1, queue=1, retry_after=7)
+        release = anyio.Event()
+        results = []
+
+        def block():
+            anyio.from_thread.run(release.wait)
+            return "done"
+
+        async def job():
+            try:
+                results.append(await gate.run(block))
+            except Busy as exc:
+                results.append(exc)
+
+        async with anyio.create_task_group() as tg:
+            for _ in range(3):
+                tg.start_soon(job)
+            await anyio.sleep(0.2)
+            assert gate.running == 1 and gate.waiting == 1
+            release.set()
+        busy = [r for r in results if isinstance(r, Busy)]
+        assert results.count("done") == 2 and len(busy) == 1
+        assert busy[0].status == 503 and busy[0].headers["Retry-After"] == "7"
+        assert gate.admitted == 0 and gate.rejected == 1
+
+    anyio.run(main)

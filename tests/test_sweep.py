@@ -1,0 +1,87 @@
+"""rasterizer.sweep: pose-dependent graph inputs against independent geometry."""
+
+import numpy as np
+import pytest
+
+from rasterizer import geometry as geo
+from rasterizer import sweep
+
+
+def _pose(t, yaw=0.0):
+    c, s = np.cos(yaw), np.sin(yaw)
+    m = np.eye(4)
+    m[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    m[:3, 3] = t
+    return m
+
+
+def _unnormalise(kind, g, h, w):
+    """grid_sample (x, y) back to pixel coordinates (col, row) of the unpadded source."""
+    if kind == "erp":
+        col = (g[..., 0] + 1) * (w + 2 * sweep.ERP_PAD) / 2 - 0.5 - sweep.ERP_PAD
+    else:
+        col = (g[..., 0] + 1) * w / 2 - 0.5
+    return col, (g[..., 1] + 1) * h / 2 - 0.5
+
+
+def test_candidates_uniform_in_inverse_range():
+    inv = sweep.inverse_depth_candidates(0.5, 10.0, 5)
+    assert inv.dtype == np.float32
+    assert np.allclose(inv, [0.1, 0.575, 1.05, 1.525, 2.0])
+    with pytest.raises(ValueError):
+        sweep.inverse_depth_candidates(2.0, 1.0, 8)
+
+
+@pytest.mark.parametrize("erp", [False, True])
+def test_warp_grids_hit_the_projected_world_point(erp):
+    """Every (target pixel, plane) lands where geometry.py projects the same world point."""
+    rng = np.random.default_rng(1)
+    c2w_a, c2w_b = _pose([0.1, -0.2, 0.3], 0.4), _pose([0.9, 0.1, -0.5], -1.1)
+    h, w = (6, 12) if erp else (6, 18)
+    inv = sweep.inverse_depth_candidates(0.4, 12.0, 4)
+    out = sweep.warp_grids(c2w_a, c2w_b, inv, sweep.grids_for_mode(erp), h, w)
+    g = len(sweep.grids_for_mode(erp))
+    assert out.shape == (2, g, g, 4, h, w, 2) and out.dtype == np.float32
+    for direction, (tgt, src) in enumerate(((c2w_a, c2w_b), (c2w_b, c2w_a))):
+        for gt, kt in enumerate(sweep.grids_for_mode(erp)):
+            for gs, ks in enumerate(sweep.grids_for_mode(erp)):
+                for _ in range(5):
+                    k, r, c = rng.integers(4), rng.integers(h), rng.integers(w)
+                    ray = geo.grid_directions(kt, h, w)[r, c]
+                    world = tgt[:3, :3] @ (ray / inv[k]) + tgt[:3, 3]
+                    p_src = geo.world_to_camera(world, src)
+                    col, row = geo.project_to_grid(ks, p_src, h, w)
+                    gcol, grow = _unnormalise(ks, out[direction, gt, gs, k, r, c], h, w)
+                    dcol = (gcol - col + w / 2) % w - w / 2 if ks == "erp" else gcol - col
+                    assert abs(dcol) < 2e-3 * w and abs(grow - row) < 2e-3 * h
+                    inside = bool(np.all(np.abs(out[direction, gt, gs, k, r, c]) <= 1))
+                    assert inside == bool(geo.in_grid_domain(ks, p_src)) or ks == "erp"
+
+
+def test_far_plane_with_pure_translation_is_near_identity():
+    c2w_b = _pose([0.0, 0.0, 1.0])
+    h, w = 8, 24
+    inv = sweep.inverse_depth_candidates(0.5, 1e6, 3)
+    out = sweep.warp_grids(np.eye(4), c2w_b, inv, ("yin", "yang"), h, w)
+    rr, cc = np.mgrid[0:h, 0:w]
+    for g in range(2):
+        col, row = _unnormalise("yin", out[0, g, g, 0], h, w)
+        assert np.allclose(col, cc, atol=1e-3) and np.allclose(row, rr, atol=1e-3)
+
+
+def test_sweep_inputs_shapes_and_zero_baseline():
+    a, b = np.eye(4), _pose([0.0, 0.0, 1.0])
+    si = sweep.sweep_inputs(a, b, near=0.3, far=20, num_planes=6, feature_size=(4, 12))
+    assert si["warp_grids"].shape == (2, 2, 2, 6, 4, 12, 2)
+    assert si["rel_rt"].shape == (2, 3, 4) and si["c2w"].shape == (2, 4, 4) and si["cam_quats"].shape == (2, 4)
+    # rel_rt[0] maps A-camera points to B-camera points: A's centre sits at -1 z in B
+    assert np.allclose(si["rel_rt"][0][:, 3], [0, 0, -1])
+    with pytest.raises(ValueError, match="coincide"):
+        sweep.sweep_inputs(a, a, near=0.3, far=20, num_planes=6, feature_size=(4, 12))
+
+
+def test_default_near_far_tracks_baseline():
+    n1, f1 = sweep.default_near_far(np.eye(4), _pose([0, 0, 1.0]))
+    n4, f4 = sweep.default_near_far(np.eye(4), _pose([0, 0, 4.0]))
+    assert 0 < n1 < n4 < f1 <= f4
+    assert n1 == pytest.approx(0.3)
