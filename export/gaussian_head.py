@@ -7,7 +7,10 @@
   flat disc facing the camera);
 * orientation: local axes (east, south, ray) of the pixel, rotated to the
   world by the camera quaternion (w, x, y, z);
-* opacity = opacity_min + (opacity_max - opacity_min) * confidence;
+* opacity = opacity_min + (opacity_max - opacity_min) * confidence ** opacity_gamma
+  (a steep curve with a low floor: confident pixels dominate the blend,
+  unconfident ones - epipoles, rejected and filled pixels - still fill holes
+  no confident pixel covers);
 * colour as SH DC of the pixel colour.
 
 Per-pixel constants (rays, local quaternions, footprints) are computed in
@@ -67,7 +70,8 @@ class GaussianHead(nn.Module):
     [view][grid][row][col] order."""
 
     def __init__(self, grids, height: int, width: int, scale_factor: float = 0.75,
-                 ray_scale_ratio: float = 0.1, opacity_min: float = 0.35, opacity_max: float = 0.98) -> None:
+                 ray_scale_ratio: float = 0.1, opacity_min: float = 0.05, opacity_max: float = 0.98,
+                 opacity_gamma: float = 2.0) -> None:
         super().__init__()
         frames = [pixel_frames(k, height, width) for k in grids]
         self.register_buffer("rays", torch.from_numpy(np.stack([f[0] for f in frames])), persistent=False)
@@ -77,6 +81,7 @@ class GaussianHead(nn.Module):
         self.ray_scale_ratio = float(ray_scale_ratio)
         self.opacity_min = float(opacity_min)
         self.opacity_max = float(opacity_max)
+        self.opacity_gamma = float(opacity_gamma)
 
     def forward(self, rng, conf, colour, c2w, cam_quats):
         rot = c2w[:, :3, :3]  # (2, 3, 3)
@@ -88,7 +93,12 @@ class GaussianHead(nn.Module):
         along = foot.amin(dim=-1, keepdim=True) * self.ray_scale_ratio
         scales = torch.cat([foot, along], dim=-1)
         quats = quat_multiply(cam_quats[:, None, None, None, :], self.local_quats.unsqueeze(0))
-        opac = self.opacity_min + (self.opacity_max - self.opacity_min) * conf.clamp(0.0, 1.0)
+        c = conf.clamp(0.0, 1.0)
+        if self.opacity_gamma == 2.0:
+            c = c * c
+        elif self.opacity_gamma != 1.0:
+            c = torch.pow(c, self.opacity_gamma)
+        opac = self.opacity_min + (self.opacity_max - self.opacity_min) * c
         sh_dc = (colour.permute(0, 1, 3, 4, 2) - 0.5) / SH_C0
         return (means.reshape(-1, 3), scales.reshape(-1, 3), quats.reshape(-1, 4),
                 opac.reshape(-1), sh_dc.reshape(-1, 3))

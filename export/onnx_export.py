@@ -34,7 +34,7 @@ def dummy_inputs(cfg: EncoderConfig) -> tuple[torch.Tensor, ...]:
     erp = lambda: torch.from_numpy(rng.random((1, 3, cfg.height, cfg.width), dtype=np.float32))
     c2w_b = np.eye(4)
     c2w_b[2, 3] = 1.0
-    si = sweep_inputs(np.eye(4), c2w_b, near=cfg.near_default, far=cfg.far_default,
+    si = sweep_inputs(np.eye(4), c2w_b, near=cfg.near_per_baseline, far=cfg.far_per_baseline,
                       num_planes=cfg.num_planes, feature_size=cfg.feature_size, erp_encoder=cfg.erp_encoder)
     return (erp(), erp()) + tuple(torch.from_numpy(si[k]) for k in INPUT_NAMES[2:])
 
@@ -56,8 +56,8 @@ def metadata(cfg: EncoderConfig) -> dict[str, str]:
         "gaussian_grid_height": str(cfg.full_size[0]),
         "gaussian_grid_width": str(cfg.full_size[1]),
         "num_gaussians": str(cfg.num_gaussians),
-        "near_default": repr(cfg.near_default),
-        "far_default": repr(cfg.far_default),
+        "near_per_baseline": repr(cfg.near_per_baseline),
+        "far_per_baseline": repr(cfg.far_per_baseline),
         "erp_pad": str(ERP_PAD),
         "inputs": json.dumps({
             "erp_a": [1, 3, cfg.height, cfg.width], "erp_b": [1, 3, cfg.height, cfg.width],

@@ -95,7 +95,6 @@ class BlendOperator:
         indptr = np.zeros(p + 1, np.int64)
         np.cumsum(counts, out=indptr[1:])
         self.matrix = sp.csr_matrix((data, fp.gaussian.astype(np.int32), indptr), shape=(p, n))
-        self.matrix_t = self.matrix.T.tocsr()
         self.normalised = normalise
         self.covered = self.alpha >= floor
 
@@ -105,8 +104,8 @@ class BlendOperator:
 
     def rmatvec(self, image: np.ndarray) -> np.ndarray:
         """B^T image: (N, 3) float64 from a per-pixel array (H*W, 3)."""
-        return self.matrix_t @ image
+        return self.matrix.T @ image
 
     def column_sq_norms(self) -> np.ndarray:
         """diag(B^T B), (N,): how strongly each Gaussian is seen (0 = not at all)."""
-        return np.asarray(self.matrix_t.multiply(self.matrix_t).sum(axis=1)).ravel()
+        return np.asarray(self.matrix.power(2).sum(axis=0)).ravel()

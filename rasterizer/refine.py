@@ -76,13 +76,13 @@ class RefineOptions:
 
     iterations: int = 100
     sh_degree: int = 0            # 0: DC only; 1: also degree-1 SH (needs colour_reg; two views only)
-    colour_every: int = 10        # re-solve colour every k iterations (0: only once at the start)
-    cg_steps: int = 8             # CG steps per colour solve
-    colour_reg: float = 0.05      # Tikhonov weight toward the initial SH (relative to the mean data weight)
-    opacity_lr: float = 0.05      # Adam step on logit opacity
-    opacity_reg: float = 1e-4     # pull of logit opacity toward its initial value (per Gaussian, per iteration)
-    optimise_opacity: bool = True
-    patience: int = 30            # early stop after this many iterations without held-out improvement (0: off)
+    optimise_opacity: bool = False  # False: `iterations` CG steps on colour; True: Adam steps on opacity
+    colour_every: int = 3         # opacity mode: re-solve colour every k iterations (0: only at the start)
+    cg_steps: int = 1             # opacity mode: CG steps per colour solve
+    colour_reg: float = 2.0       # Tikhonov weight toward the initial SH (relative to the mean data weight)
+    opacity_lr: float = 0.01      # Adam step on logit opacity
+    opacity_reg: float = 1e-4     # pull of logit opacity toward its initial value
+    patience: int = 5             # early stop after this many iterations without held-out improvement (0: off)
 
 
 @dataclass
@@ -93,14 +93,20 @@ class RefineResult:
     history: list[dict] = field(default_factory=list)
     best_iteration: int = 0
     seconds: float = 0.0
+    snapshots: dict = field(default_factory=dict)  # iteration -> Gaussians (for benches)
 
 
 def reference_views(gaussians: Gaussians, images: Sequence[np.ndarray], c2ws: Sequence, *, height: int,
-                    holdout: float = 0.1, seed: int = 0, near: float | None = None) -> list[ReferenceView]:
+                    holdout: float = 0.1, seed: int = 0, near: float | None = None,
+                    prune_transmittance: float = 1e-3) -> list[ReferenceView]:
     """Yin and Yang views (h = ``height``, w = 3h) of each reference ERP image (H, W, 3) in [0, 1].
 
     The ERP is resampled to the grids by ``erp_to_yin_yang(image, height=h)``;
     footprints are computed once, without an opacity bound (opacities may grow).
+    ``prune_transmittance`` > 0 drops the contributions that sit behind
+    transmittance below it at the initial opacities (a suffix of each pixel's
+    list: deeply occluded surfaces the refinement could only reveal by making
+    the ones in front nearly transparent); this cuts the work per iteration.
     """
     rng = np.random.default_rng(seed)
     views = []
@@ -112,10 +118,22 @@ def reference_views(gaussians: Gaussians, images: Sequence[np.ndarray], c2ws: Se
             kw = {} if near is None else {"near": near}
             cam = Camera(kind, 3 * height, height, as_c2w(c2w), **kw)
             fp = footprints(gaussians, cam)
+            if prune_transmittance > 0:
+                fp = prune_occluded(fp, gaussians, prune_transmittance)
             p = height * 3 * height
             held = rng.random(p) < holdout
             views.append(ReferenceView(cam, fp, np.clip(tgt.reshape(p, 3), 0.0, 1.0), ~held, held))
     return views
+
+
+def prune_occluded(fp: Footprints, gaussians: Gaussians, min_transmittance: float) -> Footprints:
+    """Footprints without the contributions whose transmittance at the current opacities is below the bound."""
+    if len(fp) == 0:
+        return fp
+    colours = np.zeros((len(gaussians), 3), np.float32)
+    *_, terms = accumulate(fp, gaussians.opacities, colours, return_terms=True)
+    keep = terms.transmittance >= np.float32(min_transmittance)
+    return Footprints(fp.pixel[keep], fp.gaussian[keep], fp.weight[keep], fp.ranges, fp.height, fp.width)
 
 
 # -- colour parameterisation ---------------------------------------------------------------------------
@@ -194,9 +212,16 @@ class _Problem:
                 g_opac += opacity_gradient(v.footprints, terms, opac, cols, gc, ga)
         return fit_sse / self.n_fit, held_sse / self.n_held, g_opac, terms_all
 
-    def solve_colour(self, sh: np.ndarray, sh0: np.ndarray, opac: np.ndarray, terms_all, steps: int,
-                     reg: float) -> np.ndarray:
-        """A few Jacobi-preconditioned CG steps on the normal equations of the L2 colour fit."""
+    def solve_colour(self, sh: np.ndarray, sh0: np.ndarray, terms_all, steps: int, reg: float,
+                     on_step: Callable[[int, np.ndarray, float], bool] | None = None) -> np.ndarray:
+        """Jacobi-preconditioned CG on the normal equations of the L2 colour fit (opacities fixed).
+
+        Minimises sum_v |M_v (B_v colour_v(x) - y_v)|^2 + lam |x - sh0|^2 over the
+        refined SH x (N, k, 3), warm-started at ``sh``; ``lam`` = ``reg`` times the
+        mean data weight of a seen Gaussian. ``on_step(step, x, held_loss)`` is
+        called after every step (held_loss: mean squared error on the held-out
+        pixels, one sparse product per view); it returns True to stop.
+        """
         ops = [BlendOperator(v.footprints, t, self.n, normalise=True) for v, t in zip(self.views, terms_all)]
         masks = [(v.fit & op.covered).astype(np.float64)[:, None] for v, op in zip(self.views, ops)]
         k = self.k
@@ -206,6 +231,14 @@ class _Problem:
 
         def apply_jt(i, r):  # (P, 3) -> (N, k, 3)
             return self.bases[i][:, :, None] * ops[i].rmatvec(r)[:, None, :]
+
+        def held_loss(x):
+            tot = 0.0
+            for i, v in enumerate(self.views):
+                pred = ops[i] @ np.maximum(_colours(self.bases[i], x, self.rest[i]), 0.0)
+                e = (pred - v.target)[v.held]
+                tot += float(np.einsum("pc,pc->", e, e))
+            return tot / self.n_held
 
         diag = np.zeros((self.n, k), np.float64)
         for i, op in enumerate(ops):
@@ -222,8 +255,7 @@ class _Problem:
             return out
 
         x = sh.astype(np.float64)
-        # residual of the normal equations at x (colour offset 0.5 + fixed bands inside the target)
-        b = -lam * (x - sh0)
+        b = -lam * (x - sh0)  # residual of the normal equations at x
         for i, v in enumerate(self.views):
             pred = ops[i] @ _colours(self.bases[i], x, self.rest[i])
             b = b + apply_jt(i, masks[i] * (v.target - pred))
@@ -231,32 +263,37 @@ class _Problem:
         z = precond * r
         p = z.copy()
         rz = np.einsum("nkc,nkc->c", r, z)
-        delta = np.zeros_like(x)
-        for _ in range(steps):
+        for step in range(steps):
             ap = normal(p)
             pap = np.einsum("nkc,nkc->c", p, ap)
-            step = np.where(pap > 0, rz / np.where(pap > 0, pap, 1.0), 0.0)
-            delta += step * p
-            r = r - step * ap
+            alpha = np.where(pap > 0, rz / np.where(pap > 0, pap, 1.0), 0.0)
+            x = x + alpha * p
+            r = r - alpha * ap
             z = precond * r
             rz_new = np.einsum("nkc,nkc->c", r, z)
             beta = np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1.0), 0.0)
             p = z + beta * p
             rz = rz_new
-        out = x + delta
-        if k == 1:  # DC only: keep the colour in [0, 1]
+            if on_step is not None and on_step(step, self._project(x), held_loss(self._project(x))):
+                break
+        return self._project(x)
+
+    def _project(self, x: np.ndarray) -> np.ndarray:
+        if self.k == 1:  # DC only: keep the colour in [0, 1]
             from .sh import SH_C0
-            out = np.clip(out, -0.5 / SH_C0, 0.5 / SH_C0)
-        return out
+            return np.clip(x, -0.5 / SH_C0, 0.5 / SH_C0)
+        return x
 
 
 def refine(gaussians: Gaussians, views: Sequence[ReferenceView], options: RefineOptions = RefineOptions(),
-           progress: Callable[[float], None] | None = None) -> RefineResult:
+           progress: Callable[[float], None] | None = None, *, snapshot_at: Sequence[int] = ()) -> RefineResult:
     """Refine colour and opacity of ``gaussians`` on ``views``; geometry unchanged.
 
     ``progress(fraction)`` is called after every iteration. Returns the
     parameters with the best held-out loss (the last ones when no pixel is
-    held out) and a history of losses and elapsed seconds.
+    held out) and a history of losses and elapsed seconds. ``snapshot_at``
+    (colour-only mode): iterations whose parameters are also returned in
+    ``snapshots``.
     """
     t0 = time.perf_counter()
     opt = options
@@ -277,36 +314,69 @@ def refine(gaussians: Gaussians, views: Sequence[ReferenceView], options: Refine
     b1, b2 = 0.9, 0.999
 
     history: list[dict] = []
-    best = (np.inf, 0, sh.copy(), logit.copy())
-    has_held = prob.n_held > 0 and any(v.held.any() for v in views)
-    for it in range(opt.iterations + 1):
+    has_held = any(v.held.any() for v in views)
+    fit, held, g_opac, terms = prob.forward(sh.astype(np.float32), _sigmoid(logit).astype(np.float32),
+                                            grad=opt.optimise_opacity and opt.iterations > 0)
+    history.append({"iteration": 0, "fit_loss": fit, "held_loss": held if has_held else None, "seconds": time.perf_counter() - t0})
+    best = [held if has_held else fit, 0, sh.copy(), logit.copy()]
+
+    snap_set = set(int(i) for i in snapshot_at)
+    snapshots: dict = {}
+
+    def _with(x, lg):
+        sh_out = sh_all.copy()
+        sh_out[:, :k] = x.astype(np.float32)
+        opac = _sigmoid(lg).astype(np.float32) if opt.optimise_opacity else g.opacities
+        return replace(g, sh=sh_out, opacities=opac)
+
+    if 0 in snap_set:
+        snapshots[0] = _with(sh, logit)
+    if not opt.optimise_opacity:
+        # colour only: one composite at the initial opacities, then `iterations` CG steps
+        def on_step(step, x, held_loss):
+            it = step + 1
+            history.append({"iteration": it, "fit_loss": None, "held_loss": held_loss if has_held else None,
+                            "seconds": time.perf_counter() - t0})
+            if has_held and held_loss < best[0]:
+                best[:] = [held_loss, it, x.copy(), logit]
+            elif not has_held:
+                best[:] = [0.0, it, x.copy(), logit]
+            if it in snap_set:
+                snapshots[it] = _with(x, logit)
+            if progress is not None:
+                progress(it / max(1, opt.iterations))
+            return bool(opt.patience and has_held and it - best[1] >= opt.patience)
+
+        if opt.iterations > 0:
+            prob.solve_colour(sh, sh0, terms, opt.iterations, opt.colour_reg, on_step)
+    for it in range(opt.iterations if opt.optimise_opacity else 0):
         opac = _sigmoid(logit).astype(np.float32)
-        need_grad = opt.optimise_opacity and it < opt.iterations
-        fit, held, g_opac, terms = prob.forward(sh.astype(np.float32), opac, grad=need_grad)
-        history.append({"iteration": it, "fit_loss": fit, "held_loss": held if has_held else None,
-                        "seconds": time.perf_counter() - t0})
-        score = held if has_held else fit
-        if score < best[0]:
-            best = (score, it, sh.copy(), logit.copy())
-        if it == opt.iterations:
-            break
-        if opt.patience and has_held and it - best[1] >= opt.patience:
-            break
-        if need_grad:
-            grad = g_opac * opac * (1.0 - opac) + 2.0 * opt.opacity_reg * (logit - logit0)
-            m1 = b1 * m1 + (1 - b1) * grad
-            m2 = b2 * m2 + (1 - b2) * grad * grad
-            mhat = m1 / (1 - b1 ** (it + 1))
-            vhat = m2 / (1 - b2 ** (it + 1))
-            logit = logit - opt.opacity_lr * mhat / (np.sqrt(vhat) + 1e-15)
-            logit = np.clip(logit, -12.0, 12.0)
+        if it > 0:
+            fit, held, g_opac, terms = prob.forward(sh.astype(np.float32), opac, grad=True)
+            history.append({"iteration": it, "fit_loss": fit, "held_loss": held if has_held else None,
+                            "seconds": time.perf_counter() - t0})
+            score = held if has_held else fit
+            if score < best[0]:
+                best[:] = [score, it, sh.copy(), logit.copy()]
+            if opt.patience and has_held and it - best[1] >= opt.patience:
+                break
+        grad = g_opac * opac * (1.0 - opac) + 2.0 * opt.opacity_reg * (logit - logit0)
+        m1 = b1 * m1 + (1 - b1) * grad
+        m2 = b2 * m2 + (1 - b2) * grad * grad
+        mhat = m1 / (1 - b1 ** (it + 1))
+        vhat = m2 / (1 - b2 ** (it + 1))
+        logit = np.clip(logit - opt.opacity_lr * mhat / (np.sqrt(vhat) + 1e-15), -12.0, 12.0)
         if opt.cg_steps > 0 and (it == 0 or (opt.colour_every and it % opt.colour_every == 0)):
-            sh = prob.solve_colour(sh, sh0, opac, terms, opt.cg_steps, opt.colour_reg)
+            sh = prob.solve_colour(sh, sh0, terms, opt.cg_steps, opt.colour_reg)
         if progress is not None:
             progress((it + 1) / max(1, opt.iterations))
+    if opt.optimise_opacity and opt.iterations > 0:
+        fit, held, _, _ = prob.forward(sh.astype(np.float32), _sigmoid(logit).astype(np.float32), grad=False)
+        history.append({"iteration": opt.iterations, "fit_loss": fit, "held_loss": held if has_held else None,
+                        "seconds": time.perf_counter() - t0})
+        score = held if has_held else fit
+        if score < best[0] or not has_held:
+            best[:] = [score, opt.iterations, sh.copy(), logit.copy()]
 
     _, best_it, sh_best, logit_best = best
-    sh_out = sh_all.copy()
-    sh_out[:, :k] = sh_best.astype(np.float32)
-    out = replace(g, sh=sh_out, opacities=_sigmoid(logit_best).astype(np.float32))
-    return RefineResult(out, history, best_it, time.perf_counter() - t0)
+    return RefineResult(_with(sh_best, logit_best), history, best_it, time.perf_counter() - t0, snapshots)

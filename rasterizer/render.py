@@ -28,6 +28,7 @@ Example::
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -36,11 +37,14 @@ from .camera import DEFAULT_NEAR, PROJECTIONS, Camera
 from .composite import accumulate, composite, normalise_range
 from .gaussians import Gaussians
 from .sh import sh_to_rgb
-from .splat import ALPHA_MIN, Footprints, footprints
+from .splat import ALPHA_MIN, Footprints, footprints, gaussian_factors
 from .yin_yang import yin_yang_to_erp
 
 __all__ = ["RenderOutput", "render", "render_camera", "to_uint8", "Camera", "footprints", "composite",
            "Footprints"]
+
+#: Below this many Gaussians a second thread costs more than it saves.
+_THREAD_MIN_GAUSSIANS = 20_000
 
 Method = Literal["yinyang", "direct"]
 METHODS = ("yinyang", "direct")
@@ -60,11 +64,11 @@ def _check_gaussians(gaussians: Gaussians) -> None:
     gaussians.check_finite()
 
 
-def _premultiplied(gaussians: Gaussians, camera: Camera, colours: np.ndarray | None = None):
+def _premultiplied(gaussians: Gaussians, camera: Camera, colours: np.ndarray | None = None, factors=None):
     """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) of one camera."""
     if colours is None:
         colours = sh_to_rgb(gaussians.sh, gaussians.means, camera.centre)
-    fp = footprints(gaussians, camera, opacity_bound=gaussians.opacities)
+    fp = footprints(gaussians, camera, opacity_bound=gaussians.opacities, factors=factors)
     return accumulate(fp, gaussians.opacities, colours)
 
 
@@ -75,17 +79,24 @@ def render_camera(gaussians: Gaussians, camera: Camera) -> RenderOutput:
     return RenderOutput(colour, alpha, normalise_range(range_sum, alpha))
 
 
-def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: int, near: float) -> RenderOutput:
+def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: int, near: float,
+                    threads: int) -> RenderOutput:
     h = max(1, int(round(height / 2)))
     w = 3 * h
-    colours = None
-    stacks = []
-    for kind in ("yin", "yang"):
-        cam = Camera(kind, w, h, c2w, near=near)
-        if colours is None:
-            colours = sh_to_rgb(gaussians.sh, gaussians.means, cam.centre)
-        c, a, r = _premultiplied(gaussians, cam, colours)
-        stacks.append(np.concatenate([c, a[:, :, None], r[:, :, None]], axis=2))
+    cams = [Camera(kind, w, h, c2w, near=near) for kind in ("yin", "yang")]
+    colours = sh_to_rgb(gaussians.sh, gaussians.means, cams[0].centre)
+    factors = gaussian_factors(gaussians)
+
+    def one(cam):
+        c, a, r = _premultiplied(gaussians, cam, colours, factors)
+        return np.concatenate([c, a[:, :, None], r[:, :, None]], axis=2)
+
+    if threads > 1 and len(gaussians) >= _THREAD_MIN_GAUSSIANS:
+        # numpy releases the GIL in sorts and large ufunc loops: Yin and Yang run side by side
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            stacks = list(pool.map(one, cams))
+    else:
+        stacks = [one(cam) for cam in cams]
     merged = yin_yang_to_erp(stacks[0], stacks[1], height, width)
     alpha = np.clip(merged[:, :, 3], 0.0, 1.0)
     ok = alpha >= ALPHA_MIN
@@ -97,7 +108,8 @@ def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: i
 
 
 def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, height: int | None = None,
-           fov_deg: float = 90.0, method: str = "yinyang", near: float = DEFAULT_NEAR) -> RenderOutput:
+           fov_deg: float = 90.0, method: str = "yinyang", near: float = DEFAULT_NEAR,
+           threads: int = 2) -> RenderOutput:
     """Render Gaussians seen from pose ``c2w``.
 
     Parameters
@@ -113,6 +125,7 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
     method : ERP only. "yinyang" (default; colour = merged colour / alpha) or
         "direct" (colour over black). Other projections ignore it.
     near : Gaussians closer than this range (world units) are culled.
+    threads : ERP "yinyang" renders Yin and Yang in two threads when > 1.
 
     Returns
     -------
@@ -134,7 +147,7 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
     _check_gaussians(gaussians)
     if projection == "erp" and method == "yinyang":
         cam = Camera("erp", width, height, c2w, near=near)  # validates pose and sizes
-        return _render_yinyang(gaussians, cam.c2w, width, height, near)
+        return _render_yinyang(gaussians, cam.c2w, width, height, near, int(threads))
     return render_camera(gaussians, Camera(projection, width, height, c2w, fov_deg=fov_deg, near=near))
 
 

@@ -38,10 +38,15 @@ def _as_hwc(img: np.ndarray) -> tuple[np.ndarray, bool]:
 
 def _gather(img: np.ndarray, idx: np.ndarray, wts: np.ndarray) -> np.ndarray:
     """Weighted taps: (P, C) from img (H, W, C), idx/wts (P, T) flat indices."""
-    flat = img.reshape(-1, img.shape[2]).astype(np.float32, copy=False)
-    out = flat[idx[:, 0]] * wts[:, 0:1]
-    for t in range(1, idx.shape[1]):
-        out += flat[idx[:, t]] * wts[:, t:t + 1]
+    chans = np.ascontiguousarray(img.reshape(-1, img.shape[2]).T, dtype=np.float32)  # (C, P_src)
+    idx_t = np.ascontiguousarray(idx.T)
+    w_t = np.ascontiguousarray(wts.T)
+    out = np.empty((idx.shape[0], chans.shape[0]), dtype=np.float32)
+    for c, src in enumerate(chans):  # 1-D gathers: far faster than gathering rows
+        acc = src[idx_t[0]] * w_t[0]
+        for t in range(1, idx_t.shape[0]):
+            acc += src[idx_t[t]] * w_t[t]
+        out[:, c] = acc
     return out
 
 

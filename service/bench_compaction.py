@@ -30,6 +30,7 @@ from rasterizer.gaussians import Gaussians
 from rasterizer.ply import ply_bytes
 from rasterizer.render import render
 from rasterizer.render_cull import cull_for_camera
+from rasterizer.splat import RenderLimitError
 from rasterizer.scene_folder import load_scene
 from rasterizer.yin_yang import erp_to_yin_yang
 
@@ -92,8 +93,12 @@ def ensure_encoder_model(height: int, path: Path | None = None) -> Path:
 
 
 def timed_render(g: Gaussians, c2w, **kw):
+    """(RenderOutput or None when the renderer refuses (RenderLimitError), seconds)."""
     t = time.perf_counter()
-    out = render(g, c2w, **kw)
+    try:
+        out = render(g, c2w, **kw)
+    except RenderLimitError:
+        out = None
     return out, time.perf_counter() - t
 
 
@@ -132,11 +137,13 @@ def bench_source(g: Gaussians, prov: Provenance, targets, images, conf=None) -> 
         res["culling"][tn] = {
             "erp": {"culled": len(kept_all) - int(idx.size), "cull_s": round(cull_s, 3), **erp},
             "perspective": {"culled": len(kept_all) - int(pidx.size), "cull_s": round(pcull_s, 3),
-                            "render_s_before": round(s_ref, 3), "render_s_after": round(s_got, 3),
-                            "psnr_vs_unculled": round(metrics.psnr(got.colour, ref.colour), 2)},
+                            "render_s_before": round(s_ref, 3) if ref is not None else "RenderLimitError",
+                            "render_s_after": round(s_got, 3) if got is not None else "RenderLimitError",
+                            "psnr_vs_unculled": (round(metrics.psnr(got.colour, ref.colour), 2)
+                                                 if ref is not None and got is not None else None)},
         }
         _log(f"  cull {tn}: erp -{len(kept_all) - idx.size} {erp['render_s']:.2f}s {erp['psnr']:.3f}dB; "
-             f"persp -{len(kept_all) - pidx.size} {s_ref:.2f}->{s_got:.2f}s")
+             f"persp -{len(kept_all) - pidx.size} {s_ref:.2f}->{s_got:.2f}s (refused: {ref is None}, {got is None})")
     return res
 
 
@@ -266,6 +273,18 @@ def markdown(results: dict) -> str:
                 ps = ", ".join(f"{k} {v:.3f}" for k, v in r["psnr"].items())
                 lines.append(f"| {e['scene']} {'+'.join(e['references'])} | {name} | {r['encoder_s']} | {r['near']} | "
                              f"{r['far']} | {ps} | {r.get('abs_rel', '')} |")
+    lines += ["", "## Notes", "",
+              "* Steps: `min_opacity` (encoder opacities are >= 0.35, so 1/255 removes nothing there), "
+              "`resolve_overlap` ('split' = larger domain margin keeps, the renderer's own merge rule; "
+              "'yin' = Yin whole), `merge_duplicates` (other view's pixel at the same range within "
+              "`duplicate_range_tol`, the Gaussian farther from its own camera goes), `max_count`/`max_bytes` cap.",
+              "* `min_confidence` (off by default) and the cap punch holes with the training-free encoder: "
+              "unconfident pixels are whole regions (walls without texture), not scattered noise.",
+              "* Culling: `rasterizer.render_cull.cull_for_camera` (near, frustum/domain widened by 3 sigma, "
+              "occlusion on a coarse ERP cell grid). A perspective render of the uncompacted or compacted set "
+              "without it can hit the renderer's RenderLimitError (Gaussians just in front of the camera).",
+              "* Adaptive near/far: the plane count is fixed per exported model (static shapes).",
+              ]
     return "\n".join(lines) + "\n"
 
 

@@ -26,7 +26,7 @@ from rasterizer.scene_folder import SceneFolder, Split, load_scene
 from .bench_baselines import copy_nearest
 from .bench_machine import machine_info, machine_line
 from .bench_models import DEFAULT_MODELS_DIR, ensure_model
-from .bench_report import aggregate, markdown, plot, write_json
+from .bench_report import ablation_markdown, aggregate, markdown, plot, write_json
 from .bench_settings import Setting, full_grid, parse_setting, short_grid
 
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "docs" / "bench"
@@ -83,6 +83,7 @@ class Runner:
         self.warmup = warmup
         self._encoders: dict = {}
         self._warm: set = set()
+        self.paths: dict = {}  # model key -> ONNX path, filled before the sweep
 
     def encoder(self, setting: Setting):
         from .encoder import OnnxEncoder
@@ -91,8 +92,8 @@ class Runner:
         if key not in self._encoders:
             self._encoders.clear()  # keep one session in memory at a time
             h, w, planes, erp, ds = key
-            path = ensure_model(h, w, planes, erp, downscale=ds, models_dir=self.models_dir, threads=self.threads,
-                                log=_log)
+            path = self.paths.get(key) or ensure_model(h, w, planes, erp, downscale=ds, models_dir=self.models_dir,
+                                                       threads=self.threads, log=_log)
             self._encoders[key] = OnnxEncoder(path, threads=self.threads)
         return self._encoders[key]
 
@@ -147,6 +148,11 @@ def run(scene_dirs: list[Path], settings: list[Setting], *, models_dir: Path, th
         render_width: int | None = None, warmup: bool = False, max_splits: int | None = None) -> list[dict]:
     """Per-target records for every (setting, scene split, target)."""
     runner = Runner(models_dir, threads, warmup)
+    # Build every model first: the whole sweep then uses one snapshot of the exporter's code.
+    for key in dict.fromkeys(s.model_key for s in settings if s.kind == "model"):
+        h, w, planes, erp, ds = key
+        runner.paths[key] = ensure_model(h, w, planes, erp, downscale=ds, models_dir=models_dir, threads=threads,
+                                         log=_log)
     records: list[dict] = []
     scenes = [load_scene(d) for d in scene_dirs]
     for setting in settings:
@@ -192,6 +198,23 @@ def run(scene_dirs: list[Path], settings: list[Setting], *, models_dir: Path, th
                     _log(f"{setting.name} | {group} {name}: PSNR {rec['psnr']:.2f} dB, "
                          f"{sum(rec['seconds'].values()):.2f} s")
     return records
+
+
+def ablation_tables(settings: list[Setting], summary: list[dict]) -> list[str]:
+    """The paper's Table 3 (encoder x rasterizer) for every model point where all four cells ran."""
+    points: dict[tuple, dict] = {}
+    for s in settings:
+        if s.kind == "model":
+            cell = ("Yin-Yang encoder" if not s.erp_encoder else "ERP encoder",
+                    "Yin-Yang rasterizer" if s.rasterizer == "yinyang" else "direct ERP rasterizer")
+            points.setdefault((s.height, s.width, s.planes, s.downscale), {})[cell] = s.slug
+    out = []
+    for (h, w, planes, ds), cells in points.items():
+        if len(cells) == 4:
+            feats = "" if ds is None else f", features /{ds}"
+            out.append(ablation_markdown(summary, cells, f"Paper Table 3 ablation ({h}x{w}, {planes} planes{feats}): "
+                                                         "mean PSNR / SSIM over scenes"))
+    return out
 
 
 def code_version() -> dict:
@@ -269,8 +292,9 @@ def main(argv: list[str] | None = None) -> int:
     write_json(args.out / f"{args.name}.json", {"machine": info, "code": code, "notes": notes,
                                                  "settings": [s.to_dict() for s in settings],
                                                  "summary": summary, "records": records})
-    (args.out / f"{args.name}.md").write_text(markdown(summary, line, notes) +
-                                             f"\n![PSNR against seconds]({args.name}_psnr_vs_seconds.png)\n")
+    md = markdown(summary, line, notes) + f"\n![PSNR against seconds]({args.name}_psnr_vs_seconds.png)\n"
+    md += "".join("\n" + t for t in ablation_tables(settings, summary))
+    (args.out / f"{args.name}.md").write_text(md)
     plot(summary, args.out / f"{args.name}_psnr_vs_seconds.png", line)
     _log(f"wrote {args.out / (args.name + '.md')}")
     return 0

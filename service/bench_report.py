@@ -106,33 +106,80 @@ def markdown(summary: list[dict], machine_line: str, notes: list[str], title: st
     return "\n".join(lines) + "\n"
 
 
+def ablation_markdown(summary: list[dict], cells: dict[tuple[str, str], str], title: str) -> str:
+    """A rows x columns table of mean PSNR / SSIM; ``cells`` maps (row label, column label) -> setting slug."""
+    by_slug = {s["setting"]: s for s in summary}
+    rows = list(dict.fromkeys(r for r, _ in cells))
+    cols = list(dict.fromkeys(c for _, c in cells))
+    lines = [f"## {title}", "", "| | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+    for r in rows:
+        vals = []
+        for c in cols:
+            m = (by_slug.get(cells.get((r, c), "")) or {}).get("mean")
+            vals.append("–" if not m else f"{_fmt(m['psnr'])} dB / {_fmt(m['ssim'], 4)}")
+        lines.append(f"| {r} | " + " | ".join(vals) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _style(slug: str, index: int):
+    """(marker, colour) of a setting: star oracle, square copy, circle YY encoder, triangle ERP encoder;
+    hollow for the direct ERP rasterizer."""
+    import matplotlib
+
+    marker = "*" if slug.startswith("oracle") else "s" if slug == "copy" else "^" if "erpenc" in slug else "o"
+    colour = "tab:green" if slug.startswith("oracle") else "0.4" if slug == "copy" else \
+        matplotlib.colormaps["tab10"](index % 10)
+    return marker, colour
+
+
 def plot(summary: list[dict], path: Path, machine_line: str) -> Path:
-    """PSNR (mean over scenes) against total seconds per novel view, one point per setting."""
+    """PSNR against wall seconds per novel view, one point per setting.
+
+    Panels: the mean over scenes (settings that cover every scene), then one per scene group
+    (the oracle appears where the scene has GT depth).
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(9, 5.5), dpi=110)
+    groups: list[str] = []
     for s in summary:
-        m = s["mean"]
-        if not m or m["psnr"] is None or not m["seconds"].get("total"):
-            continue
-        slug = s["setting"]
-        marker = "*" if slug.startswith("oracle") else ("s" if slug == "copy" else ("o" if "yyenc" in slug else "^"))
-        colour = "tab:green" if slug.startswith("oracle") else ("tab:grey" if slug == "copy" else
-                                                               ("tab:blue" if slug.startswith("256x") else "tab:red"))
-        if "direct" in slug:
-            colour = "tab:orange" if "yyenc" in slug else "tab:purple"
-        ax.scatter(m["seconds"]["total"], m["psnr"], marker=marker, s=80, color=colour, zorder=3)
-        ax.annotate(s["name"], (m["seconds"]["total"], m["psnr"]), fontsize=6.5, xytext=(4, 3), textcoords="offset points")
-    ax.set_xscale("log")
-    ax.set_xlabel("wall seconds per novel view (decode + encoder + Gaussian head + render), log scale")
-    ax.set_ylabel("PSNR (dB), mean over scenes")
-    ax.set_title("omnisplat: error against run time", fontsize=11)
-    ax.grid(True, which="both", alpha=0.3)
-    fig.text(0.01, 0.01, machine_line[:180], fontsize=5.5, color="0.35")
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
+        groups += [g for g in s["per_group"] if g not in groups]
+    n_interp = max((s["mean"] or {}).get("groups", 0) for s in summary) if summary else 0
+    panels = [("mean over scenes (extrapolation excluded)", None)] + [(g, g) for g in groups]
+    cols = 2
+    rows = (len(panels) + 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(12, 4.2 * rows + 1.6), dpi=100, squeeze=False)
+    handles = {}
+    for ax, (title, group) in zip(axes.flat, panels):
+        for i, s in enumerate(summary):
+            if group is None:
+                m = s["mean"]
+                if not m or m.get("groups", 0) < n_interp:
+                    continue  # e.g. the oracle, which covers only scenes with GT depth
+            else:
+                m = s["per_group"].get(group)
+            if not m or m["psnr"] is None or not m["seconds"].get("total"):
+                continue
+            marker, colour = _style(s["setting"], i)
+            hollow = "direct" in s["setting"]
+            h = ax.scatter(m["seconds"]["total"], m["psnr"], marker=marker, s=110 if marker == "*" else 60,
+                           facecolors="none" if hollow else colour, edgecolors=colour, linewidths=1.6, zorder=3)
+            handles.setdefault(s["name"], h)
+        ax.set_xscale("log")
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("wall s per novel view (decode + encoder + head + render)", fontsize=8)
+        ax.set_ylabel("PSNR (dB)", fontsize=8)
+        ax.grid(True, which="both", alpha=0.3)
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    fig.legend(list(handles.values()), list(handles.keys()), loc="lower center", ncol=2, fontsize=7.5, frameon=False)
+    fig.suptitle("omnisplat: error against run time (hollow = direct ERP rasterizer, triangle = ERP encoder)",
+                 fontsize=11)
+    fig.text(0.01, 0.005, machine_line[:200], fontsize=6, color="0.35")
+    legend_rows = (len(handles) + 1) // 2
+    fig.tight_layout(rect=(0, min(0.45, 0.022 * legend_rows + 0.03), 1, 0.97))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)

@@ -317,6 +317,12 @@ def case_constant(env: Env, name: str, value: float) -> CaseResult:
     return res
 
 
+def case_overexposed(env: Env) -> CaseResult:
+    """A real scene overexposed 2.5x: large clipped (saturated) areas in both views and the target."""
+    a, b, t = (np.clip(x * 2.5, 0.0, 1.0) for x in pair(env, SyntheticScene()))
+    return reconstruct_and_score(env, "overexposed_clipped", SyntheticScene(), images=(a, b, t))
+
+
 def case_noise(env: Env) -> CaseResult:
     rng = np.random.default_rng(3)
     a = rng.random((env.height, env.width, 3), dtype=np.float32)
@@ -390,6 +396,7 @@ def cases(short: bool) -> list[tuple[str, Callable[[Env], CaseResult]]]:
     out += [("textureless_grey", lambda e: case_constant(e, "textureless_grey", 0.5)),
             ("black", lambda e: case_constant(e, "black", 0.0)),
             ("saturated_white", lambda e: case_constant(e, "saturated_white", 1.0)),
+            ("overexposed_clipped", case_overexposed),
             ("pure_noise", case_noise)]
     out += [("near_far_wide", lambda e: case_near_far(e, "near_far_wide", 0.05, 1e3, "render")),
             ("near_far_extreme", lambda e: case_near_far(e, "near_far_extreme", 1e-4, 1e6, "finite")),
@@ -446,7 +453,7 @@ def markdown(results: list[CaseResult], machine: str, model_line: str) -> str:
              "synthetic scenes from `service/bench_synthetic.py`.", "",
              "| case | result | criterion | detail | s | figure |", "|---|---|---|---|---|---|"]
     for r in results:
-        fig = f"[png](stability/{Path(r.figure).name})" if r.figure else ""
+        fig = f"[png](stability/{Path(r.figure).name})" if r.figure else ""  # stability.md sits in out_dir
         detail = r.detail.replace("|", "/")[:300]
         lines.append(f"| {r.name} | {'pass' if r.passed else '**FAIL**'} | {r.criterion} | {detail} | {r.seconds:.1f} | {fig} |")
     return "\n".join(lines) + "\n"
@@ -474,13 +481,19 @@ def main(argv: list[str] | None = None) -> int:
     log = (lambda m: print(f"[bench stability] {m}", file=sys.stderr, flush=True))
     env = make_env(short=args.short, height=height, planes=planes, downscale=downscale, models_dir=args.models_dir,
                    fig_dir=out / "stability", threads=args.threads, model=args.model)
+    if not args.case:  # a full run replaces every figure; stale ones of renamed cases go
+        for old in env.fig_dir.glob("*.png"):
+            old.unlink()
     info = machine_info()
     results = run(env, args.case, log)
     n_pass = sum(r.passed for r in results)
     meta = getattr(env.encoder, "metadata", {}) or {}
     model_line = f"{height}x{2 * height} input, {planes} planes, features /{downscale}, Yin-Yang encoder; " + \
         ", ".join(f"{k}={meta[k]}" for k in ("name", "version", "sha256") if k in meta)
-    payload = {"cases": [asdict(r) for r in results], "passed": n_pass, "failed": len(results) - n_pass,
+    cases_out = [asdict(r) for r in results]
+    for c in cases_out:  # relative to out_dir, so the committed report has no machine paths
+        c["figure"] = Path(c["figure"]).resolve().relative_to(out.resolve()).as_posix() if c["figure"] else None
+    payload = {"cases": cases_out, "passed": n_pass, "failed": len(results) - n_pass, "out_dir": str(out),
                "short": args.short, "model": model_line, "machine": info, "same_image_db": SAME_IMAGE_DB}
     write_json(out / "stability.json", payload)
     (out / "stability.md").write_text(markdown(results, machine_line(info), model_line))

@@ -53,7 +53,7 @@ class Settings(BaseSettings):
     inference_concurrency: int = Field(1, ge=1, description="reconstructions running at once")
     inference_queue: int = Field(2, ge=0, description="reconstructions waiting; more get 503")
     render_concurrency: int = Field(1, ge=1, description="renders/PLY encodes running at once")
-    render_queue: int = Field(8, ge=0, description="renders waiting; more get 503")
+    render_queue: int = Field(4, ge=0, description="renders waiting; more get 503")
     retry_after_s: int = Field(5, ge=1, description="Retry-After seconds sent with 503")
 
     @model_validator(mode="after")

@@ -20,7 +20,8 @@ import onnxruntime as ort
 from rasterizer.gaussians import Gaussians
 from rasterizer.geometry import PoseError, as_c2w
 from rasterizer.yin_yang import resize_erp
-from rasterizer.sweep import MIN_BASELINE, baseline, default_near_far, sweep_inputs
+from rasterizer.sweep import (FAR_PER_BASELINE, MIN_BASELINE, NEAR_PER_BASELINE, baseline, default_near_far,
+                              sweep_inputs)
 
 INPUT_NAMES = ("erp_a", "erp_b", "warp_grids", "rel_rt", "inv_depths", "c2w", "cam_quats")
 OUTPUT_NAMES = ("means", "scales", "quats", "opacities", "sh_dc", "range_maps", "confidence")
@@ -106,8 +107,10 @@ class OnnxEncoder:
         self.num_planes = int(props["num_planes"])
         self.feature_size = (int(props["feature_height"]), int(props["feature_width"]))
         self.erp_encoder = props.get("erp_encoder", "false") == "true"
-        self.near_default = float(props.get("near_default", 0.3))
-        self.far_default = float(props.get("far_default", 20.0))
+        # default sweep range per unit baseline (models before 0.2 stored the same numbers as
+        # near_default / far_default in metres for the 1 m design baseline)
+        self.near_per_baseline = float(props.get("near_per_baseline", props.get("near_default", NEAR_PER_BASELINE)))
+        self.far_per_baseline = float(props.get("far_per_baseline", props.get("far_default", FAR_PER_BASELINE)))
 
     @property
     def metadata(self) -> dict:
@@ -132,8 +135,9 @@ class OnnxEncoder:
 
         erp_a, erp_b: (H, W, 3) uint8 or float in [0, 1], W = 2H, any size
         (the two may differ). c2w_a, c2w_b: 4x4 (or 3x4) OpenCV camera-to-world.
-        near, far: sweep range in scene units (default from the baseline,
-        :func:`rasterizer.sweep.default_near_far`). options: ``min_opacity``
+        near, far: sweep range in scene units (default proportional to the
+        baseline b: 0.3 b and 20 b, :func:`rasterizer.sweep.default_near_far`,
+        so a globally scaled scene gives the same result). options: ``min_opacity``
         drops Gaussians below that opacity. Raises :class:`EncoderInputError`.
         """
         unknown = sorted(set(options) - set(KNOWN_OPTIONS))
@@ -150,7 +154,7 @@ class OnnxEncoder:
         if b < MIN_BASELINE:
             raise EncoderInputError("the two camera centres coincide: depth cannot be triangulated "
                                     f"(baseline {b:.3g})")
-        n_def, f_def = default_near_far(pa, pb, near=self.near_default, far=self.far_default)
+        n_def, f_def = default_near_far(pa, pb, near_ratio=self.near_per_baseline, far_ratio=self.far_per_baseline)
         near = n_def if near is None else float(near)
         far = f_def if far is None else float(far)
         if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):

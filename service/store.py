@@ -40,6 +40,7 @@ from .inputs import check_scene_id
 log = logging.getLogger("omnisplat.store")
 
 _FIELDS = ("means", "scales", "quats", "opacities", "sh")
+_META_CACHE = 1024  # metadata dicts kept in memory
 
 
 class SceneNotFound(KeyError):
@@ -167,7 +168,7 @@ class SceneStore:
                 shutil.rmtree(child, ignore_errors=True) if child.is_dir() else child.unlink(missing_ok=True)
         self.max_scenes = max_scenes
         self.cache = _LRU(cache_scenes, cache_bytes)
-        self._meta_cache: dict[str, dict] = {}
+        self._meta_cache: OrderedDict[str, dict] = OrderedDict()  # small; bounded by _META_CACHE
         self._lock = threading.Lock()
 
     # -- paths ------------------------------------------------------------------
@@ -273,6 +274,8 @@ class SceneStore:
             raise StoreCorrupt(f"scene {scene_id}: meta.json unreadable ({exc})") from None
         with self._lock:
             self._meta_cache[scene_id] = meta
+            while len(self._meta_cache) > _META_CACHE:
+                self._meta_cache.popitem(last=False)
         return meta
 
     def gaussians(self, scene_id: str) -> Gaussians:

@@ -19,12 +19,7 @@ SHORT_CASES = [name for name, _ in bench_stability.cases(short=True)]
 
 #: Known failures, each a finding for another module's owner. strict: when fixed, the XPASS fails the
 #: run so the mark gets removed.
-KNOWN = {
-    "global_scale_0.001": "rasterizer.sweep.default_near_far clamps near to [0.3, 1] m and far >= 20 m "
-                          "instead of scaling with the baseline (explicit scaled near/far passes)",
-    "global_scale_1000": "rasterizer.sweep.default_near_far clamps near to [0.3, 1] m and far >= 20 m "
-                         "instead of scaling with the baseline (explicit scaled near/far passes)",
-}
+KNOWN: dict[str, str] = {}  # case name -> reason (none at the moment)
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +43,7 @@ def test_report_shape(report):
     assert report["passed"] == sum(c["passed"] for c in report["cases"])
     assert report["_rc"] == (0 if report["failed"] == 0 else 1)
     for case in report["cases"]:
-        assert Path(case["figure"]).read_bytes()[:4] == b"\x89PNG"
+        assert (Path(report["out_dir"]) / case["figure"]).read_bytes()[:4] == b"\x89PNG"
 
 
 @pytest.mark.parametrize("name", [

@@ -148,3 +148,20 @@ def test_ensure_model_builds_once_atomically(tmp_path):
     assert any("building" in m for m in messages)
     mtime = target.stat().st_mtime_ns
     assert ensure_model(target, progress=messages.append) == target and target.stat().st_mtime_ns == mtime
+
+
+def test_settings_from_environment(monkeypatch, tmp_path):
+    from pydantic import ValidationError
+
+    from service.config import Settings
+
+    monkeypatch.setenv("OMNISPLAT_STORE_DIR", str(tmp_path / "s"))
+    monkeypatch.setenv("OMNISPLAT_MAX_UPLOAD_BYTES", "5000")
+    monkeypatch.setenv("OMNISPLAT_INFERENCE_QUEUE", "0")
+    s = Settings()
+    assert s.store_dir == tmp_path / "s" and s.max_upload_bytes == 5000 and s.inference_queue == 0
+    assert s.resolved_model_path.name == "omnisplat-default.onnx"
+    assert Settings(port=9000).port == 9000  # explicit values (CLI flags) win over the environment
+    monkeypatch.setenv("OMNISPLAT_PORT", "not a port")
+    with pytest.raises(ValidationError):
+        Settings()

@@ -112,6 +112,21 @@ def test_gaussian_head_matches_depth_gaussians(kind):
     assert np.allclose(opac.numpy(), 1.0)
 
 
+def test_head_opacity_curve():
+    """opacity = min + (max - min) * confidence ** gamma, clamped confidence."""
+    h, w = 4, 12
+    conf = np.linspace(-0.2, 1.2, 2 * h * w, dtype=np.float32).reshape(2, 1, h, w)
+    t = lambda a: torch.from_numpy(np.asarray(a, dtype=np.float32))
+    c2w = np.stack([np.eye(4), np.eye(4)])
+    for gamma in (1.0, 2.0, 3.0):
+        head = GaussianHead(("yin",), h, w, opacity_min=0.05, opacity_max=0.98, opacity_gamma=gamma)
+        with torch.no_grad():
+            opac = head(t(np.ones((2, 1, h, w))), t(conf), t(np.zeros((2, 1, 3, h, w))), t(c2w),
+                        t(np.tile([1.0, 0, 0, 0], (2, 1))))[3].numpy()
+        ref = 0.05 + 0.93 * np.clip(conf.reshape(-1), 0, 1) ** gamma
+        np.testing.assert_allclose(opac, ref, atol=1e-6)
+
+
 def test_config_rejects_bad_settings():
     with pytest.raises(ValueError, match="2 x height"):
         make_config("fast", height=100, width=300)

@@ -106,7 +106,7 @@ def test_refine_gradient_matches_torch_autograd():
     mask = torch.tensor(fit, dtype=torch.float64)[:, None]
     loss = ((shown - torch.tensor(target, dtype=torch.float64)) ** 2 * mask).sum() / fit.sum()
     loss.backward()
-    assert fit_loss == pytest.approx(float(loss), rel=1e-4)
+    assert fit_loss == pytest.approx(loss.item(), rel=1e-4)
     np.testing.assert_allclose(grad, o_t.grad.numpy(), rtol=1e-3, atol=1e-5 * np.abs(grad).max())
 
 
@@ -163,7 +163,8 @@ def test_refine_recovers_perturbed_colours_and_opacities():
     noisy_op = np.clip(truth.opacities * rng.uniform(0.4, 1.0, len(truth)), 0.05, 0.99)
     start = Gaussians(truth.means, truth.scales, truth.quats, noisy_op, rgb_to_sh_dc(noisy_rgb)[:, None, :])
     views = reference_views(start, images, c2ws, height=h, holdout=0.15, seed=0)
-    res = refine(start, views, RefineOptions(iterations=30, patience=0))
+    res = refine(start, views, RefineOptions(iterations=30, optimise_opacity=True, cg_steps=4, colour_every=5,
+                                                   opacity_lr=0.05, colour_reg=0.05, patience=0))
     hist = res.history
     assert hist[-1]["fit_loss"] < 0.5 * hist[0]["fit_loss"]
     assert hist[-1]["held_loss"] < 0.7 * hist[0]["held_loss"]
@@ -187,7 +188,8 @@ def test_opacity_adam_alone_decreases_loss():
     images = _targets_from(truth, c2ws, h)
     start = Gaussians(truth.means, truth.scales, truth.quats, np.full(len(truth), 0.3), truth.sh)
     views = reference_views(start, images, c2ws, height=h, holdout=0.0)
-    res = refine(start, views, RefineOptions(iterations=20, cg_steps=0, patience=0))
+    res = refine(start, views, RefineOptions(iterations=20, optimise_opacity=True, cg_steps=0,
+                                                   opacity_lr=0.05, patience=0))
     losses = [h_["fit_loss"] for h_ in res.history]
     assert losses[-1] < 0.7 * losses[0]
 
@@ -204,3 +206,21 @@ def test_refine_progress_and_sh_degree_one():
     assert seen and seen[-1] == pytest.approx(1.0) and all(b >= a for a, b in zip(seen, seen[1:]))
     with pytest.raises(ValueError):
         refine(truth, views, RefineOptions(iterations=1, sh_degree=2))
+
+
+def test_colour_cg_reduces_held_out_error_and_early_stops():
+    truth = _toy_scene(3)
+    rng = np.random.default_rng(7)
+    c2ws = [np.eye(4), np.eye(4)]
+    c2ws[1][1, 3] = 0.3
+    images = _targets_from(truth, c2ws, 20)
+    noisy = np.clip(truth.rgb + rng.normal(0, 0.2, truth.rgb.shape), 0, 1)
+    start = Gaussians(truth.means, truth.scales, truth.quats, truth.opacities, rgb_to_sh_dc(noisy)[:, None, :])
+    views = reference_views(start, images, c2ws, height=20, holdout=0.2)
+    res = refine(start, views, RefineOptions(iterations=40, colour_reg=0.1, patience=3), snapshot_at=(0, 1))
+    held = [h["held_loss"] for h in res.history]
+    assert min(held) < 0.5 * held[0]
+    assert res.history[-1]["iteration"] <= res.best_iteration + 3  # stopped early after the best
+    assert set(res.snapshots) == {0, 1}
+    np.testing.assert_array_equal(res.snapshots[0].sh, start.sh)
+    np.testing.assert_array_equal(res.gaussians.opacities, start.opacities)  # colour mode: opacity untouched

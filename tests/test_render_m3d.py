@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from rasterizer.depth_gaussians import gaussians_from_depth
-from rasterizer.gaussians import Gaussians
+from rasterizer import geometry as geo
+from rasterizer.gaussians import Gaussians, quat_to_rotmat
 from rasterizer.metrics import psnr
 from rasterizer.render import render
 from rasterizer.scene_folder import load_scene
@@ -16,30 +17,38 @@ def scene(m3d_dir):
     return load_scene(m3d_dir)
 
 
-def test_depth_gaussians_rerender_their_own_yin_view_above_40db(scene):
+def test_depth_gaussians_rerender_their_own_view_above_40db(scene):
+    """Full resolution: the 0.3 px^2 low-pass blurs each pixel with its nearer neighbours,
+    so the PSNR is bounded (~41 dB here) and only tiny Gaussians reach it."""
     f = scene.frames["00"]
     img, depth = f.image(), f.depth()
-    yin, _ = erp_to_yin_yang(img)
-    dyin, _ = erp_to_yin_yang(depth, nearest=True)
-    g = gaussians_from_depth(yin, dyin, f.c2w, "yin", scale_factor=0.05)
-    assert len(g) == int((dyin > 0).sum())
-    out = render(g, f.c2w, projection="yin", width=yin.shape[1])
-    ok = dyin > 0
-    value = psnr(out.colour[ok], yin[ok])
-    print(f"self re-render (Yin 256x768, GT depth): {value:.2f} dB")
+    g = gaussians_from_depth(img, depth, f.c2w, "erp", scale_factor=0.02)
+    ok = depth > 0
+    assert len(g) == int(ok.sum())
+    out = render(g, f.c2w, projection="erp", width=img.shape[1], method="direct")
+    value = psnr(out.colour[ok], img[ok])
+    print(f"self re-render (ERP 512x1024, GT depth, pixels with depth): {value:.2f} dB")
     assert value >= 40
     # the expected range is the depth map itself
-    assert np.median(np.abs(out.range[ok] - dyin[ok])) < 1e-3
+    assert np.median(np.abs(out.range[ok] - depth[ok]) / depth[ok]) < 5e-3
 
 
 def test_depth_gaussians_sit_on_their_rays(scene):
     f = scene.frames["02"]
-    img = resize_erp(f.image(), 32, 64)
-    depth = resize_erp(f.depth(), 32, 64)
-    g = gaussians_from_depth(img, depth, f.c2w, "erp")
-    out = render(g, f.c2w, projection="erp", width=64, method="direct")
-    assert np.allclose(out.range, depth, rtol=0.02)
-    assert np.all(g.scales[:, 2] < g.scales[:, :2].min(axis=1))  # flattened along the ray
+    for grid in ("erp", "yang"):
+        img = resize_erp(f.image(), 32, 64)
+        depth = f.depth()[8::16, 8::16]
+        if grid == "yang":
+            img, depth = erp_to_yin_yang(img)[1], erp_to_yin_yang(f.depth(), nearest=True, height=16)[1]
+        g = gaussians_from_depth(img, depth, f.c2w, grid)
+        rays = geo.grid_directions(grid, *depth.shape)[depth > 0] @ f.c2w[:3, :3].T
+        rel = g.means - f.c2w[:3, 3]
+        assert np.allclose(np.linalg.norm(rel, axis=1), depth[depth > 0], rtol=1e-5)
+        assert np.allclose(rel / np.linalg.norm(rel, axis=1, keepdims=True), rays, atol=1e-5)
+        # flattened along the ray: the thin local axis (third column of R) is the ray
+        axis = quat_to_rotmat(g.quats)[:, :, 2]
+        assert np.allclose(np.abs(np.sum(axis * rays, axis=1)), 1, atol=1e-5)
+        assert np.all(g.scales[:, 2] < g.scales[:, :2].min(axis=1))
 
 
 def _two_reference_gaussians(scene, height):
@@ -65,7 +74,7 @@ def test_direct_erp_and_yinyang_agree_on_a_real_scene(scene):
     value = psnr(direct.colour, yy.colour)
     print(f"direct ERP vs Yin-Yang ERP (128x256, {len(g)} Gaussians): {value:.2f} dB")
     assert value > 30
-    assert np.mean(np.abs(direct.alpha - yy.alpha)) < 0.01
+    assert np.mean(np.abs(direct.alpha - yy.alpha)) < 0.02
 
 
 def test_oracle_beats_the_nearest_reference_at_the_target(scene):

@@ -161,3 +161,17 @@ def test_artifact_is_atomic_and_scoped(tmp_path):
 def test_json_safe():
     out = json_safe({"a": np.float32(1.5), "b": np.arange(3), "c": float("nan"), "d": (1, np.int64(2))})
     assert json.loads(json.dumps(out)) == {"a": 1.5, "b": [0, 1, 2], "c": None, "d": [1, 2]}
+
+
+def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
+    store = SceneStore(tmp_path)
+    sid = content_id("crash")
+
+    def boom(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez", boom)
+    with pytest.raises(OSError):
+        store.put(sid, _gaussians(5), {})
+    assert not store.exists(sid)
+    assert list((tmp_path / "tmp").iterdir()) == [] and list((tmp_path / "scenes").iterdir()) == []

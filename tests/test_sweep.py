@@ -84,4 +84,28 @@ def test_default_near_far_tracks_baseline():
     n1, f1 = sweep.default_near_far(np.eye(4), _pose([0, 0, 1.0]))
     n4, f4 = sweep.default_near_far(np.eye(4), _pose([0, 0, 4.0]))
     assert 0 < n1 < n4 < f1 <= f4
-    assert n1 == pytest.approx(0.3)
+    assert n1 == pytest.approx(0.3) and f1 == pytest.approx(20.0)
+    # pure proportionality: a globally scaled scene gets the scaled sweep range
+    for s in (1e-3, 0.5, 4.0, 1e3):
+        n, f = sweep.default_near_far(np.eye(4), _pose([0, 0, s]))
+        assert n == pytest.approx(0.3 * s) and f == pytest.approx(20.0 * s)
+    with pytest.raises(ValueError):
+        sweep.default_near_far(np.eye(4), _pose([0, 0, 1.0]), near_ratio=2.0, far_ratio=1.0)
+
+
+def test_warp_grids_are_invariant_to_a_global_similarity():
+    """Scaling and rotating both poses (and the default near/far with them) leaves the grids unchanged."""
+    a, b = np.eye(4), _pose([0.3, -0.2, 1.0])
+    rot = np.eye(4)
+    c, s = np.cos(0.7), np.sin(0.7)
+    rot[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    out = []
+    for scale in (1.0, 1e-3, 1e3):
+        m = rot.copy()
+        m[:3, :3] *= scale
+        pa, pb = m @ a, m @ b
+        pa[:3, :3] /= scale
+        pb[:3, :3] /= scale
+        near, far = sweep.default_near_far(pa, pb)
+        out.append(sweep.sweep_inputs(pa, pb, near=near, far=far, num_planes=6, feature_size=(4, 12))["warp_grids"])
+    assert np.allclose(out[0], out[1], atol=2e-4) and np.allclose(out[0], out[2], atol=2e-4)

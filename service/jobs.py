@@ -1,0 +1,241 @@
+"""Refinement jobs (+opt), independent of HTTP: the blocking work and an in-memory job registry.
+
+* :func:`refine_scene` (blocking, runs in a worker thread): load a stored scene and its
+  reference images, refine colour/opacity (:mod:`rasterizer.refine`), store the result
+  as a *new* scene ``result_id`` (atomic ``store.put``; the parent stays) with
+  ``meta["parent"] = parent_id``, and copy the references to it so it can be refined again.
+* :class:`JobRegistry`: jobs keyed by their result id (``job_id == result scene id``, the
+  content hash of parent id + canonical params + model sha256), so the same request on the
+  same scene maps to the same job and the same result. Jobs live in memory: a restart
+  drops queued/running ones (the store never holds a half-written scene) and a finished
+  one is still answered as ``done`` from the store.
+
+Reference images: a scene must carry the artifact ``references.npz`` (uint8 ERP arrays
+``image_a``, ``image_b``, H x 2H x 3, as fed to the encoder); poses come from
+``meta["poses"]["c2w"]`` (OpenCV). :func:`store_references` writes it; scene creation
+must call it (see the issue-7 report).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from .errors import ServiceError
+from .store import SceneStore, content_id
+
+REFERENCES_ARTIFACT = "references.npz"
+REFINE_VERSION = "refine/v1"
+#: finished jobs kept in memory (oldest dropped first)
+MAX_FINISHED_JOBS = 1000
+
+
+class ReferencesMissing(ServiceError):
+    status = 409
+    code = "references_missing"
+
+
+class JobCancelled(Exception):
+    """Raised inside a job's progress callback when the registry is shutting down."""
+
+
+def store_references(store: SceneStore, scene_id: str, erp_a: np.ndarray, erp_b: np.ndarray) -> None:
+    """Attach the two reference ERP images (uint8 or float in [0, 1]) to a stored scene (atomic)."""
+    def u8(img):
+        a = np.asarray(img)
+        return a if a.dtype == np.uint8 else np.rint(np.clip(a, 0, 1) * 255).astype(np.uint8)
+
+    buf = io.BytesIO()
+    np.savez(buf, image_a=u8(erp_a), image_b=u8(erp_b))
+    store.put_artifact(scene_id, REFERENCES_ARTIFACT, buf.getvalue())
+
+
+def has_references(store: SceneStore, scene_id: str) -> bool:
+    return store.artifact(scene_id, REFERENCES_ARTIFACT) is not None
+
+
+def load_references(store: SceneStore, scene_id: str) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """([erp_a, erp_b] uint8, [c2w_a, c2w_b] 4x4 OpenCV) of a stored scene; 409 when not kept."""
+    path = store.artifact(scene_id, REFERENCES_ARTIFACT)
+    if path is None:
+        raise ReferencesMissing(f"scene {scene_id} has no stored reference images ({REFERENCES_ARTIFACT}); "
+                                "it cannot be refined")
+    with np.load(path, allow_pickle=False) as z:
+        images = [z["image_a"], z["image_b"]]
+    c2w = store.meta(scene_id)["poses"]["c2w"]
+    return images, [np.asarray(m, dtype=np.float64) for m in c2w]
+
+
+def canonical_params(params: dict) -> str:
+    return json.dumps(params, sort_keys=True, separators=(",", ":"))
+
+
+def result_id_for(parent_id: str, params: dict, model_sha256: str) -> str:
+    """Id of the refined scene: same parent + params + model, same id."""
+    return content_id(REFINE_VERSION, parent_id, canonical_params(params), model_sha256 or "")
+
+
+def refine_scene(store: SceneStore, parent_id: str, result_id: str, params: dict,
+                 progress: Callable[[float], None] | None = None) -> dict:
+    """Refine ``parent_id`` with ``params`` and store it as ``result_id``; returns the new scene's meta.
+
+    ``params``: iterations, height (Yin/Yang working height), sh_degree, colour_reg,
+    optimise_opacity, opacity_lr, holdout, patience (see :class:`rasterizer.refine.RefineOptions`).
+    """
+    from rasterizer.refine import RefineOptions, reference_views, refine
+
+    report = progress or (lambda f: None)
+    if store.exists(result_id):
+        report(1.0)
+        return store.meta(result_id)
+    t0 = time.perf_counter()
+    timings: dict[str, float] = {}
+    parent_meta = store.meta(parent_id)
+    gaussians = store.gaussians(parent_id)
+    images, c2ws = load_references(store, parent_id)
+    timings["load"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    views = reference_views(gaussians, images, c2ws, height=int(params["height"]),
+                            holdout=float(params["holdout"]), seed=0)
+    timings["footprints"] = time.perf_counter() - t1
+    report(0.1)
+    opts = RefineOptions(iterations=int(params["iterations"]), sh_degree=int(params["sh_degree"]),
+                         colour_reg=float(params["colour_reg"]), optimise_opacity=bool(params["optimise_opacity"]),
+                         opacity_lr=float(params["opacity_lr"]), patience=int(params["patience"]))
+    t1 = time.perf_counter()
+    result = refine(gaussians, views, opts, progress=lambda f: report(0.1 + 0.85 * f))
+    timings["refine"] = time.perf_counter() - t1
+    first, last = result.history[0], result.history[-1]
+    meta = {k: v for k, v in parent_meta.items() if k not in ("id", "num_gaussians", "created_at", "links")}
+    meta.update({
+        "parent": parent_id,
+        "refine": {"params": params, "best_iteration": result.best_iteration,
+                   "iterations_run": last["iteration"], "held_loss_start": first["held_loss"],
+                   "held_loss_best": min((h["held_loss"] for h in result.history if h["held_loss"] is not None),
+                                         default=None),
+                   "version": REFINE_VERSION},
+        "created_at": time.time(),
+    })
+    t1 = time.perf_counter()
+    timings["total"] = time.perf_counter() - t0
+    meta["timings"] = timings
+    stored = store.put(result_id, result.gaussians, meta)
+    ref = store.artifact(parent_id, REFERENCES_ARTIFACT)
+    if ref is not None and not has_references(store, result_id):
+        store.put_artifact(result_id, REFERENCES_ARTIFACT, ref.read_bytes())
+    report(1.0)
+    return stored
+
+
+@dataclass
+class Job:
+    """One refinement job; ``id`` is also the id the refined scene gets."""
+
+    id: str
+    parent_id: str
+    params: dict
+    status: str = "queued"  # queued | running | done | failed
+    progress: float = 0.0
+    error: dict | None = None
+    created_at: float = field(default_factory=time.time)
+    started_at: float | None = None
+    finished_at: float | None = None
+    task: Any = field(default=None, repr=False)
+
+    def as_json(self) -> dict:
+        done = self.status == "done"
+        return {"id": self.id, "status": self.status, "progress": round(float(self.progress), 4),
+                "scene_id": self.id if done else None, "parent_id": self.parent_id, "params": self.params,
+                "error": self.error, "created_at": self.created_at, "started_at": self.started_at,
+                "finished_at": self.finished_at,
+                "links": {"self": f"/v1/jobs/{self.id}", **({"scene": f"/v1/scenes/{self.id}"} if done else {})}}
+
+
+class JobRegistry:
+    """Thread-safe in-memory jobs (progress is written from worker threads)."""
+
+    def __init__(self, max_finished: int = MAX_FINISHED_JOBS) -> None:
+        self._jobs: OrderedDict[str, Job] = OrderedDict()
+        self._lock = threading.Lock()
+        self.max_finished = max_finished
+        self.cancelled = threading.Event()
+
+    def get(self, job_id: str) -> Job | None:
+        with self._lock:
+            return self._jobs.get(job_id)
+
+    def submit(self, job_id: str, parent_id: str, params: dict, *, done: bool = False) -> tuple[Job, bool]:
+        """The job for ``job_id``: an existing queued/running/done one, else a new one (created=True).
+
+        A failed job is replaced by a new attempt. ``done=True`` records an already stored result.
+        """
+        with self._lock:
+            job = self._jobs.get(job_id)
+            if job is not None and job.status != "failed":
+                return job, False
+            job = Job(job_id, parent_id, params)
+            if done:
+                job.status, job.progress, job.finished_at = "done", 1.0, time.time()
+            self._jobs[job_id] = job
+            self._jobs.move_to_end(job_id)
+            self._trim()
+            return job, not done
+
+    def _trim(self) -> None:
+        finished = [k for k, j in self._jobs.items() if j.status in ("done", "failed")]
+        for k in finished[: max(0, len(finished) - self.max_finished)]:
+            del self._jobs[k]
+
+    def progress_callback(self, job: Job) -> Callable[[float], None]:
+        def report(fraction: float) -> None:
+            if self.cancelled.is_set():
+                raise JobCancelled("service shutting down")
+            job.progress = float(min(1.0, max(job.progress, fraction)))
+        return report
+
+    def mark_running(self, job: Job) -> None:
+        job.status, job.started_at = "running", time.time()
+
+    def mark_done(self, job: Job) -> None:
+        job.status, job.progress, job.finished_at = "done", 1.0, time.time()
+
+    def mark_failed(self, job: Job, exc: BaseException) -> None:
+        code = getattr(exc, "code", None) or type(exc).__name__
+        message = getattr(exc, "message", None) or str(exc) or type(exc).__name__
+        job.status, job.error, job.finished_at = "failed", {"code": code, "message": message}, time.time()
+
+    def cancel_all(self) -> None:
+        """Make running jobs stop at their next progress report (service shutdown)."""
+        self.cancelled.set()
+
+    def counts(self) -> dict[str, int]:
+        with self._lock:
+            out = {s: 0 for s in ("queued", "running", "done", "failed")}
+            for j in self._jobs.values():
+                out[j.status] += 1
+            return out
+
+
+async def run_job(registry: JobRegistry, job: Job, gate, store: SceneStore) -> None:
+    """Run one job through ``gate`` (a WorkGate); every outcome lands in the job record."""
+    report = registry.progress_callback(job)
+
+    def work() -> dict:
+        registry.mark_running(job)
+        return refine_scene(store, job.parent_id, job.id, job.params, report)
+
+    try:
+        await gate.run(work)
+    except BaseException as exc:  # noqa: BLE001 - recorded on the job; cancellation re-raised
+        registry.mark_failed(job, exc)
+        if not isinstance(exc, Exception):
+            raise
+        return
+    registry.mark_done(job)
