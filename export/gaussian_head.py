@@ -70,7 +70,7 @@ class GaussianHead(nn.Module):
     [view][grid][row][col] order."""
 
     def __init__(self, grids, height: int, width: int, scale_factor: float = 0.75,
-                 ray_scale_ratio: float = 0.1, opacity_min: float = 0.05, opacity_max: float = 0.98,
+                 ray_scale_ratio: float = 0.1, opacity_min: float = 0.15, opacity_max: float = 0.98,
                  opacity_gamma: float = 2.0) -> None:
         super().__init__()
         frames = [pixel_frames(k, height, width) for k in grids]

@@ -91,7 +91,7 @@ class CompactionOptions:
         unknown = sorted(set(d) - names)
         if unknown:
             raise CompactionError(f"unknown compaction option(s) {unknown}; known: {sorted(names)}")
-        if d.get("resolve_overlap") in (False, None):
+        if "resolve_overlap" in d and d["resolve_overlap"] in (False, None):
             d["resolve_overlap"] = "off"
         elif d.get("resolve_overlap") is True:
             d["resolve_overlap"] = "split"

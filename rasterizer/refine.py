@@ -10,21 +10,25 @@ Geometry is fixed, so :func:`rasterizer.splat.footprints` runs once per grid
 (opacity-free footprints, valid for any opacity) and every iteration only
 re-composites them (:func:`rasterizer.composite.accumulate`).
 
-Method (chosen by measurement, see ``docs/bench/refine.md``):
+Method (chosen by measurement on m3d, encoder Gaussians, see ``docs/bench/refine.md``):
 
 * Loss: squared error of the *alpha-normalised* colour C/A (what the ERP
   renderer shows after its Yin/Yang merge) on the fitted reference pixels.
   L2 makes the colour sub-problem a linear least-squares problem.
-* Colour: with opacities fixed, C/A is linear in the SH coefficients
-  (:class:`~rasterizer.composite_backward.BlendOperator`), so it is solved by
-  Jacobi-preconditioned conjugate gradient on the normal equations
-  (a Tikhonov pull ``colour_reg`` toward the initial colours keeps Gaussians
-  that the references barely see where they were). A handful of CG steps
-  reach what hundreds of Adam steps do; it is re-solved every
-  ``colour_every`` iterations, warm-started.
-* Opacity: Adam on logit(opacity) with the exact numpy backward of
-  front-to-back compositing (:func:`~rasterizer.composite_backward.opacity_gradient`),
-  a pull ``opacity_reg`` toward the initial logits.
+* Colour (default, ``optimise_opacity=False``): with opacities fixed, C/A is
+  linear in the SH coefficients
+  (:class:`~rasterizer.composite_backward.BlendOperator`); one iteration is
+  one Jacobi-preconditioned conjugate-gradient step on the normal equations,
+  with a Tikhonov pull ``colour_reg`` toward the initial colours (the problem
+  is under-determined: ~N Gaussians vs fewer reference pixels). The first
+  step (a per-Gaussian weighted back-projection of the residual) gave
+  +1.6 dB at the m3d target; later steps deconvolve and overfit (target and
+  held-out pixels agree), so the held-out early stop returns step 1-2.
+* Opacity (``optimise_opacity=True``): Adam on logit(opacity) with the exact
+  numpy backward of front-to-back compositing
+  (:func:`~rasterizer.composite_backward.opacity_gradient`), colour re-solved
+  every ``colour_every`` iterations. Measured: no held-out or target gain
+  over the colour step, ~10x the cost per iteration, so it is off by default.
 * Overfitting guard: a random ``holdout`` fraction of the reference pixels is
   never fitted; its loss is tracked every iteration and the parameters with
   the best held-out loss are returned (early stop after ``patience``

@@ -17,7 +17,9 @@ that knows the opacities will not grow may pass ``opacity_bound`` to cut each
 footprint at ``g >= 1/(255 * bound)`` instead (smaller, faster; render does).
 
 Culled before enumeration: range below ``camera.near`` (and z below it for a
-pinhole), footprints entirely outside the image or a Yin/Yang grid's domain.
+pinhole), footprints entirely outside the image or a Yin/Yang grid's domain,
+and pinhole Gaussians whose 3-D extent lies outside the view frustum (tested
+in 3-D: beside the camera plane the EWA ellipse is meaningless and huge).
 ERP columns wrap across the seam; a footprint wider than a full turn is
 capped at one turn (no duplicate columns). Near the ERP poles the pixel-space
 linearisation breaks down (1/cos lat changes across the footprint; at the
@@ -178,6 +180,33 @@ def _outside_domain(camera: Camera, p_cam: np.ndarray, ranges: np.ndarray, s_max
     return dist > np.minimum(1.5 * theta, np.pi) + margin
 
 
+def _outside_frustum(camera: Camera, p_cam: np.ndarray, s_max: np.ndarray) -> np.ndarray:
+    """(n,) bool: pinhole Gaussians certainly outside the view frustum (3-D test, not EWA).
+
+    Culled when the centre lies more than ``sqrt(Q_MAX) s_max`` (the 3-D
+    radius where an opacity-1 Gaussian falls below 1/255) outside one of the
+    four side planes through the image border widened by two pixels. Every
+    ray through the image lies inside those planes, so it cannot meet such a
+    Gaussian above 1/255. Why here and not from the EWA box: near the camera
+    plane (z -> 0, large |x|/z) the linearised Jacobian explodes and the
+    2-D ellipse of a centimetre-sized Gaussian 2 m away but 89 degrees off
+    axis covers the image many times over (the RenderLimitError of an inside
+    view); the true Gaussian never touches it.
+    """
+    if camera.kind != "perspective":
+        return np.zeros(p_cam.shape[0], dtype=bool)
+    fx, fy, cx, cy = geo.pinhole_intrinsics(camera.width, camera.height, camera.fov_deg)
+    x, y, z = p_cam[:, 0], p_cam[:, 1], p_cam[:, 2]
+    reach = np.sqrt(Q_MAX) * s_max
+    out = np.zeros(p_cam.shape[0], dtype=bool)
+    sides = ((x, fx, -2.5 - cx, camera.width + 1.5 - cx), (y, fy, -2.5 - cy, camera.height + 1.5 - cy))
+    for coord, f, lo, hi in sides:
+        tl, tr = lo / f, hi / f  # tangent of the widened left/top and right/bottom planes
+        out |= (coord - tl * z) / np.sqrt(1.0 + tl * tl) < -reach
+        out |= (tr * z - coord) / np.sqrt(1.0 + tr * tr) < -reach
+    return out
+
+
 def project(gaussians, camera: Camera, factors: np.ndarray | None = None) -> Projected:
     """EWA-project ``gaussians`` into ``camera``; culls those behind/too near.
 
@@ -196,6 +225,9 @@ def project(gaussians, camera: Camera, factors: np.ndarray | None = None) -> Pro
     if camera.kind in ("yin", "yang") and idx.size:
         s_max = np.max(gaussians.scales[idx], axis=1).astype(np.float64)
         idx = idx[~_outside_domain(camera, p_cam[idx], ranges[idx], s_max)]
+    elif camera.kind == "perspective" and idx.size:
+        s_max = np.max(gaussians.scales[idx], axis=1).astype(np.float64)
+        idx = idx[~_outside_frustum(camera, p_cam[idx], s_max)]
     p_cam = p_cam[idx]
     col, row = camera.project(p_cam)
     jac = camera.jacobian(p_cam)
@@ -337,8 +369,9 @@ def footprints(gaussians, camera: Camera, *, opacity_bound: np.ndarray | None = 
         valid for any opacities in [0, 1]).
     factors : optional :func:`gaussian_factors` of ``gaussians`` (reuse it
         across cameras of one render).
-    max_contributions : refuse (:class:`RenderLimitError`) when the dense
-        footprint boxes would exceed this many elements (memory guard).
+    max_contributions : refuse (:class:`RenderLimitError`) when the estimated
+        number of contributions exceeds this (last-resort memory guard, about
+        20 bytes each; ordinary views up to 2048 wide stay far below it).
 
     Returns
     -------
@@ -374,10 +407,10 @@ def footprints(gaussians, camera: Camera, *, opacity_bound: np.ndarray | None = 
         sph = _sphere_ellipses(proj, polar_idx, camera, pf[:, proj.index[polar_idx]])
         sx0, skx, sy0, sky = _sphere_boxes(sph, camera)
         jobs.append(("sphere", polar_idx, sx0, skx, sy0, sky))
-    dense = sum(int(np.sum(_size_class(np.maximum(j[3], 1)) * _size_class(np.maximum(j[5], 1)))) for j in jobs)
-    if dense > max_contributions:
+    est = _estimated_hits(proj, qcut, jobs)
+    if est > max_contributions:
         raise RenderLimitError(
-            f"footprints need {dense} dense elements (> max_contributions={max_contributions}); "
+            f"footprints need about {est} contributions (> max_contributions={max_contributions}); "
             "reduce the image size or the number/size of Gaussians")
 
     # key layout, high to low bits: [pixel | depth rank | (unused) | q], q in the low 32 bits
@@ -423,6 +456,27 @@ def footprints(gaussians, camera: Camera, *, opacity_bound: np.ndarray | None = 
     q = (low if low is not None else (key & np.uint64(0xFFFFFFFF)).astype(np.uint32)) & np.uint32((1 << q_bits) - 1)
     weight = np.exp(q.astype(np.float32) * np.float32(-0.5 / layout.q_scale))
     return Footprints(pixel, gauss, weight, ranges_all, h, w)
+
+
+def _estimated_hits(proj: Projected, qcut: np.ndarray, jobs) -> int:
+    """Upper estimate of the contributions (= memory) the jobs will produce.
+
+    Pixel-space footprints: the ellipse area ``pi qcut sqrt(det)`` plus its
+    bounding-box perimeter (pixels cut by the border), at most the clipped
+    box; polar (sphere) jobs: their whole box. Counting dense, size-class
+    rounded boxes instead over-counted thin or diagonal ellipses 2-4x and
+    refused ordinary 2048-wide views near a wall.
+    """
+    total = 0
+    for kind, idx, _, kx, _, ky in jobs:
+        box = np.maximum(kx, 0).astype(np.float64) * np.maximum(ky, 0)
+        if kind == "flat" and idx.size:
+            a, b, c = proj.cov[idx, 0], proj.cov[idx, 1], proj.cov[idx, 2]
+            q = np.maximum(qcut[idx], 0.0)
+            ell = np.pi * q * np.sqrt(np.maximum(a * c - b * b, 0.0)) + 2 * np.sqrt(q) * (np.sqrt(a) + np.sqrt(c)) + 1
+            box = np.minimum(box, ell)
+        total += int(np.sum(box))
+    return total
 
 
 @dataclass(frozen=True)

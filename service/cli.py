@@ -124,13 +124,37 @@ def _load_pair(args: argparse.Namespace):
     raise CliError("reconstruct takes a scene folder, or two images with --poses")
 
 
+def _pipeline_options(args: argparse.Namespace):
+    """The API's options object, from reconstruct's flags (validated here, before any work)."""
+    from .pipeline import PipelineOptions
+
+    compaction: dict | bool = {}
+    if args.no_compaction:
+        compaction = False
+    else:
+        for flag, key in (("resolve_overlap", "resolve_overlap"), ("max_gaussians", "max_count"),
+                          ("max_bytes", "max_bytes"), ("min_opacity", "min_opacity")):
+            if getattr(args, flag) is not None:
+                compaction[key] = getattr(args, flag)
+        if args.no_merge_duplicates:
+            compaction["merge_duplicates"] = False
+    try:
+        return PipelineOptions.from_dict({"near": args.near, "far": args.far, "compaction": compaction,
+                                          "adaptive_range": args.adaptive_range})
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+
+
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from rasterizer.ply import write_ply
 
     from .config import Settings
     from .model_files import ModelUnavailable, ensure_model
 
+    from .pipeline import build_scene
+
     erp_a, erp_b, c2w_a, c2w_b, source = _load_pair(args)  # bad inputs fail before any model build
+    options = _pipeline_options(args)
     for name, img in (("image A", erp_a), ("image B", erp_b)):
         if img.shape[1] != 2 * img.shape[0]:
             raise CliError(f"{name} is {img.shape[1]}x{img.shape[0]}; an ERP panorama must be exactly 2:1")
@@ -148,7 +172,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     _say(f"reconstructing {erp_a.shape[1]}x{erp_a.shape[0]} + {erp_b.shape[1]}x{erp_b.shape[0]} panoramas")
     t0 = time.perf_counter()
     try:
-        rec = encoder.reconstruct(erp_a, erp_b, c2w_a, c2w_b, near=args.near, far=args.far)
+        rec = build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options)
     except EncoderInputError as exc:
         raise CliError(str(exc)) from None
     total = time.perf_counter() - t0
@@ -160,7 +184,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     summary = json_safe({
         "ply": str(out), "num_gaussians": len(rec.gaussians), "source": source,
         "model": {k: encoder.metadata.get(k) for k in ("name", "version", "sha256")},
-        "timings": {**(rec.timings or {}), "model_load": load_s, "total": total}, "info": rec.info,
+        "timings": {**rec.timings, "model_load": load_s, "total": total}, "info": rec.info,
     })
     text = json.dumps(summary, indent=2)
     if args.json:
@@ -262,6 +286,17 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--near", type=float, help="nearest depth in metres (default from the baseline)")
     r.add_argument("--far", type=float, help="farthest depth in metres")
     r.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
+    c = r.add_argument_group("leave out what the scene does not need (all on by default but the cap)")
+    c.add_argument("--no-compaction", action="store_true", help="keep every pixel-aligned Gaussian")
+    c.add_argument("--resolve-overlap", choices=["split", "yin", "off"],
+                   help="Yin/Yang overlap: keep each direction once (split, default) or keep all (off)")
+    c.add_argument("--no-merge-duplicates", action="store_true",
+                   help="keep both references' copies of a surface point")
+    c.add_argument("--min-opacity", type=float, help="drop Gaussians below this opacity (default 1/255)")
+    c.add_argument("--max-gaussians", type=int, help="cap the count (drops the least visible first)")
+    c.add_argument("--max-bytes", type=int, help="cap the PLY size in bytes")
+    c.add_argument("--adaptive-range", action="store_true",
+                   help="choose near/far from a coarse pass (slower: two encoder runs)")
     r.set_defaults(func=cmd_reconstruct)
 
     v = sub.add_parser("render", help="Gaussian PLY + camera pose -> image",

@@ -18,6 +18,7 @@ import numpy as np
 from rasterizer.geometry import PoseError, as_c2w
 
 from .errors import BadInput
+from .pipeline import STEP_OPTION_KEYS, PipelineOptions
 
 SCENE_ID_PATTERN = r"^[0-9a-f]{32}$"
 _SCENE_ID_RE = re.compile(SCENE_ID_PATTERN)
@@ -88,6 +89,10 @@ def parse_poses(text: str | bytes) -> Poses:
 def parse_options(text: str | bytes | None, accepted: set[str] | None) -> dict[str, Any]:
     """Options JSON object; ``near``/``far`` must be positive with near < far.
 
+    ``compaction`` and ``adaptive_range`` hold JSON objects of step options
+    (see :class:`service.pipeline.PipelineOptions`); ``{"compaction": false}``
+    turns compaction off.
+
     ``accepted`` lists the keyword options the encoder takes (None: anything goes).
     """
     if text is None or (isinstance(text, (str, bytes)) and not text.strip()):
@@ -98,11 +103,13 @@ def parse_options(text: str | bytes | None, accepted: set[str] | None) -> dict[s
     if len(obj) > 32:
         raise BadInput("options: too many keys", code="invalid_options")
     for key, value in obj.items():
+        if key in STEP_OPTION_KEYS:
+            continue
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
                                   or not math.isfinite(value)):
             raise BadInput(f"options.{key}: expected a finite number or null", code="invalid_options")
     if accepted is not None:
-        unknown = sorted(set(obj) - accepted)
+        unknown = sorted(set(obj) - accepted - set(STEP_OPTION_KEYS))
         if unknown:
             raise BadInput(f"options: unknown option(s) {unknown}; accepted: {sorted(accepted)}",
                            code="invalid_options")
@@ -115,6 +122,10 @@ def parse_options(text: str | bytes | None, accepted: set[str] | None) -> dict[s
         raise BadInput("options.min_opacity: expected a number in [0, 1)", code="invalid_options")
     if obj.get("near") is not None and obj.get("far") is not None and not obj["near"] < obj["far"]:
         raise BadInput("options: near must be smaller than far", code="invalid_options")
+    try:
+        PipelineOptions.from_dict(obj)
+    except (TypeError, ValueError) as exc:
+        raise BadInput(f"options: {exc}", code="invalid_options") from None
     return obj
 
 

@@ -14,9 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ServiceError
+from .errors import BadInput, ServiceError
 from .images import check_header, decode_rgb, encode, to_uint8_safe
 from .inputs import Poses, RenderQuery
+from .pipeline import PipelineOptions, build_scene
 from .runtime import ModelRuntime
 from .store import SceneStore, content_id
 
@@ -54,22 +55,15 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     erp_b, head_b = decode_rgb(image_b, "image_b", max_pixels=limits.max_pixels, min_height=limits.min_height)
     timings["decode"] = time.perf_counter() - t0
 
-    opts = dict(options)
-    near, far = opts.pop("near", None), opts.pop("far", None)
+    try:
+        pipeline_options = PipelineOptions.from_dict(options)
+    except ValueError as exc:
+        raise BadInput(f"options: {exc}", code="invalid_options") from None
     t0 = time.perf_counter()
-    rec = runtime.encoder.reconstruct(erp_a, erp_b, poses.c2w_a, poses.c2w_b, near=near, far=far, **opts)
-    total_model = time.perf_counter() - t0
-    for stage, seconds in (getattr(rec, "timings", None) or {}).items():
-        timings[str(stage)] = float(seconds)
-    timings.setdefault("reconstruct", total_model)
-
-    gaussians = rec.gaussians
-    finite = np.all(np.isfinite(gaussians.means), axis=1) & np.isfinite(gaussians.opacities)
-    finite &= np.all(np.isfinite(gaussians.scales), axis=1) & np.all(np.isfinite(gaussians.quats), axis=1)
-    finite &= np.all(np.isfinite(gaussians.sh.reshape(len(gaussians), -1)), axis=1)
-    dropped = int(len(gaussians) - finite.sum())
-    if dropped:
-        gaussians = gaussians.subset(finite)
+    build = build_scene(runtime.encoder, erp_a, erp_b, poses.c2w_a, poses.c2w_b, pipeline_options)
+    timings.update(build.timings)
+    timings.setdefault("reconstruct", time.perf_counter() - t0)
+    gaussians = build.gaussians
 
     meta = {
         "model": {k: runtime.metadata.get(k) for k in ("name", "version", "sha256")},
@@ -77,7 +71,8 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
                    "image_b": {**head_b.describe(), "sha256": hashlib.sha256(image_b).hexdigest()}},
         "poses": poses.as_json(),
         "options": options,
-        "info": {**(getattr(rec, "info", None) or {}), "dropped_non_finite": dropped},
+        "info": build.info,
+        "compaction": build.info["compaction"],
         "parent": None,
         "created_at": time.time(),
     }

@@ -14,7 +14,7 @@ from service.bench_baselines import copy_nearest, rotate_erp
 from service.bench_machine import machine_info, machine_line
 from service.bench_quality import is_extrapolation, resize_erp_box
 from service.bench_report import aggregate, markdown, plot, write_json
-from service.bench_settings import Setting, full_grid, parse_setting, short_grid
+from service.bench_settings import full_grid, parse_setting, short_grid
 from service.bench_synthetic import SyntheticScene, camera, random_rotation, similarity
 
 

@@ -202,3 +202,12 @@ def test_compacted_scene_renders_like_the_full_one():
     rnd = g.subset(np.random.default_rng(1).random(len(g)) < len(out) / len(g))
     assert psnr(small.colour, full.colour) > psnr(render(rnd, target, projection="erp", width=96).colour,
                                                   full.colour)
+
+
+def test_from_dict_defaults_match_the_dataclass_defaults():
+    from rasterizer.compaction import CompactionOptions
+
+    assert CompactionOptions.from_dict(None) == CompactionOptions()
+    assert CompactionOptions.from_dict({}) == CompactionOptions()
+    assert CompactionOptions.from_dict({"resolve_overlap": False}).resolve_overlap == "off"
+    assert CompactionOptions.from_dict({"resolve_overlap": True}).resolve_overlap == "split"

@@ -89,3 +89,41 @@ def test_bad_pose_and_sizes_are_rejected():
         render(g, np.eye(4), projection="perspective", width=16, fov_deg=180)
     out = render(g, np.eye(4), projection="erp", width=32)
     assert out.colour.shape == (16, 32, 3) and out.alpha.max() == 0
+
+
+def _disc(means, scale=0.004):
+    n = len(means)
+    return Gaussians(means=np.asarray(means, np.float32), scales=np.full((n, 3), scale, np.float32),
+                     quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)), opacities=np.ones(n, np.float32),
+                     sh=rgb_to_sh_dc(np.full((n, 3), 0.5, np.float32))[:, None, :])
+
+
+def test_grazing_gaussians_beside_a_pinhole_add_no_haze_and_are_not_refused():
+    """Centimetre Gaussians 2 m away but 89.7 deg off axis (z = 1 cm) cannot reach the image.
+
+    Before the 3-D frustum cull their linearised (EWA) ellipses covered the
+    image many times over: a hazy veil and RenderLimitError for inside views.
+    """
+    rng = np.random.default_rng(0)
+    ang = rng.uniform(0, 2 * np.pi, 400)
+    means = np.stack([2 * np.cos(ang), 2 * np.sin(ang), rng.uniform(0.0101, 0.012, 400)], axis=1)
+    out = render(_disc(means), np.eye(4), projection="perspective", width=1024, height=768, fov_deg=90,
+                 threads=1)
+    assert out.alpha.max() == 0.0
+    # one just inside the widened border still draws (the cull is conservative)
+    inside = _disc([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]], 0.05)
+    out = render(inside, np.eye(4), projection="perspective", width=64, height=48, fov_deg=90)
+    assert out.alpha[24, 32] > 0.9 and out.alpha[:, -1].max() > 0.1
+
+
+@pytest.mark.parametrize("cam", [dict(projection="perspective", width=1024, height=768, fov_deg=90),
+                                 dict(projection="erp", width=1024, method="direct"),
+                                 dict(projection="erp", width=1024), dict(projection="yin", width=768)])
+def test_camera_one_centimetre_from_a_wall_renders(cam):
+    """A dense wall of pixel-sized Gaussians seen from 1 cm renders without RenderLimitError."""
+    u = np.linspace(-1.5, 1.5, 301)
+    xx, yy = np.meshgrid(u, u)
+    means = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, 0.0105)], axis=1)
+    out = render(_disc(means, 0.004), np.eye(4), threads=1, **cam)
+    check(out)
+    assert out.alpha.max() > 0.9

@@ -520,3 +520,34 @@ def test_schemathesis_fuzz_finds_no_server_error(live, scene_id):
     assert {path for (_, path, _) in seen} >= {"/v1/scenes", "/v1/scenes/{scene_id}/render"}
     assert any(path.endswith("/render") and status == 200 for (_, path, status) in seen)
     assert any(path == "/v1/scenes" and status == 201 for (_, path, status) in seen)
+
+
+def test_compaction_options_change_the_count_and_are_reported(client):
+    a, b = panorama(seed=11), panorama(seed=11, shift=5)
+    full = post_scene(client, a, b, options=json.dumps({"compaction": False}))
+    assert full.status_code == 201, full.text
+    compacted = post_scene(client, a, b)
+    assert compacted.status_code == 201, compacted.text
+    assert compacted.json()["id"] != full.json()["id"]  # options are part of the scene id
+    n_full, n_comp = full.json()["num_gaussians"], compacted.json()["num_gaussians"]
+    meta = client.get(f"/v1/scenes/{compacted.json()['id']}").json()
+    stats = meta["compaction"]
+    assert stats["input"] == n_full and stats["output"] == n_comp < n_full
+    assert stats["removed"]["resolve_overlap"] > 0
+    assert sum(stats["removed"].values()) == n_full - n_comp
+    off = client.get(f"/v1/scenes/{full.json()['id']}").json()["compaction"]
+    assert off["output"] == off["input"] == n_full and not any(off["removed"].values())
+    capped = post_scene(client, a, b, options=json.dumps({"compaction": {"max_count": 1000}}))
+    assert capped.status_code == 201 and capped.json()["num_gaussians"] <= 1000
+
+
+@pytest.mark.parametrize("options, word", [
+    ({"compaction": {"resolve_overlap": "sideways"}}, "resolve_overlap"),
+    ({"compaction": {"no_such_step": 1}}, "no_such_step"),
+    ({"compaction": 3}, "compaction"),
+    ({"adaptive_range": {"low_pct": 90, "high_pct": 10}}, "low_pct"),
+])
+def test_bad_step_options_are_422(client, options, word):
+    r = post_scene(client, panorama(seed=12), panorama(seed=12, shift=4), options=json.dumps(options))
+    assert r.status_code == 422, r.text
+    assert word in r.json()["error"]["message"]

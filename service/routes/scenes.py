@@ -48,7 +48,10 @@ async def create_scene(
     gate: InferenceGateDep,
     metrics: MetricsDep,
     options: Annotated[str | None, Form(description='optional JSON object, e.g. {"near": 0.5, "far": 20, '
-                                                          '"min_opacity": 0.05}; numbers only')] = None,
+                                                          '"min_opacity": 0.05, "compaction": {"resolve_overlap": "split", '
+                                                          '"merge_duplicates": true, "max_count": null}, '
+                                                          '"adaptive_range": false}; "compaction": false keeps '
+                                                          'every Gaussian')] = None,
 ) -> SceneCreated:
     parsed_poses = parse_poses(poses)
     parsed_options = parse_options(options, runtime.accepted_options)

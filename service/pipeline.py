@@ -1,0 +1,89 @@
+"""Two panoramas -> the Gaussians a scene needs: one path for the API and the CLI.
+
+Steps: optional scene-adaptive depth range (:mod:`service.scene_adaptive`),
+the ONNX encoder, compaction (:mod:`rasterizer.compaction`: overlap,
+duplicates, transparent Gaussians, optional cap), and a final guard that
+drops any non-finite Gaussian. Options come as the API's ``options`` JSON
+object; structured keys ``compaction`` and ``adaptive_range`` hold the
+step options, ``near``/``far`` go to the encoder, ``min_opacity`` is a
+compaction threshold.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from rasterizer.compaction import CompactionOptions, Provenance, compact
+from rasterizer.gaussians import Gaussians
+
+from .scene_adaptive import AdaptiveRangeOptions, reconstruct_adaptive
+
+#: Options keys that hold a JSON object of step options.
+STEP_OPTION_KEYS = ("compaction", "adaptive_range")
+
+
+@dataclass(frozen=True)
+class PipelineOptions:
+    near: float | None
+    far: float | None
+    compaction: CompactionOptions
+    adaptive_range: AdaptiveRangeOptions
+
+    @classmethod
+    def from_dict(cls, options: dict[str, Any] | None) -> "PipelineOptions":
+        """Parse an options object; raises ``ValueError`` naming a bad or unknown key.
+
+        ``{"compaction": false}`` turns every compaction step off.
+        """
+        opts = dict(options or {})
+        near, far = opts.pop("near", None), opts.pop("far", None)
+        comp = opts.pop("compaction", None)
+        if comp is False:
+            compaction = CompactionOptions.off()
+        elif comp is None or isinstance(comp, dict):
+            compaction = CompactionOptions.from_dict(comp)
+        else:
+            raise ValueError("options.compaction: expected a JSON object or false")
+        if "min_opacity" in opts:
+            compaction = CompactionOptions.from_dict({**compaction.to_dict(), "min_opacity": opts.pop("min_opacity")})
+        adaptive = opts.pop("adaptive_range", None)
+        if isinstance(adaptive, bool):
+            adaptive = {"enabled": adaptive}
+        if adaptive is not None and not isinstance(adaptive, dict):
+            raise ValueError("options.adaptive_range: expected a JSON object or a boolean")
+        if opts:
+            raise ValueError(f"unknown option(s) {sorted(opts)}; accepted: near, far, min_opacity, "
+                             f"{', '.join(STEP_OPTION_KEYS)}")
+        return cls(near, far, compaction, AdaptiveRangeOptions.from_dict(adaptive))
+
+
+@dataclass(frozen=True)
+class SceneBuild:
+    gaussians: Gaussians
+    timings: dict[str, float]
+    info: dict[str, Any]
+
+
+def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions) -> SceneBuild:
+    """Reconstruct and compact; ``info`` says what each step did (incl. ``compaction`` stats)."""
+    rec = reconstruct_adaptive(encoder, erp_a, erp_b, c2w_a, c2w_b, options=options.adaptive_range,
+                               near=options.near, far=options.far)
+    timings = {str(k): float(v) for k, v in (rec.timings or {}).items()}
+    info = dict(rec.info or {})
+    t0 = time.perf_counter()
+    provenance = Provenance.from_reconstruction(rec, c2w_a, c2w_b)
+    gaussians, stats = compact(rec.gaussians, provenance, options.compaction, confidence=rec.confidence)
+    timings["compaction"] = time.perf_counter() - t0
+    info["compaction"] = stats
+
+    finite = np.all(np.isfinite(gaussians.means), axis=1) & np.isfinite(gaussians.opacities)
+    finite &= np.all(np.isfinite(gaussians.scales), axis=1) & np.all(np.isfinite(gaussians.quats), axis=1)
+    finite &= np.all(np.isfinite(gaussians.sh.reshape(len(gaussians), -1)), axis=1)
+    info["dropped_non_finite"] = int(len(gaussians) - finite.sum())
+    if info["dropped_non_finite"]:
+        gaussians = gaussians.subset(finite)
+    return SceneBuild(gaussians, timings, info)
