@@ -42,14 +42,14 @@ def sample_maps(src: torch.Tensor, grid: torch.Tensor, erp_source: bool) -> torc
 
 
 class CorrelationMatcher(nn.Module):
-    """target (C, h, w), warped (C, D, h, w) -> (D, h, w) channel dot product."""
+    """target (N, C, h, w), warped (N, C, D, h, w) -> (N, D, h, w) channel dot product."""
 
     def forward(self, target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
-        return (warped * target.unsqueeze(1)).sum(dim=0)
+        return (warped * target.unsqueeze(2)).sum(dim=1)
 
 
 class WindowMatcher(nn.Module):
-    """target (1, h, w) grey, warped (1, D, h, w) -> (D, h, w) similarity in [-1, 1].
+    """target (N, 1, h, w) grey, warped (N, 1, D, h, w) -> (N, D, h, w) similarity in [-1, 1].
 
     ``w * ZNCC + (1 - w) * census``: ZNCC over a (2r+1)^2 box (eps floor on
     the variances so flat windows score ~0, not noise), soft census
@@ -69,22 +69,25 @@ class WindowMatcher(nn.Module):
         self.wrap = wrap
 
     def census_bits(self, img: torch.Tensor) -> list[torch.Tensor]:
-        """Soft census bits of (..., h, w) images, one tensor per offset."""
+        """Soft census bits of (..., h, w) images, one tensor per offset.
+
+        tanh((I_q - I_p) / sigma) with the image divided by sigma once, not per offset.
+        """
         h, w = img.shape[-2:]
         p = self.pad
+        img = img * (1.0 / self.sigma)
         padded = pad2d(img, p, self.wrap)
-        return [torch.tanh((padded[..., p + dy : p + dy + h, p + dx : p + dx + w] - img) / self.sigma)
-                for dy, dx in self.offsets]
+        return [torch.tanh(padded[..., p + dy : p + dy + h, p + dx : p + dx + w] - img) for dy, dx in self.offsets]
 
     def forward(self, target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
-        t = target  # (1, h, w)
-        wv = warped[0]  # (D, h, w)
+        t = target  # (N, 1, h, w), broadcasts over the planes
+        wv = warped[:, 0]  # (N, D, h, w)
         r = self.radius
-        mean_t = box_filter(t.unsqueeze(0), r, self.wrap)[0]
-        var_t = box_filter((t * t).unsqueeze(0), r, self.wrap)[0] - mean_t * mean_t
-        mean_w = box_filter(wv.unsqueeze(0), r, self.wrap)[0]
-        var_w = box_filter((wv * wv).unsqueeze(0), r, self.wrap)[0] - mean_w * mean_w
-        cov = box_filter((wv * t).unsqueeze(0), r, self.wrap)[0] - mean_w * mean_t
+        mean_t = box_filter(t, r, self.wrap)
+        var_t = box_filter(t * t, r, self.wrap) - mean_t * mean_t
+        mean_w = box_filter(wv, r, self.wrap)
+        var_w = box_filter(wv * wv, r, self.wrap) - mean_w * mean_w
+        cov = box_filter(wv * t, r, self.wrap) - mean_w * mean_t
         zncc = cov / torch.sqrt((var_t.clamp(min=0) + self.eps2) * (var_w.clamp(min=0) + self.eps2))
         census = None
         for bt, bw in zip(self.census_bits(t), self.census_bits(wv)):
@@ -94,7 +97,12 @@ class WindowMatcher(nn.Module):
 
 
 class SweepCostVolume(nn.Module):
-    """feats (2, G, C, h, w), warp_grids (2, G, G, D, h, w, 2) -> cost (2, G, D, h, w)."""
+    """feats (2, G, C, h, w), warp_grids (2, G, G, D, h, w, 2) -> cost (2, G, D, h, w).
+
+    All 2 G G (direction, target grid, source grid) warps run as one batched
+    GridSample and the matcher runs once on the (2 G) stacked targets, so the
+    graph has one node per step instead of one per pairing.
+    """
 
     def __init__(self, num_grids: int, erp_source: bool, matcher: nn.Module) -> None:
         super().__init__()
@@ -102,29 +110,32 @@ class SweepCostVolume(nn.Module):
         self.erp_source = erp_source
         self.matcher = matcher
 
-    def warp(self, source: torch.Tensor, grids: torch.Tensor) -> torch.Tensor:
-        """Mask-blended (eq. 4) samples of source (G, C, h, w) at grids (G, D, h, w, 2) -> (C, D, h, w)."""
-        g_count, d_count, h, w = grids.shape[:4]
-        c = source.shape[1]
-        num = None
-        den = None
-        for gs in range(g_count):
-            grid = grids[gs]
-            sampled = sample_maps(source[gs : gs + 1], grid.reshape(1, d_count * h, w, 2), self.erp_source)
-            sampled = sampled.reshape(c, d_count, h, w)
-            if self.erp_source or g_count == 1:
-                return sampled
-            mask = domain_mask(grid)  # (D, h, w)
-            num = sampled * mask if num is None else num + sampled * mask
-            den = mask if den is None else den + mask
-        return torch.where(den > 0, num / den.clamp(min=1.0), torch.zeros_like(num))
+    def warp(self, feats: torch.Tensor, warp_grids: torch.Tensor) -> torch.Tensor:
+        """Mask-blended (eq. 4) source samples for every (direction, target grid) -> (2, G, C, D, h, w).
+
+        Direction d samples view 1 - d on each of its grids; out-of-domain
+        samples get mask 0, and where no grid sees a point (cannot happen for
+        Yin + Yang) the blend is 0 because its numerator is 0.
+        """
+        _, g_count, c, h, w = feats.shape
+        d_count = warp_grids.shape[3]
+        source = torch.stack([feats[1], feats[0]])  # [d] = view 1 - d, (2, G_s, C, h, w)
+        source = source.unsqueeze(1).expand(2, g_count, g_count, c, h, w).reshape(2 * g_count * g_count, c, h, w)
+        grid = warp_grids.reshape(2 * g_count * g_count, d_count * h, w, 2)
+        if self.erp_source:
+            source = pad_longitude(source)
+        sampled = F.grid_sample(source, grid, mode="bilinear", padding_mode="border", align_corners=False)
+        sampled = sampled.reshape(2, g_count, g_count, c, d_count, h, w)
+        if self.erp_source or g_count == 1:
+            return sampled[:, :, 0]
+        mask = domain_mask(warp_grids).unsqueeze(3)  # (2, G, G, 1, D, h, w)
+        num = (sampled * mask).sum(dim=2)
+        den = mask.sum(dim=2)
+        return num / den.clamp(min=1.0)
 
     def forward(self, feats: torch.Tensor, warp_grids: torch.Tensor) -> torch.Tensor:
-        _, g_count, _, h, w = feats.shape
+        _, g_count, c, h, w = feats.shape
         d_count = warp_grids.shape[3]
-        costs = []
-        for d in range(2):
-            for gt in range(g_count):
-                warped = self.warp(feats[1 - d], warp_grids[d, gt])
-                costs.append(self.matcher(feats[d, gt], warped))
-        return torch.stack(costs).reshape(2, g_count, d_count, h, w)
+        warped = self.warp(feats, warp_grids).reshape(2 * g_count, c, d_count, h, w)
+        cost = self.matcher(feats.reshape(2 * g_count, c, h, w), warped)
+        return cost.reshape(2, g_count, d_count, h, w)

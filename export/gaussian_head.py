@@ -64,6 +64,13 @@ def quat_multiply(q1: torch.Tensor, q2: torch.Tensor) -> torch.Tensor:
     )
 
 
+def quat_left_matrix(q: torch.Tensor) -> torch.Tensor:
+    """(..., 4) (w, x, y, z) -> (..., 4, 4) L with q * p = L @ p (Hamilton product)."""
+    w, x, y, z = q.unbind(-1)
+    rows = [torch.stack(r, dim=-1) for r in ((w, -x, -y, -z), (x, w, -z, y), (y, z, w, -x), (z, -y, x, w))]
+    return torch.stack(rows, dim=-2)
+
+
 class GaussianHead(nn.Module):
     """range, confidence (2, G, H, W), colour (2, G, 3, H, W), c2w (2,4,4), cam_quats (2,4)
     -> means, scales, quats, opacities, sh_dc, each (N, k) with N = 2 G H W in
@@ -92,7 +99,9 @@ class GaussianHead(nn.Module):
         foot = self.footprint.unsqueeze(0) * (self.scale_factor * rng).unsqueeze(-1)  # (2, G, H, W, 2)
         along = foot.amin(dim=-1, keepdim=True) * self.ray_scale_ratio
         scales = torch.cat([foot, along], dim=-1)
-        quats = quat_multiply(cam_quats[:, None, None, None, :], self.local_quats.unsqueeze(0))
+        # camera rotation times local frame as one MatMul (2, GHW, 4): per-pixel constants stay one
+        # (G, H, W, 4) tensor instead of 16 folded broadcast products
+        quats = torch.matmul(self.local_quats.reshape(1, g * h * w, 4), quat_left_matrix(cam_quats).transpose(1, 2))
         c = conf.clamp(0.0, 1.0)
         if self.opacity_gamma == 2.0:
             c = c * c

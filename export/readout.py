@@ -38,16 +38,16 @@ class DepthReadout(nn.Module):
         if self.mode == "wta":
             curv = lo - 2.0 * best + hi
             inner = (idx > 0) & (idx < d_count - 1) & (curv < -1e-6)
-            offset = 0.5 * (lo - hi) / torch.where(inner, curv, torch.full_like(curv, -1.0))
-            offset = torch.where(inner, offset.clamp(-0.5, 0.5), torch.zeros_like(offset))
+            offset = 0.5 * (lo - hi) / torch.where(inner, curv, -1.0)
+            offset = torch.where(inner, offset.clamp(-0.5, 0.5), 0.0)
             k = idx.to(cost.dtype) + offset
         else:
             p = torch.softmax(self.beta * cost, dim=1)
             k = (p * planes).sum(dim=1, keepdim=True)
         far_from_peak = (planes - idx.to(cost.dtype)).abs() > 1.5
-        second = torch.where(far_from_peak, cost, torch.full_like(cost, -2.0)).amax(dim=1, keepdim=True)
+        second = torch.where(far_from_peak, cost, -2.0).amax(dim=1, keepdim=True)  # scalar: no (N, D, h, w) constant
         conf = 1.0 - torch.exp(-(best - second).clamp(min=0.0) / self.margin_scale)
-        conf = torch.where(idx == d_count - 1, torch.zeros_like(conf), conf)
+        conf = torch.where(idx == d_count - 1, 0.0, conf)
         return k, conf
 
 

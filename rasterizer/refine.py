@@ -72,6 +72,7 @@ class ReferenceView:
     target: np.ndarray
     fit: np.ndarray
     held: np.ndarray
+    reference: int = 0  # which reference panorama the grid belongs to (cross-view guard)
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,9 @@ class RefineOptions:
     opacity_lr: float = 0.01      # Adam step on logit opacity
     opacity_reg: float = 1e-4     # pull of logit opacity toward its initial value
     patience: int = 5             # early stop after this many iterations without held-out improvement (0: off)
+    cross_check: bool = True      # colour mode: fit each reference alone, score the other (cross-view guard)
+    loss: str = "l2"              # "l2" | "huber" | "l1": robust variants as fixed IRLS weights (initial residual)
+    huber_delta: float = 0.1      # Huber threshold on the per-pixel colour error (RGB norm, [0, 1] units)
 
 
 @dataclass
@@ -98,6 +102,7 @@ class RefineResult:
     best_iteration: int = 0
     seconds: float = 0.0
     snapshots: dict = field(default_factory=dict)  # iteration -> Gaussians (for benches)
+    cross: dict | None = None  # cross-view guard: curves, chosen steps, accepted, seconds (None: not run)
 
 
 def reference_views(gaussians: Gaussians, images: Sequence[np.ndarray], c2ws: Sequence, *, height: int,
@@ -114,7 +119,7 @@ def reference_views(gaussians: Gaussians, images: Sequence[np.ndarray], c2ws: Se
     """
     rng = np.random.default_rng(seed)
     views = []
-    for image, c2w in zip(images, c2ws):
+    for ref, (image, c2w) in enumerate(zip(images, c2ws)):
         img = np.asarray(image)
         img = img.astype(np.float32) / 255.0 if img.dtype == np.uint8 else img.astype(np.float32)
         yin, yang = erp_to_yin_yang(img, height=height)
@@ -126,7 +131,7 @@ def reference_views(gaussians: Gaussians, images: Sequence[np.ndarray], c2ws: Se
                 fp = prune_occluded(fp, gaussians, prune_transmittance)
             p = height * 3 * height
             held = rng.random(p) < holdout
-            views.append(ReferenceView(cam, fp, np.clip(tgt.reshape(p, 3), 0.0, 1.0), ~held, held))
+            views.append(ReferenceView(cam, fp, np.clip(tgt.reshape(p, 3), 0.0, 1.0), ~held, held, ref))
     return views
 
 
@@ -217,7 +222,8 @@ class _Problem:
         return fit_sse / self.n_fit, held_sse / self.n_held, g_opac, terms_all
 
     def solve_colour(self, sh: np.ndarray, sh0: np.ndarray, terms_all, steps: int, reg: float,
-                     on_step: Callable[[int, np.ndarray, float], bool] | None = None) -> np.ndarray:
+                     on_step: Callable[[int, np.ndarray, float], bool] | None = None, *, loss: str = "l2",
+                     delta: float = 0.1, report_start: bool = False) -> np.ndarray:
         """Jacobi-preconditioned CG on the normal equations of the L2 colour fit (opacities fixed).
 
         Minimises sum_v |M_v (B_v colour_v(x) - y_v)|^2 + lam |x - sh0|^2 over the
@@ -225,9 +231,22 @@ class _Problem:
         mean data weight of a seen Gaussian. ``on_step(step, x, held_loss)`` is
         called after every step (held_loss: mean squared error on the held-out
         pixels, one sparse product per view); it returns True to stop.
+        ``report_start``: also call it once before the first step (step -1).
+        ``loss`` "huber" / "l1": the fitted pixels are re-weighted once by the
+        IRLS weight of their initial residual norm e (huber: min(1, delta / e);
+        l1: delta / max(e, delta)), so the solve stays linear.
         """
         ops = [BlendOperator(v.footprints, t, self.n, normalise=True) for v, t in zip(self.views, terms_all)]
         masks = [(v.fit & op.covered).astype(np.float64)[:, None] for v, op in zip(self.views, ops)]
+        if loss not in ("l2", "huber", "l1"):
+            raise ValueError(f"loss must be 'l2', 'huber' or 'l1', got {loss!r}")
+        if loss != "l2":
+            for i, v in enumerate(self.views):
+                pred = ops[i] @ _colours(self.bases[i], sh.astype(np.float64), self.rest[i])
+                e = np.sqrt(np.einsum("pc,pc->p", pred - v.target, pred - v.target))
+                w = np.minimum(1.0, delta / np.maximum(e, 1e-12)) if loss == "huber" else delta / np.maximum(e, delta)
+                masks[i] = masks[i] * w[:, None]
+        active = [bool(m.any()) for m in masks]  # views with fitted pixels (the others are only scored)
         k = self.k
 
         def apply_j(i, x):  # (N, k, 3) -> (P, 3)
@@ -246,6 +265,8 @@ class _Problem:
 
         diag = np.zeros((self.n, k), np.float64)
         for i, op in enumerate(ops):
+            if not active[i]:
+                continue
             csq = op.matrix.power(2).T @ masks[i][:, 0]
             diag += csq[:, None] * self.bases[i].astype(np.float64) ** 2
         seen = diag[:, 0] > 0
@@ -255,14 +276,18 @@ class _Problem:
         def normal(x):
             out = lam * x
             for i in range(len(ops)):
-                out = out + apply_jt(i, masks[i] * apply_j(i, x))
+                if active[i]:
+                    out = out + apply_jt(i, masks[i] * apply_j(i, x))
             return out
 
         x = sh.astype(np.float64)
         b = -lam * (x - sh0)  # residual of the normal equations at x
         for i, v in enumerate(self.views):
-            pred = ops[i] @ _colours(self.bases[i], x, self.rest[i])
-            b = b + apply_jt(i, masks[i] * (v.target - pred))
+            if active[i]:
+                pred = ops[i] @ _colours(self.bases[i], x, self.rest[i])
+                b = b + apply_jt(i, masks[i] * (v.target - pred))
+        if report_start and on_step is not None and on_step(-1, self._project(x), held_loss(self._project(x))):
+            return self._project(x)
         r = b
         z = precond * r
         p = z.copy()

@@ -33,12 +33,14 @@ name            shape                   meaning
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from .gaussians import rotmat_to_quat
-from .geometry import grid_directions, project_to_grid, rigid_inverse
+from .geometry import YIN_LAT_MAX, YIN_LON_MAX, grid_directions, rigid_inverse
 
 #: Columns of circular padding added on each side of an ERP before sampling.
 ERP_PAD = 2
@@ -115,6 +117,71 @@ def normalised_coords(kind: str, col: np.ndarray, row: np.ndarray, height: int, 
     return np.stack([x, y], axis=-1).astype(np.float32)
 
 
+def _project_normalised(kind: str, x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray,
+                        height: int, width: int) -> None:
+    """``normalised_coords(project_to_grid(kind, p))`` of camera-frame points, written into ``out`` (..., 2).
+
+    float32 and one arctan2 pair per point: for Yin the grid_sample x is
+    lon / YIN_LON_MAX and y is -lat / YIN_LAT_MAX (pixel centres and the
+    align_corners=False convention cancel); Yang is Yin of (y, x, -z).
+    """
+    if kind == "erp":
+        lon = np.arctan2(x, z)
+        lat = np.arctan2(-y, np.hypot(x, z))
+        col = (lon + np.float32(np.pi)) * np.float32(width / (2 * np.pi)) - np.float32(0.5)
+        col = np.mod(col + np.float32(0.5), np.float32(width)) - np.float32(0.5)
+        out[..., 0] = (np.float32(2.0) * (col + np.float32(ERP_PAD)) + np.float32(1.0)) / np.float32(width + 2 * ERP_PAD) - np.float32(1.0)
+        out[..., 1] = lat * np.float32(-2.0 / np.pi)
+        return
+    if kind == "yang":
+        x, y, z = y, x, -z
+    sx, sy = np.float32(1.0 / YIN_LON_MAX), np.float32(1.0 / YIN_LAT_MAX)
+    lon = np.arctan2(x, z)
+    np.multiply(lon, sx, out=lon)
+    out[..., 0] = lon
+    lat = np.arctan2(y, np.hypot(x, z))  # = -latitude
+    np.multiply(lat, sy, out=lat)
+    out[..., 1] = lat
+
+
+def _warp_grids_uncached(rels: np.ndarray, inv: np.ndarray, grids: tuple[str, ...], height: int, width: int,
+                         workers: int) -> np.ndarray:
+    ranges = (np.float32(1.0) / inv).astype(np.float32)[:, None, None]
+    d_count, g_count = len(inv), len(grids)
+    out = np.empty((2, g_count, g_count, d_count, height, width, 2), dtype=np.float32)
+
+    def one(direction: int, gt: int) -> None:
+        rot, t = rels[direction, :3, :3], rels[direction, :3, 3]
+        u = grid_directions(grids[gt], height, width).astype(np.float32) @ rot.T  # (h, w, 3)
+        # X_k = R d r_k + t, one (D, h, w) array per component
+        x, y, z = (u[None, :, :, i] * ranges + t[i] for i in range(3))
+        for gs, kind_s in enumerate(grids):
+            _project_normalised(kind_s, x, y, z, out[direction, gt, gs], height, width)
+
+    jobs = [(d, g) for d in range(2) for g in range(g_count)]
+    if workers <= 1:
+        for job in jobs:
+            one(*job)
+    else:
+        # numpy ufuncs release the GIL: two threads use both cores of the target box
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            list(pool.map(lambda dg: one(*dg), jobs))
+    return out
+
+
+#: Small LRU of warp grids keyed by (relative poses, candidates, grids, size): a service
+#: re-rendering the same pair (or a benchmark repeating it) skips the numpy work.
+#: Entries are read-only; quality-preset grids are ~50 MB each.
+WARP_CACHE_SIZE = 2
+_warp_cache: OrderedDict = OrderedDict()
+_warp_cache_lock = threading.Lock()
+
+
+def clear_warp_cache() -> None:
+    with _warp_cache_lock:
+        _warp_cache.clear()
+
+
 def warp_grids(
     c2w_a: np.ndarray,
     c2w_b: np.ndarray,
@@ -123,30 +190,34 @@ def warp_grids(
     height: int,
     width: int,
     workers: int = 2,
+    cache: bool = True,
 ) -> np.ndarray:
     """Sampling coordinates of every (target pixel, candidate) in the source grids.
 
     Returns (2, G, G, D, h, w, 2) float32 (see the module table). A candidate
     point X = R (r_k d) + t in source-camera coordinates, r_k = 1/inv_depths[k].
+    The result depends only on the two relative poses (float32), the
+    candidates, the grids and the size; with ``cache`` it is kept in a small
+    LRU (:data:`WARP_CACHE_SIZE`) and returned read-only.
     """
-    inv = np.asarray(inv_depths, dtype=np.float32)
-    ranges = (1.0 / inv).astype(np.float32)[:, None, None, None]
-    d_count, g_count = len(inv), len(grids)
-    out = np.empty((2, g_count, g_count, d_count, height, width, 2), dtype=np.float32)
-
-    def one(direction: int, gt: int) -> None:
-        tgt, src = (c2w_a, c2w_b) if direction == 0 else (c2w_b, c2w_a)
-        rel = relative_pose(tgt, src).astype(np.float32)
-        rot, t = rel[:3, :3], rel[:3, 3]
-        rays = grid_directions(grids[gt], height, width).astype(np.float32) @ rot.T
-        points = rays[None] * ranges + t  # (D, h, w, 3)
-        for gs, kind_s in enumerate(grids):
-            col, row = project_to_grid(kind_s, points, height, width)
-            out[direction, gt, gs] = normalised_coords(kind_s, col, row, height, width)
-
-    # numpy ufuncs release the GIL: two threads use both cores of the target box
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        list(pool.map(lambda dg: one(*dg), [(d, g) for d in range(2) for g in range(g_count)]))
+    inv = np.ascontiguousarray(inv_depths, dtype=np.float32)
+    rels = np.stack([relative_pose(c2w_a, c2w_b), relative_pose(c2w_b, c2w_a)]).astype(np.float32)
+    grids = tuple(grids)
+    if not cache or WARP_CACHE_SIZE <= 0:
+        return _warp_grids_uncached(rels, inv, grids, int(height), int(width), workers)
+    key = (rels.tobytes(), inv.tobytes(), grids, int(height), int(width))
+    with _warp_cache_lock:
+        hit = _warp_cache.get(key)
+        if hit is not None:
+            _warp_cache.move_to_end(key)
+            return hit
+    out = _warp_grids_uncached(rels, inv, grids, int(height), int(width), workers)
+    out.flags.writeable = False
+    with _warp_cache_lock:
+        _warp_cache[key] = out
+        _warp_cache.move_to_end(key)
+        while len(_warp_cache) > WARP_CACHE_SIZE:
+            _warp_cache.popitem(last=False)
     return out
 
 

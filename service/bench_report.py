@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-METRICS = ("psnr", "ssim", "ws_psnr")
+METRICS = ("psnr", "ssim", "ws_psnr", "psnr_alpha_normalised")
 STAGES = ("decode", "encoder", "gaussian_head", "render")
 
 
@@ -42,7 +42,7 @@ def aggregate(records: list[dict]) -> list[dict]:
             groups[r["group"]].append(r)
         per_group = {}
         for g, rs in groups.items():
-            entry = {m: _mean(r[m] for r in rs) for m in METRICS}
+            entry = {m: _mean(r.get(m) for r in rs) for m in METRICS}
             entry["seconds"] = {s: _mean(r["seconds"].get(s) for r in rs) for s in STAGES}
             entry["seconds"]["total"] = _mean(sum(v for v in r["seconds"].values() if v is not None) for r in rs)
             entry["targets"] = len(rs)
@@ -92,7 +92,7 @@ def markdown(summary: list[dict], machine_line: str, notes: list[str], title: st
     lines.append("| " + " | ".join(head) + " |")
     lines.append("|" + "---|" * len(head))
     for s in summary:
-        m = s["mean"] or {m: None for m in METRICS} | {"seconds": {}}
+        m = s["mean"] or {k: None for k in METRICS} | {"seconds": {}}
         sec = m["seconds"]
         row = [s["name"], _fmt(m["psnr"]), _fmt(m["ssim"], 4), _fmt(m["ws_psnr"])]
         row += [_fmt(sec.get(k), 3) for k in (*STAGES, "total")]
@@ -116,7 +116,12 @@ def ablation_markdown(summary: list[dict], cells: dict[tuple[str, str], str], ti
         vals = []
         for c in cols:
             m = (by_slug.get(cells.get((r, c), "")) or {}).get("mean")
-            vals.append("–" if not m else f"{_fmt(m['psnr'])} dB / {_fmt(m['ssim'], 4)}")
+            if not m:
+                vals.append("–")
+                continue
+            norm = m.get("psnr_alpha_normalised")
+            vals.append(f"{_fmt(m['psnr'])} dB / {_fmt(m['ssim'], 4)}" +
+                        ("" if norm is None else f" (colour / alpha: {_fmt(norm)} dB)"))
         lines.append(f"| {r} | " + " | ".join(vals) + " |")
     return "\n".join(lines) + "\n"
 

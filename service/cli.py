@@ -24,12 +24,14 @@ from pathlib import Path
 #: Sub-commands handled by another module's ``main(argv)``: name -> (module, what to install if absent).
 FORWARDED = {
     "export": ("export.onnx_export", "the export extra: pip install -e '.[export]' (torch)"),
-    "refine": ("service.refine_cli", "a release with refinement (not implemented yet)"),
+    "refine": ("service.refine_cli", "the service package"),
 }
 BENCH = {
     "render": ("rasterizer.benchmark", "renderer timings (error against run time of the rasterizer)"),
     "quality": ("service.bench_quality", "reconstruction quality against run time on scene folders"),
     "stability": ("service.bench_stability", "stability of outputs under input perturbations"),
+    "refine": ("service.bench_refine", "+opt refinement: quality against iterations and seconds"),
+    "compaction": ("service.bench_compaction", "Gaussian count, PLY bytes, render time and PSNR per compaction step"),
 }
 
 
@@ -313,8 +315,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     sub.add_parser("export", help="build an ONNX model (needs torch: the export extra); see 'export --help'",
                    add_help=False)
-    sub.add_parser("refine", help="refine a scene's colours/opacities (not available yet)", add_help=False)
-    b = sub.add_parser("bench", help="benchmarks: 'bench render', 'bench quality', 'bench stability'",
+    sub.add_parser("refine", help="refine a PLY's colours/opacities on its two reference views (+opt); "
+                   "see 'refine --help'", add_help=False)
+    b = sub.add_parser("bench", help="benchmarks: " + ", ".join(f"'bench {k}'" for k in BENCH),
                        description="Benchmarks; each forwards its options to its own parser.")
     b.add_argument("which", choices=list(BENCH), help="; ".join(f"{k}: {v[1]}" for k, v in BENCH.items()))
     return p

@@ -12,8 +12,8 @@
 
 Reference images: a scene must carry the artifact ``references.npz`` (uint8 ERP arrays
 ``image_a``, ``image_b``, H x 2H x 3, as fed to the encoder); poses come from
-``meta["poses"]["c2w"]`` (OpenCV). :func:`store_references` writes it; scene creation
-must call it (see the issue-7 report).
+``meta["poses"]["c2w"]`` (OpenCV). Scene creation stores it with the scene
+(:func:`references_bytes`); :func:`store_references` adds it to an existing scene.
 """
 
 from __future__ import annotations
@@ -46,15 +46,20 @@ class JobCancelled(Exception):
     """Raised inside a job's progress callback when the registry is shutting down."""
 
 
-def store_references(store: SceneStore, scene_id: str, erp_a: np.ndarray, erp_b: np.ndarray) -> None:
-    """Attach the two reference ERP images (uint8 or float in [0, 1]) to a stored scene (atomic)."""
+def references_bytes(erp_a: np.ndarray, erp_b: np.ndarray) -> bytes:
+    """The ``references.npz`` artifact of two ERP images (uint8, or float in [0, 1])."""
     def u8(img):
         a = np.asarray(img)
         return a if a.dtype == np.uint8 else np.rint(np.clip(a, 0, 1) * 255).astype(np.uint8)
 
     buf = io.BytesIO()
-    np.savez(buf, image_a=u8(erp_a), image_b=u8(erp_b))
-    store.put_artifact(scene_id, REFERENCES_ARTIFACT, buf.getvalue())
+    np.savez_compressed(buf, image_a=u8(erp_a), image_b=u8(erp_b))
+    return buf.getvalue()
+
+
+def store_references(store: SceneStore, scene_id: str, erp_a: np.ndarray, erp_b: np.ndarray) -> None:
+    """Attach the two reference ERP images to an already stored scene (atomic)."""
+    store.put_artifact(scene_id, REFERENCES_ARTIFACT, references_bytes(erp_a, erp_b))
 
 
 def has_references(store: SceneStore, scene_id: str) -> bool:

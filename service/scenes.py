@@ -17,6 +17,7 @@ import numpy as np
 from .errors import BadInput, ServiceError
 from .images import check_header, decode_rgb, encode, to_uint8_safe
 from .inputs import Poses, RenderQuery
+from .jobs import REFERENCES_ARTIFACT, references_bytes
 from .pipeline import PipelineOptions, build_scene
 from .runtime import ModelRuntime
 from .store import SceneStore, content_id
@@ -44,6 +45,16 @@ def precheck_uploads(image_a: bytes, image_b: bytes, limits: UploadLimits) -> No
     """Header-only checks (format, 2:1, size, pixel cap): fast 4xx before queueing for the model."""
     for field, data in (("image_a", image_a), ("image_b", image_b)):
         check_header(data, field, max_pixels=limits.max_pixels, min_height=limits.min_height)
+
+
+def _at_model_size(erp: np.ndarray, runtime: ModelRuntime) -> np.ndarray:
+    """The panorama at the encoder's input size (what refinement compares renders against)."""
+    from rasterizer.yin_yang import resize_erp
+
+    height = int(runtime.metadata.get("input_height") or erp.shape[0])
+    if erp.shape[0] == height:
+        return erp
+    return resize_erp(np.asarray(erp, dtype=np.float32) / 255.0, height, 2 * height)
 
 
 def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_a: bytes, image_b: bytes,
@@ -78,7 +89,8 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     }
     t0 = time.perf_counter()
     meta["timings"] = timings
-    stored = store.put(scene_id, gaussians, meta)
+    references = {REFERENCES_ARTIFACT: references_bytes(*(_at_model_size(img, runtime) for img in (erp_a, erp_b)))}
+    stored = store.put(scene_id, gaussians, meta, artifacts=references)
     timings["store"] = time.perf_counter() - t0
     return stored, timings
 

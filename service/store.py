@@ -185,8 +185,12 @@ class SceneStore:
         return len(self.ids())
 
     # -- write --------------------------------------------------------------------
-    def put(self, scene_id: str, gaussians: Gaussians, meta: dict) -> dict:
-        """Store a scene atomically and return its metadata (the existing one if the id is taken)."""
+    def put(self, scene_id: str, gaussians: Gaussians, meta: dict, artifacts: dict[str, bytes] | None = None) -> dict:
+        """Store a scene atomically and return its metadata (the existing one if the id is taken).
+
+        ``artifacts`` (name -> bytes) are written in the same atomic rename, so a scene
+        never exists without them.
+        """
         final = self._dir(scene_id)
         if (final / "meta.json").is_file():
             return self.meta(scene_id)
@@ -197,6 +201,10 @@ class SceneStore:
         try:
             arrays = {f: getattr(gaussians, f) for f in _FIELDS}
             _write_file(staging / "gaussians.npz", lambda f: np.savez(f, **arrays))
+            for name, data in (artifacts or {}).items():
+                if "/" in name or name.startswith(".") or name in ("meta.json", "gaussians.npz"):
+                    raise ValueError(f"bad artifact name {name!r}")
+                _write_file(staging / name, lambda f, data=data: f.write(data))
             text = json.dumps(meta, indent=1, sort_keys=True).encode()
             _write_file(staging / "meta.json", lambda f: f.write(text))
             _fsync_dir(staging)

@@ -206,3 +206,13 @@ def test_stability_checks_catch_nan_and_bad_alpha():
         "render alpha outside [0, 1]"]
     two = np.concatenate([np.zeros((2, 8, 3)), np.ones((2, 8, 3))]).astype(np.float32)
     assert constant_psnr(two) == pytest.approx(-10 * np.log10(0.25))  # best constant 0.5, MSE 0.25
+
+
+def test_alpha_normalised_divides_covered_pixels_only():
+    from service.bench_quality import alpha_normalised
+
+    colour = np.array([[[0.25, 0.5, 0.0], [0.001, 0.001, 0.001]]], np.float32)
+    alpha = np.array([[0.5, 0.001]], np.float32)
+    out = alpha_normalised(colour, alpha)
+    np.testing.assert_allclose(out[0, 0], [0.5, 1.0, 0.0])
+    assert np.all(out[0, 1] == 0.0)  # alpha below 1/255: empty, not amplified noise

@@ -38,11 +38,23 @@ def scene_id(client, live) -> str:
     r = post_scene(client, a, b)
     assert r.status_code == 201, r.text
     sid = r.json()["id"]
-    # scene creation does not keep the references yet (see the issue-7 report): attach them here
-    if live.app.state.store.artifact(sid, "references.npz") is None:
-        assert client.post(f"/v1/scenes/{sid}/refine", json={}).status_code == 409
-        store_references(live.app.state.store, sid, _decode(a), _decode(b))
+    # scene creation keeps the references, at the model's input size, inside the scene folder
+    path = live.app.state.store.artifact(sid, "references.npz")
+    assert path is not None
+    with np.load(path) as z:
+        assert z["image_a"].dtype == np.uint8 and z["image_a"].shape == _decode(a).shape
+        assert np.array_equal(z["image_b"], _decode(b))
     return sid
+
+
+def test_scene_without_references_answers_409(client, live):
+    r = post_scene(client, panorama(seed=9), panorama(seed=9, shift=6))
+    sid = r.json()["id"]
+    (live.app.state.store.artifact(sid, "references.npz")).unlink()
+    r = client.post(f"/v1/scenes/{sid}/refine", json={})
+    assert r.status_code == 409 and r.json()["error"]["code"] == "references_missing"
+    store_references(live.app.state.store, sid, _decode(panorama(seed=9)), _decode(panorama(seed=9, shift=6)))
+    assert client.post(f"/v1/scenes/{sid}/refine", json={"iterations": 1, "height": 24}).status_code == 202
 
 
 def _wait(client, location: str, timeout: float = 120.0) -> dict:
