@@ -31,11 +31,12 @@ from .yin_yang_sampling import pad_longitude
 
 def domain_mask(grid: torch.Tensor) -> torch.Tensor:
     """(..., 2) grid_sample coordinates -> (...) float 1 inside [-1, 1]^2, else 0."""
-    return (grid.abs().amax(dim=-1) <= 1.0).to(grid.dtype)
+    a = grid.abs()
+    return (torch.maximum(a[..., 0], a[..., 1]) <= 1.0).to(grid.dtype)  # cheaper in ORT than ReduceMax
 
 
 def sample_maps(src: torch.Tensor, grid: torch.Tensor, erp_source: bool) -> torch.Tensor:
-    """Bilinear samples of (1, C, h, w) ``src`` at (1, Ho, Wo, 2) -> (1, C, Ho, Wo)."""
+    """Bilinear samples of (N, C, h, w) ``src`` at (N, Ho, Wo, 2) -> (N, C, Ho, Wo)."""
     if erp_source:
         src = pad_longitude(src)
     return F.grid_sample(src, grid, mode="bilinear", padding_mode="border", align_corners=False)

@@ -97,26 +97,25 @@ class OmniSplatEncoder(nn.Module):
         d_count = inv_depths.shape[0]
         step = (inv_depths[d_count - 1] - inv_depths[0]) / (d_count - 1)
         idx = k.round().clamp(0, d_count - 1).to(torch.int64)  # (2, G, 1, h, w)
-        ok = []
-        for d in range(2):
-            rot, t = rel_rt[d, :, :3], rel_rt[d, :, 3]
-            for gt in range(g_count):
-                rng = 1.0 / inv[d, gt, 0].clamp(min=1e-6)  # (h, w)
-                u = torch.matmul(self.feat_rays[gt].reshape(h * w, 3), rot.transpose(0, 1)).reshape(h, w, 3)
-                pt = u * rng.unsqueeze(-1) + t
-                expected = 1.0 / torch.sqrt((pt * pt).sum(-1)).clamp(min=1e-6)
-                gather_idx = idx[d, gt, 0].reshape(1, h, w, 1).expand(1, h, w, 2)
-                num = torch.zeros_like(expected)
-                den = torch.zeros_like(expected)
-                for gs in range(g_count):
-                    loc = torch.gather(warp_grids[d, gt, gs], 0, gather_idx)  # (1, h, w, 2)
-                    seen = sample_maps(inv[1 - d, gs].unsqueeze(0), loc, self.cfg.erp_encoder)[0, 0]
-                    m = torch.ones_like(seen) if self.cfg.erp_encoder else domain_mask(loc[0])
-                    num = num + seen * m
-                    den = den + m
-                seen = num / den.clamp(min=1e-6)
-                ok.append(((seen - expected).abs() <= self.cfg.lr_tol_planes * step).to(k.dtype))
-        return torch.stack(ok).reshape(2, g_count, 1, h, w)
+        # expected inverse range from the source camera, all (direction, target grid) at once
+        rng = 1.0 / inv.clamp(min=1e-6)  # (2, G, 1, h, w)
+        u = torch.matmul(self.feat_rays.reshape(1, g_count * h * w, 3), rel_rt[:, :, :3].transpose(1, 2))
+        pt = u.reshape(2, g_count, h, w, 3) * rng.reshape(2, g_count, h, w, 1) + rel_rt[:, :, 3].reshape(2, 1, 1, 1, 3)
+        expected = 1.0 / torch.sqrt((pt * pt).sum(-1)).clamp(min=1e-6)  # (2, G, h, w)
+        # source location at the nearest plane for every (direction, target grid, source grid):
+        # one GatherElements on the plane axis (indexing warp_grids per pairing copies the whole input)
+        gather_idx = idx.reshape(2, g_count, 1, 1, h, w, 1).expand(2, g_count, g_count, 1, h, w, 2)
+        loc = torch.gather(warp_grids, 3, gather_idx).reshape(2 * g_count * g_count, h, w, 2)
+        source = torch.stack([inv[1], inv[0]])  # [d] = view 1 - d, (2, G_s, 1, h, w)
+        source = source.unsqueeze(1).expand(2, g_count, g_count, 1, h, w).reshape(2 * g_count * g_count, 1, h, w)
+        seen = sample_maps(source, loc, self.cfg.erp_encoder).reshape(2, g_count, g_count, h, w)
+        if self.cfg.erp_encoder:
+            m = torch.ones_like(seen)
+        else:
+            m = domain_mask(loc).reshape(2, g_count, g_count, h, w)
+        seen = (seen * m).sum(dim=2) / m.sum(dim=2).clamp(min=1e-6)
+        ok = ((seen - expected).abs() <= self.cfg.lr_tol_planes * step).to(k.dtype)
+        return ok.reshape(2, g_count, 1, h, w)
 
     def observability(self, rel_rt, inv_depths):
         """(2, G, 1, h, w) in [0, 1]: 0 where depth cannot be observed (epipoles).

@@ -33,6 +33,25 @@ Method (chosen by measurement on m3d, encoder Gaussians, see ``docs/bench/refine
   never fitted; its loss is tracked every iteration and the parameters with
   the best held-out loss are returned (early stop after ``patience``
   iterations without improvement).
+* Cross-view guard (colour mode, ``cross_check=True``, default;
+  :func:`cross_view_check`): held-out pixels of the fitted views cannot see
+  wrong geometry (colours that fit both references baked onto the wrong
+  surfaces: zind_room09 lost 0.8 dB while its held-out loss fell 10x). So
+  the colours are first fitted on each reference alone (<= ``cross_steps``
+  CG steps) and scored on *all* pixels of the other reference, a novel view
+  for that fit like the targets are for the final one, with a line search
+  over the update's scale (``CROSS_SCALES``: a single-reference update
+  overshoots, it is not averaged with the other view). If no step and scale
+  lowers the cross-view error, the refinement is rejected and the unrefined
+  colours are returned; otherwise the usual two-reference solve runs.
+  Measured (h = 128, docs/bench/refine.md): m3d best cross-view change
+  -2.1% (accept, +1.00 dB at the target, same as unguarded); zind_room09
+  split 0 +4.7% (reject; unguarded -0.78 dB), split 1 +0.6% (reject;
+  unguarded would have gained +0.15 dB: a missed small gain). Costs
+  ~2 x ``cross_steps`` CG steps (+3-7 s on the shared 2-core machine).
+* Loss variants (``loss`` "huber" / "l1"): one IRLS re-weighting of the
+  fitted pixels by their initial residual; measured worse than L2 at the m3d
+  target (Huber 24.61, L1 24.47 vs L2 24.94 dB), so L2 stays the default.
 
 Shapes: Gaussians N; per grid P = h * 3h pixels; M contributions.
 """
@@ -56,6 +75,9 @@ from .yin_yang import erp_to_yin_yang
 
 _EPS_LOGIT = 1e-4
 _A_FLOOR = 1.0 / 255.0
+_L1_EPS = 0.01  # IRLS floor of the residual norm for the L1 loss
+#: line search of the cross-view guard: the single-reference update scaled by these factors
+CROSS_SCALES = (0.0, 0.125, 0.25, 0.5, 0.75, 1.0)
 
 
 @dataclass(frozen=True)
@@ -89,6 +111,8 @@ class RefineOptions:
     opacity_reg: float = 1e-4     # pull of logit opacity toward its initial value
     patience: int = 5             # early stop after this many iterations without held-out improvement (0: off)
     cross_check: bool = True      # colour mode: fit each reference alone, score the other (cross-view guard)
+    cross_steps: int = 3          # guard: at most this many CG steps per single-reference fit
+    cross_covis: float = 0.0      # guard fits only Gaussians seen by both references (>= this x mean strength); 0: all
     loss: str = "l2"              # "l2" | "huber" | "l1": robust variants as fixed IRLS weights (initial residual)
     huber_delta: float = 0.1      # Huber threshold on the per-pixel colour error (RGB norm, [0, 1] units)
 
@@ -223,7 +247,8 @@ class _Problem:
 
     def solve_colour(self, sh: np.ndarray, sh0: np.ndarray, terms_all, steps: int, reg: float,
                      on_step: Callable[[int, np.ndarray, float], bool] | None = None, *, loss: str = "l2",
-                     delta: float = 0.1, report_start: bool = False) -> np.ndarray:
+                     delta: float = 0.1, report_start: bool = False, free: np.ndarray | None = None,
+                     scales: Sequence[float] | None = None) -> np.ndarray:
         """Jacobi-preconditioned CG on the normal equations of the L2 colour fit (opacities fixed).
 
         Minimises sum_v |M_v (B_v colour_v(x) - y_v)|^2 + lam |x - sh0|^2 over the
@@ -232,9 +257,12 @@ class _Problem:
         called after every step (held_loss: mean squared error on the held-out
         pixels, one sparse product per view); it returns True to stop.
         ``report_start``: also call it once before the first step (step -1).
+        ``free`` (N,) bool: only these Gaussians change (the others keep ``sh``).
+        ``scales``: held_loss passed to ``on_step`` is then an array, the held-out
+        loss of ``sh + t (x - sh)`` for each t (the update scaled, a line search).
         ``loss`` "huber" / "l1": the fitted pixels are re-weighted once by the
         IRLS weight of their initial residual norm e (huber: min(1, delta / e);
-        l1: delta / max(e, delta)), so the solve stays linear.
+        l1: 1 / max(e, 0.01)), so the solve stays linear.
         """
         ops = [BlendOperator(v.footprints, t, self.n, normalise=True) for v, t in zip(self.views, terms_all)]
         masks = [(v.fit & op.covered).astype(np.float64)[:, None] for v, op in zip(self.views, ops)]
@@ -244,7 +272,7 @@ class _Problem:
             for i, v in enumerate(self.views):
                 pred = ops[i] @ _colours(self.bases[i], sh.astype(np.float64), self.rest[i])
                 e = np.sqrt(np.einsum("pc,pc->p", pred - v.target, pred - v.target))
-                w = np.minimum(1.0, delta / np.maximum(e, 1e-12)) if loss == "huber" else delta / np.maximum(e, delta)
+                w = np.minimum(1.0, delta / np.maximum(e, 1e-12)) if loss == "huber" else 1.0 / np.maximum(e, _L1_EPS)
                 masks[i] = masks[i] * w[:, None]
         active = [bool(m.any()) for m in masks]  # views with fitted pixels (the others are only scored)
         k = self.k
@@ -255,7 +283,14 @@ class _Problem:
         def apply_jt(i, r):  # (P, 3) -> (N, k, 3)
             return self.bases[i][:, :, None] * ops[i].rmatvec(r)[:, None, :]
 
+        x_start = sh.astype(np.float64)
+
         def held_loss(x):
+            if scales is not None:
+                return np.array([held_loss_at(self._project(x_start + t * (x - x_start))) for t in scales])
+            return held_loss_at(x)
+
+        def held_loss_at(x):
             tot = 0.0
             for i, v in enumerate(self.views):
                 pred = ops[i] @ np.maximum(_colours(self.bases[i], x, self.rest[i]), 0.0)
@@ -272,6 +307,8 @@ class _Problem:
         seen = diag[:, 0] > 0
         lam = reg * (float(diag[seen, 0].mean()) if seen.any() else 1.0)
         precond = 1.0 / (diag + lam)[:, :, None]
+        if free is not None:
+            precond = precond * np.asarray(free, np.float64)[:, None, None]
 
         def normal(x):
             out = lam * x
@@ -314,6 +351,85 @@ class _Problem:
         return x
 
 
+def _seen_strength(fp: Footprints, terms, n: int) -> np.ndarray:
+    """(N,) sum over covered pixels of the squared alpha-normalised blend weight: how strongly a view sees each Gaussian."""
+    if len(fp) == 0:
+        return np.zeros(n)
+    w = terms.weight.astype(np.float64)
+    a = np.bincount(fp.pixel, weights=w, minlength=fp.height * fp.width)[fp.pixel]
+    wn = np.where(a >= _A_FLOOR, w / np.maximum(a, _A_FLOOR), 0.0)
+    return np.bincount(fp.gaussian, weights=wn * wn, minlength=n)
+
+
+def cross_view_check(gaussians: Gaussians, views: Sequence[ReferenceView], terms_all, sh0: np.ndarray, k: int,
+                     options: RefineOptions) -> dict | None:
+    """Cross-view guard: fit the colours on each reference alone, score them on the other reference.
+
+    For every reference r, the colour solve of :func:`refine` runs on the fit
+    pixels of the *other* references' grids only (same ``colour_reg``, ``loss``,
+    up to ``options.iterations`` steps, early stop after ``patience`` steps
+    without improvement) and after every step the mean squared error of the
+    alpha-normalised colour on *all* pixels of r's grids is recorded: r is a
+    novel view for that fit, like the targets are for the final one, so wrong
+    geometry (colours baked onto the wrong surfaces) shows up here while
+    held-out pixels of the fitted views cannot see it.
+
+    Returns None with fewer than two references, else a dict: ``curves``
+    (per reference r: the cross MSE on r after 0, 1, ... steps), ``total``
+    (their pixel-weighted sum per step; a curve that stopped early is padded
+    with its last value), ``steps`` (argmin of ``total``; 0 = reject: the
+    refinement makes the unseen reference worse), ``accepted``, ``seconds``.
+    """
+    t0 = time.perf_counter()
+    refs = sorted({v.reference for v in views})
+    if len(refs) < 2:
+        return None
+    free = None
+    if options.cross_covis > 0:
+        strength = {r: np.zeros(gaussians.sh.shape[0]) for r in refs}
+        for v, t in zip(views, terms_all):
+            strength[v.reference] += _seen_strength(v.footprints, t, gaussians.sh.shape[0])
+        free = np.ones(gaussians.sh.shape[0], bool)
+        for st in strength.values():
+            seen = st > 0
+            free &= st >= options.cross_covis * (float(st[seen].mean()) if seen.any() else 0.0)
+            free &= seen
+    curves, weights = [], []
+    for r in refs:
+        sub = []
+        for v in views:
+            if v.reference == r:  # scored on every pixel, never fitted
+                sub.append(replace(v, fit=np.zeros_like(v.fit), held=np.ones_like(v.held)))
+            else:  # fitted on the same pixels as the final solve
+                sub.append(replace(v, held=np.zeros_like(v.held)))
+        prob = _Problem(gaussians, sub, k)
+        curve: list = []
+
+        def on_step(step, x, loss, curve=curve):
+            curve.append(np.asarray(loss, np.float64))
+            best = [float(c.min()) for c in curve]
+            return bool(options.patience and len(curve) - 1 - int(np.argmin(best)) >= options.patience)
+
+        prob.solve_colour(sh0, sh0, terms_all, min(options.iterations, options.cross_steps), options.colour_reg, on_step,
+                          loss=options.loss, delta=options.huber_delta, report_start=True, free=free,
+                          scales=CROSS_SCALES)
+        curves.append(curve)
+        weights.append(prob.n_held)
+    n = max(len(c) for c in curves)
+    total = np.zeros((n, len(CROSS_SCALES)))
+    for c, w in zip(curves, weights):
+        total += w * np.array(c + [c[-1]] * (n - len(c)))
+    total /= float(sum(weights))
+    steps, si = (int(i) for i in np.unravel_index(int(np.argmin(total)), total.shape))
+    scale = float(CROSS_SCALES[si])
+    if scale == 0.0:
+        steps = 0
+    return {"curves": {int(r): np.array(c).tolist() for r, c in zip(refs, curves)}, "scales": list(CROSS_SCALES),
+            "total": total.tolist(), "steps": steps, "scale": scale,
+            "accepted": steps > 0, "covisible": None if free is None else int(free.sum()),
+            "seconds": time.perf_counter() - t0}
+
+
 def refine(gaussians: Gaussians, views: Sequence[ReferenceView], options: RefineOptions = RefineOptions(),
            progress: Callable[[float], None] | None = None, *, snapshot_at: Sequence[int] = ()) -> RefineResult:
     """Refine colour and opacity of ``gaussians`` on ``views``; geometry unchanged.
@@ -328,6 +444,10 @@ def refine(gaussians: Gaussians, views: Sequence[ReferenceView], options: Refine
     opt = options
     if opt.sh_degree not in (0, 1):
         raise ValueError(f"sh_degree must be 0 or 1, got {opt.sh_degree}")
+    if opt.loss not in ("l2", "huber", "l1") or not opt.huber_delta > 0:
+        raise ValueError(f"loss must be 'l2', 'huber' or 'l1' and huber_delta > 0, got {opt.loss!r}, {opt.huber_delta}")
+    if opt.cross_steps < 1 or opt.cross_covis < 0:
+        raise ValueError(f"need cross_steps >= 1 and cross_covis >= 0, got {opt.cross_steps}, {opt.cross_covis}")
     k = (opt.sh_degree + 1) ** 2
     k_all = max(k, gaussians.sh.shape[1])
     sh_all = np.zeros((len(gaussians), k_all, 3), np.float32)
@@ -360,8 +480,15 @@ def refine(gaussians: Gaussians, views: Sequence[ReferenceView], options: Refine
 
     if 0 in snap_set:
         snapshots[0] = _with(sh, logit)
+    cross = None
+    n_steps = opt.iterations
+    if not opt.optimise_opacity and opt.cross_check and opt.iterations > 0:
+        cross = cross_view_check(g, views, terms, sh0, k, opt)
+        if cross is not None:
+            # rejected: the unrefined colours are returned; accepted: the usual held-out early-stopped solve
+            n_steps = opt.iterations if cross["accepted"] else 0
     if not opt.optimise_opacity:
-        # colour only: one composite at the initial opacities, then `iterations` CG steps
+        # colour only: one composite at the initial opacities, then `n_steps` CG steps
         def on_step(step, x, held_loss):
             it = step + 1
             history.append({"iteration": it, "fit_loss": None, "held_loss": held_loss if has_held else None,
@@ -373,11 +500,14 @@ def refine(gaussians: Gaussians, views: Sequence[ReferenceView], options: Refine
             if it in snap_set:
                 snapshots[it] = _with(x, logit)
             if progress is not None:
-                progress(it / max(1, opt.iterations))
+                progress(it / max(1, n_steps))
             return bool(opt.patience and has_held and it - best[1] >= opt.patience)
 
-        if opt.iterations > 0:
-            prob.solve_colour(sh, sh0, terms, opt.iterations, opt.colour_reg, on_step)
+        if n_steps > 0:
+            prob.solve_colour(sh, sh0, terms, n_steps, opt.colour_reg, on_step, loss=opt.loss,
+                              delta=opt.huber_delta)
+        if progress is not None and n_steps == 0 and opt.iterations > 0:
+            progress(1.0)
     for it in range(opt.iterations if opt.optimise_opacity else 0):
         opac = _sigmoid(logit).astype(np.float32)
         if it > 0:
@@ -408,4 +538,4 @@ def refine(gaussians: Gaussians, views: Sequence[ReferenceView], options: Refine
             best[:] = [score, opt.iterations, sh.copy(), logit.copy()]
 
     _, best_it, sh_best, logit_best = best
-    return RefineResult(_with(sh_best, logit_best), history, best_it, time.perf_counter() - t0, snapshots)
+    return RefineResult(_with(sh_best, logit_best), history, best_it, time.perf_counter() - t0, snapshots, cross)

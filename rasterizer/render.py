@@ -64,11 +64,13 @@ def _check_gaussians(gaussians: Gaussians) -> None:
     gaussians.check_finite()
 
 
-def _premultiplied(gaussians: Gaussians, camera: Camera, colours: np.ndarray | None = None, factors=None):
+def _premultiplied(gaussians: Gaussians, camera: Camera, colours: np.ndarray | None = None, factors=None,
+                   camera_points=None):
     """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) of one camera."""
     if colours is None:
         colours = sh_to_rgb(gaussians.sh, gaussians.means, camera.centre)
-    fp = footprints(gaussians, camera, opacity_bound=gaussians.opacities, factors=factors)
+    fp = footprints(gaussians, camera, opacity_bound=gaussians.opacities, factors=factors,
+                    camera_points=camera_points)
     return accumulate(fp, gaussians.opacities, colours)
 
 
@@ -86,9 +88,11 @@ def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: i
     cams = [Camera(kind, w, h, c2w, near=near) for kind in ("yin", "yang")]
     colours = sh_to_rgb(gaussians.sh, gaussians.means, cams[0].centre)
     factors = gaussian_factors(gaussians)
+    p_cam = cams[0].to_camera(gaussians.means)  # Yin and Yang share the pose
+    points = (p_cam, np.sqrt(np.einsum("ij,ij->i", p_cam, p_cam)))
 
     def one(cam):
-        c, a, r = _premultiplied(gaussians, cam, colours, factors)
+        c, a, r = _premultiplied(gaussians, cam, colours, factors, points)
         return np.concatenate([c, a[:, :, None], r[:, :, None]], axis=2)
 
     if threads > 1 and len(gaussians) >= _THREAD_MIN_GAUSSIANS:

@@ -38,8 +38,11 @@ is bounded by its band of rows x W.
 Implementation (vectorised, no loop over Gaussians or pixels): footprints
 are bucketed into size classes, each class is a dense (n, KY, KX) block;
 each surviving contribution is packed into one uint64 key
-``pixel | depth rank | quantised q`` and a single ``np.sort`` orders all of
-them by pixel, then by range.
+``pixel | depth rank | quantised q`` and a single sort orders all of
+them by pixel, then by range. The blocks are laid out (KY, KX, n) with the
+Gaussians ordered by (box origin, depth rank), so each box offset emits an
+already sorted run of keys and that sort is a stable (timsort) merge of a
+few hundred runs, 2-4x cheaper than sorting random keys.
 """
 
 from __future__ import annotations
@@ -207,20 +210,28 @@ def _outside_frustum(camera: Camera, p_cam: np.ndarray, s_max: np.ndarray) -> np
     return out
 
 
-def project(gaussians, camera: Camera, factors: np.ndarray | None = None) -> Projected:
+def project(gaussians, camera: Camera, factors: np.ndarray | None = None, *,
+            camera_points: tuple[np.ndarray, np.ndarray] | None = None) -> Projected:
     """EWA-project ``gaussians`` into ``camera``; culls those behind/too near.
 
     Returns a :class:`Projected` for the Gaussians that pass the near test,
     are not certainly outside a Yin/Yang domain, and whose projected centre
     and covariance are finite. Exact domain/image culling happens in
     :func:`footprints`, which knows the footprint extent. ``factors`` is
-    :func:`gaussian_factors` of ``gaussians`` when the caller already has it.
+    :func:`gaussian_factors` of ``gaussians`` when the caller already has it;
+    ``camera_points`` (camera-frame centres (N, 3), ranges (N,)) likewise, from
+    ``camera.to_camera(gaussians.means)`` of a camera with the same pose.
     """
     if factors is None:
         factors = gaussian_factors(gaussians)
-    p_cam = camera.to_camera(gaussians.means)
-    ranges = np.sqrt(np.einsum("ij,ij->i", p_cam, p_cam))
-    keep = camera.visible_depth(p_cam)
+    if camera_points is None:
+        p_cam = camera.to_camera(gaussians.means)
+        ranges = np.sqrt(np.einsum("ij,ij->i", p_cam, p_cam))
+    else:  # shared by cameras with the same pose (Yin and Yang of one render)
+        p_cam, ranges = camera_points
+    keep = ranges >= camera.near  # = camera.visible_depth(p_cam), without recomputing the ranges
+    if camera.kind == "perspective":
+        keep &= p_cam[:, 2] >= camera.near
     idx = np.flatnonzero(keep)
     if camera.kind in ("yin", "yang") and idx.size:
         s_max = np.max(gaussians.scales[idx], axis=1).astype(np.float64)
@@ -356,7 +367,8 @@ def _sphere_boxes(sph: _Sphere, camera: Camera):
 
 
 def footprints(gaussians, camera: Camera, *, opacity_bound: np.ndarray | None = None,
-               factors: np.ndarray | None = None, max_contributions: int = 60_000_000) -> Footprints:
+               factors: np.ndarray | None = None, max_contributions: int = 60_000_000,
+               camera_points: tuple[np.ndarray, np.ndarray] | None = None) -> Footprints:
     """Per-pixel, front-to-back lists of the Gaussians that can reach each pixel.
 
     Parameters
@@ -369,6 +381,8 @@ def footprints(gaussians, camera: Camera, *, opacity_bound: np.ndarray | None = 
         valid for any opacities in [0, 1]).
     factors : optional :func:`gaussian_factors` of ``gaussians`` (reuse it
         across cameras of one render).
+    camera_points : optional (camera-frame centres, ranges) shared by cameras
+        with the same pose (see :func:`project`).
     max_contributions : refuse (:class:`RenderLimitError`) when the estimated
         number of contributions exceeds this (last-resort memory guard, about
         20 bytes each; ordinary views up to 2048 wide stay far below it).
@@ -379,7 +393,7 @@ def footprints(gaussians, camera: Camera, *, opacity_bound: np.ndarray | None = 
     """
     n_all = len(gaussians)
     h, w = camera.height, camera.width
-    proj = project(gaussians, camera, factors)
+    proj = project(gaussians, camera, factors, camera_points=camera_points)
     ranges_all = np.zeros(n_all, dtype=np.float32)
     ranges_all[proj.index] = proj.ranges
     empty = Footprints(np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0, np.float32), ranges_all, h, w)
@@ -400,7 +414,27 @@ def footprints(gaussians, camera: Camera, *, opacity_bound: np.ndarray | None = 
     x0, kx, y0, ky = _boxes(proj, camera, np.maximum(qcut, 0.0))
     jobs = []  # (kind, indices into proj, x0, kx, y0, ky)
     live = flat_idx[(kx[flat_idx] > 0) & (ky[flat_idx] > 0) & (qcut[flat_idx] > 0)]
-    jobs.append(("flat", live, x0[live], kx[live], y0[live], ky[live]))
+    # Order the pixel-space Gaussians by (box origin row y0, column x0, depth rank). For one fixed
+    # box offset (oy, ox) the pixel of every in-image element is (y0 + oy) * w + x0 + ox, which
+    # then increases along the Gaussians (two in-image columns differ by less than w),
+    # so every offset of a size-class block yields an already sorted run of keys and the final
+    # sort is a merge of a few hundred runs (a stable sort, i.e. timsort, merges them ~2-3x faster
+    # than sorting at random). Gaussians whose columns wrap around the period break that order:
+    # they form their own job.
+    period = camera.column_period
+    s0 = camera.period_start
+    if period is not None and live.size:
+        wraps = (x0[live] < s0) | (x0[live] + kx[live] - 1 >= s0 + period)
+        wrap_live, live = live[wraps], live[~wraps]
+    else:
+        wrap_live = live[:0]
+    if live.size:
+        origin = y0[live] * (w + 2 * (period or 0) + 2) + x0[live]
+        okey = (origin - origin.min()).astype(np.int64) * (order.size + 1) + rank[live]
+        live = live[np.argsort(okey)]
+    for sel in (live, wrap_live):
+        if sel.size:
+            jobs.append(("flat", sel, x0[sel], kx[sel], y0[sel], ky[sel]))
     sph = None
     if polar_idx.size:
         pf = factors if factors is not None else gaussian_factors(gaussians)
@@ -421,8 +455,6 @@ def footprints(gaussians, camera: Camera, *, opacity_bound: np.ndarray | None = 
         raise RenderLimitError(f"image {w}x{h} with {order.size} Gaussians exceeds the 64-bit sort key")
     layout = _KeyLayout(pix_bits, rank_bits, q_bits, 64 - pix_bits - rank_bits)
 
-    period = camera.column_period
-    s0 = camera.period_start
     keys = []
     for kind, idx, jx0, jkx, jy0, jky in jobs:
         if idx.size == 0:
@@ -447,7 +479,7 @@ def footprints(gaussians, camera: Camera, *, opacity_bound: np.ndarray | None = 
         return empty
     key = np.concatenate(keys) if len(keys) > 1 else keys[0]
     del keys
-    key.sort()
+    key.sort(kind="stable")  # timsort: merges the pre-sorted runs (keys are unique: order is the same)
     pixel = (key >> np.uint64(layout.pix_shift)).astype(np.int32)
     rnk = (key >> np.uint64(layout.rank_shift)) & np.uint64((1 << rank_bits) - 1)
     gauss = proj.index[order].astype(np.int32)[rnk.astype(np.intp)]
@@ -498,29 +530,42 @@ class _KeyLayout:
 
 def _class_keys(sel, kxc, kyc, mean, conic, qcut, rank, box, h, w, period, s0,
                 layout: _KeyLayout) -> np.ndarray:
-    """Packed sort keys of one dense (n, kyc, kxc) block of pixel-space footprints."""
+    """Packed sort keys of one dense (kyc, kxc, n) block of pixel-space footprints.
+
+    The Gaussian axis is innermost, so the keys come out offset by offset: each
+    offset's keys are sorted when ``sel`` is ordered by (box origin, rank) and no
+    column wraps (see :func:`footprints`).
+    """
     x0, kx, y0, ky = box
-    ox = np.arange(kxc, dtype=np.int64)
-    oy = np.arange(kyc, dtype=np.int64)
-    cols = x0[:, None] + ox  # (n, KX) unwrapped columns
-    rows = y0[:, None] + oy  # (n, KY)
-    dx = (x0[:, None] - mean[sel, 0:1]).astype(np.float32) + ox.astype(np.float32)
-    dy = (y0[:, None] - mean[sel, 1:2]).astype(np.float32) + oy.astype(np.float32)
+    ox = np.arange(kxc, dtype=np.int64)[:, None]
+    oy = np.arange(kyc, dtype=np.int64)[:, None]
+    cols = x0[None, :] + ox  # (KX, n) unwrapped columns
+    rows = y0[None, :] + oy  # (KY, n)
+    dx = (x0 - mean[sel, 0]).astype(np.float32)[None, :] + ox.astype(np.float32)
+    dy = (y0 - mean[sel, 1]).astype(np.float32)[None, :] + oy.astype(np.float32)
     if period is not None:
         cols = np.mod(cols - s0, period) + s0
-    bad_x = (ox >= kx[:, None]) | (cols < 0) | (cols >= w)
-    bad_y = (oy >= ky[:, None]) | (rows < 0) | (rows >= h)
+    bad_x = (ox >= kx[None, :]) | (cols < 0) | (cols >= w)
+    bad_y = (oy >= ky[None, :]) | (rows < 0) | (rows >= h)
     dx[bad_x] = np.inf
     dy[bad_y] = np.inf
-    ca = conic[sel, 0].astype(np.float32)[:, None]
-    cb = (2.0 * conic[sel, 1]).astype(np.float32)[:, None]
-    cc = conic[sel, 2].astype(np.float32)[:, None]
+    ca = conic[sel, 0].astype(np.float32)
+    cb = (2.0 * conic[sel, 1]).astype(np.float32)
+    cc = conic[sel, 2].astype(np.float32)
     with np.errstate(invalid="ignore", over="ignore"):
-        q = (cb * dy)[:, :, None] * dx[:, None, :]
-        q += (cc * dy * dy)[:, :, None]
-        q += (ca * dx * dx)[:, None, :]
-        hit = q <= qcut[sel].astype(np.float32)[:, None, None]
-    return _pack(rows, cols, bad_y, bad_x, rank[sel], q, hit, w, layout)
+        q = (cb * dy)[:, None, :] * dx[None, :, :]
+        q += (cc * dy * dy)[:, None, :]
+        q += (ca * dx * dx)[None, :, :]
+        hit = q <= qcut[sel].astype(np.float32)[None, None, :]
+    rowkey = (np.where(bad_y, 0, rows) * w).astype(np.uint64) << np.uint64(layout.pix_shift)
+    rowkey |= rank[sel].astype(np.uint64) << np.uint64(layout.rank_shift)
+    colkey = np.where(bad_x, 0, cols).astype(np.uint64) << np.uint64(layout.pix_shift)
+    out = (rowkey[:, None, :] + colkey[None, :, :])[hit]
+    qh = q[hit]
+    np.maximum(qh, 0.0, out=qh)
+    qh *= np.float32(layout.q_scale)
+    out |= qh.astype(np.uint32)
+    return out
 
 
 def _pack(rows, cols, bad_y, bad_x, rank_sel, q, hit, w, layout: _KeyLayout) -> np.ndarray:

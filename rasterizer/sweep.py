@@ -119,28 +119,48 @@ def normalised_coords(kind: str, col: np.ndarray, row: np.ndarray, height: int, 
 
 def _project_normalised(kind: str, x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray,
                         height: int, width: int) -> None:
-    """``normalised_coords(project_to_grid(kind, p))`` of camera-frame points, written into ``out`` (..., 2).
+    """``normalised_coords(kind, *project_to_grid(kind, p))`` of camera-frame points ``p = (x, y, z)``.
 
-    float32 and one arctan2 pair per point: for Yin the grid_sample x is
-    lon / YIN_LON_MAX and y is -lat / YIN_LAT_MAX (pixel centres and the
-    align_corners=False convention cancel); Yang is Yin of (y, x, -z).
+    Written into ``out`` (..., 2); float32, one arctan2 pair per point and
+    in-place arithmetic in the same order as :func:`rasterizer.geometry.project_to_grid`
+    and :func:`normalised_coords`, so the result is bit-identical to them.
     """
-    if kind == "erp":
-        lon = np.arctan2(x, z)
-        lat = np.arctan2(-y, np.hypot(x, z))
-        col = (lon + np.float32(np.pi)) * np.float32(width / (2 * np.pi)) - np.float32(0.5)
-        col = np.mod(col + np.float32(0.5), np.float32(width)) - np.float32(0.5)
-        out[..., 0] = (np.float32(2.0) * (col + np.float32(ERP_PAD)) + np.float32(1.0)) / np.float32(width + 2 * ERP_PAD) - np.float32(1.0)
-        out[..., 1] = lat * np.float32(-2.0 / np.pi)
-        return
     if kind == "yang":
         x, y, z = y, x, -z
-    sx, sy = np.float32(1.0 / YIN_LON_MAX), np.float32(1.0 / YIN_LAT_MAX)
+    lat = np.arctan2(-y, np.hypot(x, z))
     lon = np.arctan2(x, z)
-    np.multiply(lon, sx, out=lon)
+    if kind == "erp":
+        lon += np.pi
+        lon /= 2 * np.pi
+        lon *= width
+        lon -= 0.5  # col
+        lon += 0.5
+        np.mod(lon, width, out=lon)
+        lon -= 0.5
+        lon += ERP_PAD
+        lon *= 2.0
+        lon += 1.0
+        lon /= width + 2 * ERP_PAD
+        lat_max, lat_span = np.pi / 2, np.pi
+    else:
+        lon += YIN_LON_MAX
+        lon /= 2 * YIN_LON_MAX
+        lon *= width
+        lon -= 0.5  # col
+        lon *= 2.0
+        lon += 1.0
+        lon /= width
+        lat_max, lat_span = YIN_LAT_MAX, 2 * YIN_LAT_MAX
+    lon -= 1.0
     out[..., 0] = lon
-    lat = np.arctan2(y, np.hypot(x, z))  # = -latitude
-    np.multiply(lat, sy, out=lat)
+    np.subtract(lat_max, lat, out=lat)
+    lat /= lat_span
+    lat *= height
+    lat -= 0.5  # row
+    lat *= 2.0
+    lat += 1.0
+    lat /= height
+    lat -= 1.0
     out[..., 1] = lat
 
 

@@ -6,13 +6,14 @@ imports torch (``service/`` stays torch-free, docs/contracts.md).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from .model_files import export_code_hash
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_MODELS_DIR = Path(os.environ.get("OMNISPLAT_BENCH_MODELS", Path.home() / ".cache" / "omnisplat" / "bench"))
@@ -28,24 +29,8 @@ print(export_model(out, **kw))
 """
 
 
-_RASTERIZER_DEPS = ("geometry.py", "gaussians.py", "sweep.py", "yin_yang.py")
-
-
 class ModelBuildError(RuntimeError):
     """Exporting a bench model failed; the message carries the exporter's stderr tail."""
-
-
-def export_code_hash() -> str:
-    """Short hash of the exporter's source (export/*.py and the rasterizer modules it uses).
-
-    It is part of the cached file name, so a model built by older code is never reused.
-    """
-    h = hashlib.sha256()
-    files = sorted((REPO_ROOT / "export").glob("*.py")) + [REPO_ROOT / "rasterizer" / f for f in _RASTERIZER_DEPS]
-    for f in files:
-        if f.exists():
-            h.update(f.name.encode() + b"\0" + f.read_bytes())
-    return h.hexdigest()[:10]
 
 
 def model_filename(height: int, width: int, planes: int, erp_encoder: bool, downscale: int | None = None) -> str:

@@ -13,6 +13,7 @@ encoder, Gaussian head, render). Writes ``quality.json``, ``quality.md`` and
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -26,7 +27,7 @@ from rasterizer.scene_folder import SceneFolder, Split, load_scene
 from .bench_baselines import copy_nearest
 from .bench_machine import machine_info, machine_line
 from .bench_models import DEFAULT_MODELS_DIR, ensure_model
-from .bench_report import ablation_markdown, aggregate, markdown, plot, write_json
+from .bench_report import ablation_markdown, aggregate, markdown, plot, readme_block, update_readme, write_json
 from .bench_settings import Setting, full_grid, parse_setting, short_grid
 
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "docs" / "bench"
@@ -278,6 +279,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--warmup", action="store_true", help="one untimed reconstruction per model before timing")
     p.add_argument("--name", default="quality", help="output file stem (default 'quality')")
+    p.add_argument("--readme", type=Path, default=None,
+                   help="also replace the marked quality block of this README (e.g. README.md) with the mean table")
     args = p.parse_args(argv)
 
     missing = [d for d in args.data if not (d / "scene.json").exists()]
@@ -311,6 +314,11 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / f"{args.name}.md").write_text(md)
     plot(summary, args.out / f"{args.name}_psnr_vs_seconds.png", line)
     _log(f"wrote {args.out / (args.name + '.md')}")
+    if args.readme is not None:
+        rel = os.path.relpath(args.out, args.readme.resolve().parent)
+        block = readme_block(md, line, f"{rel}/{args.name}_psnr_vs_seconds.png", f"{rel}/{args.name}.md")
+        if not update_readme(args.readme, block):
+            _log(f"{args.readme} has no quality markers; left unchanged")
     return 0
 
 

@@ -265,7 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--host", help="interface to bind (default 127.0.0.1; 0.0.0.0 in containers)")
     s.add_argument("--port", type=int, help="port (default 8000)")
     s.add_argument("--store", type=Path, help="scene store folder (default ~/.omnisplat/scenes)")
-    s.add_argument("--model", type=Path, help="ONNX model file (default <models-dir>/omnisplat-default.onnx)")
+    s.add_argument("--model", type=Path, help="ONNX model file (default <models-dir>/omnisplat-default-<exporter hash>.onnx)")
     s.add_argument("--models-dir", type=Path, help="where the default model is built (default ~/.omnisplat/models)")
     s.add_argument("--no-build", action="store_true", help="fail instead of building a missing model")
     s.add_argument("--threads", type=int, help="onnxruntime threads (default 2)")

@@ -13,8 +13,9 @@ from pathlib import Path
 from pydantic import Field, computed_field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from .model_files import default_model_name
+
 DEFAULT_HOME = Path.home() / ".omnisplat"
-DEFAULT_MODEL_NAME = "omnisplat-default.onnx"
 
 
 class Settings(BaseSettings):
@@ -30,7 +31,7 @@ class Settings(BaseSettings):
 
     # -- model ----------------------------------------------------------------
     model_path: Path | None = Field(
-        None, description="ONNX model file. Unset: <models_dir>/omnisplat-default.onnx (built by `serve` if missing)."
+        None, description="ONNX model file. Unset: <models_dir>/omnisplat-default-<exporter hash>.onnx (built by `serve` if missing, rebuilt when the exporter changes)."
     )
     models_dir: Path = DEFAULT_HOME / "models"
     ort_threads: int = Field(2, ge=1, le=256, description="onnxruntime intra-op threads")
@@ -66,7 +67,7 @@ class Settings(BaseSettings):
     @property
     def resolved_model_path(self) -> Path:
         """The model file the service loads."""
-        return self.model_path if self.model_path is not None else self.models_dir / DEFAULT_MODEL_NAME
+        return self.model_path if self.model_path is not None else self.models_dir / default_model_name()
 
     def public(self) -> dict:
         """Settings safe to show at /v1/info (paths as strings)."""

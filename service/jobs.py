@@ -32,7 +32,7 @@ from .errors import ServiceError
 from .store import SceneStore, content_id
 
 REFERENCES_ARTIFACT = "references.npz"
-REFINE_VERSION = "refine/v1"
+REFINE_VERSION = "refine/v2"  # v2: cross-view guard (same params, different result)
 #: finished jobs kept in memory (oldest dropped first)
 MAX_FINISHED_JOBS = 1000
 
@@ -113,7 +113,8 @@ def refine_scene(store: SceneStore, parent_id: str, result_id: str, params: dict
     report(0.1)
     opts = RefineOptions(iterations=int(params["iterations"]), sh_degree=int(params["sh_degree"]),
                          colour_reg=float(params["colour_reg"]), optimise_opacity=bool(params["optimise_opacity"]),
-                         opacity_lr=float(params["opacity_lr"]), patience=int(params["patience"]))
+                         opacity_lr=float(params["opacity_lr"]), patience=int(params["patience"]),
+                         cross_check=bool(params.get("cross_check", True)))
     t1 = time.perf_counter()
     result = refine(gaussians, views, opts, progress=lambda f: report(0.1 + 0.85 * f))
     timings["refine"] = time.perf_counter() - t1
@@ -125,16 +126,18 @@ def refine_scene(store: SceneStore, parent_id: str, result_id: str, params: dict
                    "iterations_run": last["iteration"], "held_loss_start": first["held_loss"],
                    "held_loss_best": min((h["held_loss"] for h in result.history if h["held_loss"] is not None),
                                          default=None),
+                   "cross_view_guard": None if result.cross is None else {
+                       "accepted": bool(result.cross.get("accepted")),
+                       "seconds": result.cross.get("seconds")},
                    "version": REFINE_VERSION},
         "created_at": time.time(),
     })
     t1 = time.perf_counter()
     timings["total"] = time.perf_counter() - t0
     meta["timings"] = timings
-    stored = store.put(result_id, result.gaussians, meta)
     ref = store.artifact(parent_id, REFERENCES_ARTIFACT)
-    if ref is not None and not has_references(store, result_id):
-        store.put_artifact(result_id, REFERENCES_ARTIFACT, ref.read_bytes())
+    artifacts = {REFERENCES_ARTIFACT: ref.read_bytes()} if ref is not None else None
+    stored = store.put(result_id, result.gaussians, meta, artifacts=artifacts)
     report(1.0)
     return stored
 

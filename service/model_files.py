@@ -14,6 +14,30 @@ from pathlib import Path
 from typing import Callable
 
 
+REPO_ROOT = Path(__file__).resolve().parents[1]
+#: rasterizer modules the exporter bakes into the graph
+_RASTERIZER_DEPS = ("geometry.py", "gaussians.py", "sweep.py", "yin_yang.py")
+
+
+def export_code_hash() -> str:
+    """Short hash of the exporter's source (export/*.py and the rasterizer modules it uses).
+
+    Part of model file names, so a model built by older code is never reused. Reads the
+    files as bytes: no torch import.
+    """
+    h = hashlib.sha256()
+    files = sorted((REPO_ROOT / "export").glob("*.py")) + [REPO_ROOT / "rasterizer" / f for f in _RASTERIZER_DEPS]
+    for f in files:
+        if f.exists():
+            h.update(f.name.encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:10]
+
+
+def default_model_name() -> str:
+    """File name of the default model built by this version of the exporter."""
+    return f"omnisplat-default-{export_code_hash()}.onnx"
+
+
 class ModelUnavailable(RuntimeError):
     """The model file is missing and cannot be built here."""
 

@@ -5,8 +5,10 @@
 
 The references are a scene folder (its first split, or ``--refs A,B``) or two ERP images +
 ``--poses`` JSON (same forms as ``omnisplat reconstruct``). Colour (and optionally opacity)
-is refined on their Yin/Yang images, geometry fixed (:mod:`rasterizer.refine`); a JSON
-summary (losses, best iteration, seconds) goes to stdout.
+is refined on their Yin/Yang images, geometry fixed (:mod:`rasterizer.refine`), behind the
+cross-view guard (unrefined colours come back when a fit on one reference makes the other
+worse; ``--no-cross-check`` skips it); a JSON summary (losses, guard, best iteration,
+seconds) goes to stdout.
 """
 
 from __future__ import annotations
@@ -34,6 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--opacity-lr", type=float, default=0.01)
     p.add_argument("--holdout", type=float, default=0.1)
     p.add_argument("--patience", type=int, default=5)
+    p.add_argument("--no-cross-check", action="store_true",
+                   help="skip the cross-view guard (fit each reference alone, score the other; reject if worse)")
+    p.add_argument("--loss", default="l2", choices=("l2", "huber", "l1"), help="colour fit loss (l2 measured best)")
     return p
 
 
@@ -59,7 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     views = reference_views(g, [erp_a, erp_b], [c2w_a, c2w_b], height=args.height, holdout=args.holdout)
     t_fp = time.perf_counter() - t0
     opts = RefineOptions(iterations=args.iterations, sh_degree=args.sh_degree, colour_reg=args.colour_reg,
-                         optimise_opacity=args.optimise_opacity, opacity_lr=args.opacity_lr, patience=args.patience)
+                         optimise_opacity=args.optimise_opacity, opacity_lr=args.opacity_lr, patience=args.patience,
+                         cross_check=not args.no_cross_check, loss=args.loss)
     res = refine(g, views, opts)
     write_ply(args.out, res.gaussians)
     first = res.history[0]
@@ -67,6 +73,10 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps({"out": str(args.out), "inputs": desc, "num_gaussians": len(res.gaussians),
                       "best_iteration": res.best_iteration, "iterations_run": res.history[-1]["iteration"],
                       "held_loss_start": first["held_loss"], "held_loss_best": best["held_loss"],
+                      "cross_check": None if res.cross is None else
+                      {"accepted": res.cross["accepted"], "steps": res.cross["steps"], "scale": res.cross["scale"],
+                       "mse_start": res.cross["total"][0][0], "mse_best": min(map(min, res.cross["total"])),
+                       "seconds": res.cross["seconds"]},
                       "seconds": {"footprints": t_fp, "refine": res.seconds}}, indent=1))
     return 0
 

@@ -216,3 +216,21 @@ def test_alpha_normalised_divides_covered_pixels_only():
     out = alpha_normalised(colour, alpha)
     np.testing.assert_allclose(out[0, 0], [0.5, 1.0, 0.0])
     assert np.all(out[0, 1] == 0.0)  # alpha below 1/255: empty, not amplified noise
+
+
+def test_readme_block_replaces_only_the_marked_section(tmp_path):
+    from service.bench_report import README_END, README_START, readme_block, update_readme
+
+    report = ("# Quality\n\nMachine: m\n\n## Mean over scenes (extrapolation splits excluded)\n\n"
+              "| setting | PSNR |\n|---|---|\n| a | 20.00 |\n\n## Per scene group\n\n| x |\n")
+    block = readme_block(report, "m", "docs/bench/q.png", "docs/bench/q.md")
+    assert "| a | 20.00 |" in block and "Per scene group" not in block and "docs/bench/q.png" in block
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# top\n\n{README_START}\nold table\n{README_END}\n\n## after\n")
+    assert update_readme(readme, block)
+    text = readme.read_text()
+    assert "old table" not in text and "| a | 20.00 |" in text
+    assert text.startswith("# top") and text.rstrip().endswith("## after") and text.count(README_END) == 1
+    plain = tmp_path / "PLAIN.md"
+    plain.write_text("no markers\n")
+    assert not update_readme(plain, block) and plain.read_text() == "no markers\n"

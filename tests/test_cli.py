@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -9,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from service import cli
+from service.model_files import default_model_name
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -160,7 +162,8 @@ def test_settings_from_environment(monkeypatch, tmp_path):
     monkeypatch.setenv("OMNISPLAT_INFERENCE_QUEUE", "0")
     s = Settings()
     assert s.store_dir == tmp_path / "s" and s.max_upload_bytes == 5000 and s.inference_queue == 0
-    assert s.resolved_model_path.name == "omnisplat-default.onnx"
+    assert s.resolved_model_path.name == default_model_name()
+    assert re.fullmatch(r"omnisplat-default-[0-9a-f]{10}\.onnx", default_model_name())
     assert Settings(port=9000).port == 9000  # explicit values (CLI flags) win over the environment
     monkeypatch.setenv("OMNISPLAT_PORT", "not a port")
     with pytest.raises(ValidationError):

@@ -57,6 +57,12 @@ def test_scene_without_references_answers_409(client, live):
     assert client.post(f"/v1/scenes/{sid}/refine", json={"iterations": 1, "height": 24}).status_code == 202
 
 
+def can_be_refined_again(client, scene_id) -> bool:
+    """A refined scene carries its parent's references, so it can be refined again."""
+    r = client.post(f"/v1/scenes/{scene_id}/refine", json={"iterations": 0, "height": 24})
+    return r.status_code == 202
+
+
 def _wait(client, location: str, timeout: float = 120.0) -> dict:
     seen = []
     deadline = time.monotonic() + timeout
@@ -90,6 +96,9 @@ def test_refine_job_flow_and_idempotent_result(client, scene_id):
     parent = client.get(f"/v1/scenes/{scene_id}").json()
     assert meta["parent"] == scene_id and meta["num_gaussians"] == parent["num_gaussians"]
     assert meta["refine"]["held_loss_best"] <= meta["refine"]["held_loss_start"]
+    assert isinstance(meta["refine"]["cross_view_guard"]["accepted"], bool)
+    assert client.get(f"/v1/scenes/{new_id}").status_code == 200
+    assert can_be_refined_again(client, new_id)
     assert client.get(f"/v1/scenes/{scene_id}").status_code == 200  # the original stays
     img = client.get(f"/v1/scenes/{new_id}/render", params={"c2w": ",".join(map(str, np.eye(4).ravel())),
                                                             "width": 64})

@@ -224,3 +224,50 @@ def test_colour_cg_reduces_held_out_error_and_early_stops():
     assert set(res.snapshots) == {0, 1}
     np.testing.assert_array_equal(res.snapshots[0].sh, start.sh)
     np.testing.assert_array_equal(res.gaussians.opacities, start.opacities)  # colour mode: opacity untouched
+
+
+def _two_views(truth, start, offset, h=20):
+    c2ws = [np.eye(4), np.eye(4)]
+    c2ws[1][0, 3] = offset
+    images = _targets_from(truth, c2ws, h)
+    return reference_views(start, images, c2ws, height=h, holdout=0.1)
+
+
+def test_cross_view_guard_rejects_refinement_on_wrong_geometry():
+    """Geometry at 1/3 of the true depth: colours fitted on one reference land on the wrong surfaces for the other.
+
+    Small Gaussians with random colours (a detailed room), start colours = the room's mean colour.
+    """
+    room = _toy_scene(4, n=2000)
+    truth = Gaussians(room.means, room.scales * (0.15 / 0.35), room.quats, room.opacities, room.sh)
+    wrong = Gaussians(truth.means / 3.0, truth.scales / 3.0, truth.quats, truth.opacities,
+                      rgb_to_sh_dc(np.tile(truth.rgb.mean(0), (len(truth), 1)))[:, None, :])
+    views = _two_views(truth, wrong, 0.8, h=24)
+    assert {v.reference for v in views} == {0, 1}
+    res = refine(wrong, views, RefineOptions(iterations=10))
+    assert res.cross is not None and not res.cross["accepted"] and res.cross["steps"] == 0
+    total = np.array(res.cross["total"])  # (steps + 1, scales): cross-view MSE of the scaled single-reference fits
+    assert total[1:, 1:].min() > total[0, 0]  # fitting A makes B worse at every step and scale (and vice versa)
+    np.testing.assert_array_equal(res.gaussians.sh, wrong.sh)  # the unrefined colours come back
+    assert res.best_iteration == 0
+    # without the guard the same refinement is accepted by the held-out pixels of the reference views
+    plain = refine(wrong, views, RefineOptions(iterations=10, cross_check=False))
+    assert plain.best_iteration > 0 and plain.cross is None
+
+
+def test_cross_view_guard_accepts_refinement_on_right_geometry():
+    truth = _toy_scene(5)
+    rng = np.random.default_rng(3)
+    noisy = np.clip(truth.rgb + rng.normal(0, 0.2, truth.rgb.shape), 0, 1)
+    start = Gaussians(truth.means, truth.scales, truth.quats, truth.opacities, rgb_to_sh_dc(noisy)[:, None, :])
+    views = _two_views(truth, start, 0.8)
+    res = refine(start, views, RefineOptions(iterations=10, colour_reg=0.1))
+    assert res.cross["accepted"] and res.cross["steps"] >= 1
+    total = np.array(res.cross["total"])
+    assert total.min() < 0.8 * total[0, 0]
+    assert res.best_iteration >= 1 and not np.array_equal(res.gaussians.sh, start.sh)
+    for loss in ("huber", "l1"):  # robust variants run through the same guard
+        r = refine(start, views, RefineOptions(iterations=3, colour_reg=0.1, loss=loss))
+        assert r.cross["accepted"]
+    with pytest.raises(ValueError):
+        refine(start, views, RefineOptions(iterations=1, loss="l3"))

@@ -31,6 +31,7 @@ def test_refine_cli_writes_refined_ply(tmp_path, capsys):
     assert rc == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["held_loss_best"] < summary["held_loss_start"]
+    assert summary["cross_check"]["accepted"] and summary["cross_check"]["mse_best"] < summary["cross_check"]["mse_start"]
     out = read_ply(tmp_path / "out.ply")
     assert len(out) == len(start)
     np.testing.assert_allclose(out.means, start.means, atol=1e-6)
@@ -38,3 +39,5 @@ def test_refine_cli_writes_refined_ply(tmp_path, capsys):
 
 def test_refine_cli_bad_arguments(tmp_path):
     assert main([str(tmp_path / "missing.ply"), str(tmp_path), "--out", str(tmp_path / "o.ply")]) == 2
+    assert main([str(tmp_path / "missing.ply"), str(tmp_path), "--out", str(tmp_path / "o.ply"),
+                 "--no-cross-check", "--loss", "huber"]) == 2

@@ -269,3 +269,34 @@ def test_render_output_contract_and_to_uint8():
 
 def test_truncation_constant():
     assert Q_MAX == pytest.approx(2 * np.log(255))
+
+
+@pytest.mark.parametrize("kind", ["erp", "yin", "yang", "perspective"])
+def test_footprints_order_with_many_layers_seam_and_poles(kind):
+    """The final key sort merges pre-sorted per-offset runs; the result must still be fully sorted.
+
+    Many overlapping layers (shells at several ranges), Gaussians straddling the ERP seam
+    (lon = +-180 deg, wrapping columns) and the poles, and a perspective view: every pixel's
+    list must be in (range, input index) order and the contributions must be exactly those of
+    an independent lexsort of the same (pixel, Gaussian) pairs.
+    """
+    rng = np.random.default_rng(3)
+    n = 3000
+    d = rng.normal(size=(n, 3))
+    d[: n // 6, 0] = rng.normal(scale=0.05, size=n // 6)  # seam: x ~ 0, z < 0
+    d[: n // 6, 2] = -np.abs(d[: n // 6, 2]) - 0.5
+    d[n // 6: n // 3, 1] = np.sign(d[n // 6: n // 3, 1]) * 5.0  # near the poles
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    means = d * rng.choice([1.0, 1.5, 2.2, 3.0], size=(n, 1)) * rng.uniform(0.98, 1.02, (n, 1))
+    q = rng.normal(size=(n, 4))
+    g = make_gaussians(means, rng.uniform(0.01, 0.12, (n, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
+                       rng.uniform(0.2, 1.0, n), rng.uniform(0, 1, (n, 3)))
+    w, h = {"erp": (128, 64), "yin": (96, 32), "yang": (96, 32), "perspective": (64, 48)}[kind]
+    cam = Camera(kind, w, h, np.eye(4))
+    for bound in (None, g.opacities):
+        fp = footprints(g, cam, opacity_bound=bound)
+        assert len(fp) > 20 * h * w / 4  # many layers per pixel
+        r = fp.ranges[fp.gaussian]
+        ref = np.lexsort((fp.gaussian, r, fp.pixel))
+        assert np.array_equal(ref, np.arange(len(fp)))
+        assert np.unique(fp.pixel.astype(np.int64) * n + fp.gaussian).size == len(fp)

@@ -109,3 +109,38 @@ def test_warp_grids_are_invariant_to_a_global_similarity():
         near, far = sweep.default_near_far(pa, pb)
         out.append(sweep.sweep_inputs(pa, pb, near=near, far=far, num_planes=6, feature_size=(4, 12))["warp_grids"])
     assert np.allclose(out[0], out[1], atol=2e-4) and np.allclose(out[0], out[2], atol=2e-4)
+
+
+@pytest.mark.parametrize("erp", [False, True])
+def test_warp_grids_bit_identical_to_geometry_projection(erp):
+    """The fused float32 projection equals normalised_coords(project_to_grid(.)) exactly."""
+    a, b = _pose([0.2, -0.1, 0.4], 0.3), _pose([0.8, 0.2, -0.6], -0.9)
+    grids = sweep.grids_for_mode(erp)
+    h, w = (6, 12) if erp else (6, 18)
+    inv = sweep.inverse_depth_candidates(0.3, 20.0, 5)
+    out = sweep.warp_grids(a, b, inv, grids, h, w, cache=False)
+    ranges = (1.0 / inv).astype(np.float32)[:, None, None, None]
+    for direction, (tgt, src) in enumerate(((a, b), (b, a))):
+        rel = sweep.relative_pose(tgt, src).astype(np.float32)
+        for gt, kt in enumerate(grids):
+            pts = (geo.grid_directions(kt, h, w).astype(np.float32) @ rel[:3, :3].T)[None] * ranges + rel[:3, 3]
+            for gs, ks in enumerate(grids):
+                want = sweep.normalised_coords(ks, *geo.project_to_grid(ks, pts, h, w), h, w)
+                np.testing.assert_array_equal(out[direction, gt, gs], want)
+
+
+def test_warp_grid_cache_hits_and_evicts():
+    sweep.clear_warp_cache()
+    a, b, c = np.eye(4), _pose([0.0, 0.0, 1.0]), _pose([0.5, 0.0, 1.0], 0.2)
+    inv = sweep.inverse_depth_candidates(0.3, 20.0, 4)
+    first = sweep.warp_grids(a, b, inv, ("yin", "yang"), 4, 12)
+    assert not first.flags.writeable
+    assert sweep.warp_grids(a, b, inv, ("yin", "yang"), 4, 12) is first
+    np.testing.assert_array_equal(first, sweep.warp_grids(a, b, inv, ("yin", "yang"), 4, 12, cache=False))
+    # a different pose, size or candidate set is a different entry
+    assert sweep.warp_grids(a, c, inv, ("yin", "yang"), 4, 12) is not first
+    assert sweep.warp_grids(a, b, inv[:3], ("yin", "yang"), 4, 12).shape[3] == 3
+    for i in range(sweep.WARP_CACHE_SIZE + 1):
+        sweep.warp_grids(a, _pose([0.0, 0.0, 2.0 + i]), inv, ("yin", "yang"), 4, 12)
+    assert sweep.warp_grids(a, b, inv, ("yin", "yang"), 4, 12) is not first  # evicted (LRU)
+    sweep.clear_warp_cache()

@@ -47,6 +47,8 @@ class RefineRequest(BaseModel):
     opacity_lr: float = Field(0.01, gt=0.0, le=1.0)
     holdout: float = Field(0.1, ge=0.0, le=0.5, description="fraction of reference pixels held out for early stop")
     patience: int = Field(5, ge=0, le=2000, description="stop after this many steps without held-out gain (0: off)")
+    cross_check: bool = Field(True, description="cross-view guard: fit each reference alone and score the other; "
+                                                "keep the unrefined colours when that gets worse")
 
 
 class JobStatus(BaseModel):
