@@ -59,7 +59,7 @@ class CompactionOptions:
     min_confidence: float = 0.0
     resolve_overlap: str = "split"
     merge_duplicates: bool = True
-    duplicate_range_tol: float = 0.1
+    duplicate_range_tol: float = 0.05  # 0.1 cost 0.56 dB on m3d with the quality encoder; 0.05 stays within 0.2 dB
     duplicate_footprint_ratio: float = 4.0
     max_count: int | None = None
     max_bytes: int | None = None

@@ -9,7 +9,7 @@ view); and the two-pass adaptive near/far (seconds, PSNR, depth AbsRel on
 m3d GT). Sources: the real encoder (a 512x1024 model exported into
 ``~/.cache/omnisplat/compaction``) and, where a scene has depth, GT-depth
 Gaussians in the same grid layout. Writes compaction.json / compaction.md.
-Render timings are single runs on a shared CPU: noisy.
+Render timings are single runs: noisy; the report gives the load average.
 """
 
 from __future__ import annotations
@@ -247,8 +247,8 @@ def markdown(results: dict) -> str:
     lines = ["# Compaction bench", "",
              f"Model {results['model']} ({results['num_planes']} planes), render {results['render']}, "
              f"{results['cpu_count']} CPUs, load average {results['load_avg_start'][0]:.1f} -> "
-             f"{results['load_avg_end'][0]:.1f}. Render seconds are single runs on a CPU shared with other "
-             "engineers: noisy (the same set has rendered 4-8 s in a row); read them as a trend.", "",
+             f"{results['load_avg_end'][0]:.1f}. Render seconds are single runs: noisy, more so the higher "
+             "the load average; read them as a trend.", "",
              "Per split and source, totals over the split's targets; ΔPSNR vs 'none', mean over targets.", "",
              "| split | source | variant | Gaussians | fewer % | PLY MB | render s | render less % | PSNR | ΔPSNR dB |",
              "|---|---|---|---|---|---|---|---|---|---|"]

@@ -255,8 +255,8 @@ NOTES = [
     "(building the Gaussians from the graph outputs), for the oracle building the GT-depth Gaussians; "
     "render = one ERP render at the evaluation width. Reconstruction stages are shared by the targets of a "
     "split; no warm-up run (ONNX first-run overhead is included).",
-    "Timings are noisy: the 2 CPU cores were shared with other engineers' jobs while this ran (see the load "
-    "average); compare settings, not absolute numbers.",
+    "Timings are wall clock on a 2-core machine and noisy, more so the higher the load average above; "
+    "compare settings, not absolute numbers.",
     "The direct ERP rasterizer composites colour over black (docs/contracts.md) while the Yin-Yang path divides "
     "the merged colour by alpha; the ablation table also gives the direct render divided by its alpha (same "
     "render, no extra time), which separates the projection from that normalisation.",

@@ -98,8 +98,8 @@ def bench_scene(encoder, folder: Path, split_index: int, iterations, height: int
 
 def markdown(result: dict) -> str:
     lines = ["# +opt refinement: quality against iterations (cross-view guarded default)", "",
-             f"Machine: {result['machine']}. **The CPU was shared with other engineers while this ran: "
-             "seconds are noisy (likely 2-4x slower than on an idle machine).**", "",
+             f"Machine: {result['machine']}. Seconds are wall clock and noisy, more so the higher the "
+             "load average above.", "",
              f"Method: {result['method']}", "",
              f"Working size: Yin/Yang h = {result['height']} (two grids of h x 3h per reference); "
              f"model `{result['model']}`. Seconds = footprints (once) + refinement including the guard; "

@@ -171,6 +171,7 @@ def plot(summary: list[dict], path: Path, machine_line: str) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     groups: list[str] = []
     for s in summary:
@@ -197,6 +198,7 @@ def plot(summary: list[dict], path: Path, machine_line: str) -> Path:
                            facecolors="none" if hollow else colour, edgecolors=colour, linewidths=1.6, zorder=3)
             handles.setdefault(s["name"], h)
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # minor labels collide on short ranges
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("wall s per novel view (decode + encoder + head + render)", fontsize=8)
         ax.set_ylabel("PSNR (dB)", fontsize=8)

@@ -132,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
                                        "all": render_s},
                 "peak_rss_mb": _peak_rss_mb(proc.pid),
                 "cpu_count": os.cpu_count(),
-                "note": "CPU shared with other work while measured; timings are noisy",
+                "load_average_1_5_15min": [round(x, 2) for x in os.getloadavg()],
             }
         finally:
             proc.terminate()
