@@ -1,8 +1,10 @@
 """Back-pressure: a request-body cap enforced while streaming, and bounded work queues.
 
 * :class:`BodySizeLimit` is pure ASGI middleware. A declared ``Content-Length`` over the cap
-  is refused before any byte is read; a chunked body is counted as it streams in and
+  is refused before any byte reaches the app; a chunked body is counted as it streams in and
   refused the moment it passes the cap (whatever the app answered is replaced by the 413).
+  Before answering, the rest of the body is discarded (bounded in bytes and seconds, never
+  buffered) so the client reads the 413 rather than a connection reset.
 * :class:`WorkGate` runs blocking work in worker threads through its own anyio
   ``CapacityLimiter`` (not Starlette's shared pool), with at most ``concurrency`` jobs
   running and ``queue`` waiting; one more is refused at once with 503 + Retry-After.
@@ -21,6 +23,12 @@ from .errors import Busy, error_body, translate
 T = TypeVar("T")
 
 
+#: longest time, and most bytes (in multiples of the limit), spent discarding an oversize
+#: body before answering 413; a client sending more than that sees the connection close
+DRAIN_SECONDS = 10.0
+DRAIN_LIMITS = 2
+
+
 class _TooLarge(Exception):
     pass
 
@@ -32,6 +40,20 @@ class BodySizeLimit:
         self.app = app
         self.max_bytes = max_bytes
         self.on_reject = on_reject
+
+    async def _drain(self, receive) -> None:
+        """Read and discard what the client is still sending, at most ``DRAIN_LIMITS`` limits' worth
+        and for at most ``DRAIN_SECONDS``: closing with unread data resets the connection,
+        and the client would see that instead of the 413. Nothing is kept in memory."""
+        budget = DRAIN_LIMITS * self.max_bytes
+        with anyio.move_on_after(DRAIN_SECONDS):
+            while budget > 0:
+                message = await receive()
+                if message["type"] != "http.request":
+                    return
+                budget -= len(message.get("body", b""))
+                if not message.get("more_body", False):
+                    return
 
     async def _reject(self, send) -> None:
         if self.on_reject is not None:
@@ -54,6 +76,7 @@ class BodySizeLimit:
                 except ValueError:
                     declared = -1
                 if declared > self.max_bytes:
+                    await self._drain(receive)
                     await self._reject(send)
                     return
         received = 0
@@ -86,6 +109,7 @@ class BodySizeLimit:
             if not exceeded:
                 raise
         if exceeded and not started:
+            await self._drain(receive)
             await self._reject(send)
 
 
