@@ -103,17 +103,23 @@ def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: i
         stacks = [one(cam) for cam in cams]
     merged = yin_yang_to_erp(stacks[0], stacks[1], height, width)
     alpha = np.clip(merged[:, :, 3], 0.0, 1.0)
-    ok = alpha >= ALPHA_MIN
-    inv = np.zeros_like(alpha)
-    inv[ok] = 1.0 / merged[:, :, 3][ok]
+    inv = _alpha_inverse(merged[:, :, 3])
     colour = merged[:, :, :3] * inv[:, :, None]
     rng = merged[:, :, 4] * inv
     return RenderOutput(np.ascontiguousarray(colour), np.ascontiguousarray(alpha), np.ascontiguousarray(rng))
 
 
+def _alpha_inverse(alpha: np.ndarray) -> np.ndarray:
+    """1 / alpha where alpha >= 1/255, 0 elsewhere: the guarded colour-by-alpha division."""
+    inv = np.zeros_like(alpha)
+    ok = alpha >= ALPHA_MIN
+    inv[ok] = 1.0 / alpha[ok]
+    return inv
+
+
 def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, height: int | None = None,
            fov_deg: float = 90.0, method: str = "yinyang", near: float = DEFAULT_NEAR,
-           threads: int = 2) -> RenderOutput:
+           threads: int = 2, normalize: bool = False) -> RenderOutput:
     """Render Gaussians seen from pose ``c2w``.
 
     Parameters
@@ -130,6 +136,10 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
         "direct" (colour over black). Other projections ignore it.
     near : Gaussians closer than this range (world units) are culled.
     threads : ERP "yinyang" renders Yin and Yang in two threads when > 1.
+    normalize : also divide the colour of the other renders (perspective, Yin,
+        Yang, direct ERP) by alpha where alpha >= 1/255, as the Yin-Yang ERP
+        path always does; thin coverage then shows the surface colour instead
+        of a darkened or black hole. The alpha output is unchanged.
 
     Returns
     -------
@@ -152,7 +162,11 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
     if projection == "erp" and method == "yinyang":
         cam = Camera("erp", width, height, c2w, near=near)  # validates pose and sizes
         return _render_yinyang(gaussians, cam.c2w, width, height, near, int(threads))
-    return render_camera(gaussians, Camera(projection, width, height, c2w, fov_deg=fov_deg, near=near))
+    out = render_camera(gaussians, Camera(projection, width, height, c2w, fov_deg=fov_deg, near=near))
+    if not normalize:
+        return out
+    colour = out.colour * _alpha_inverse(out.alpha)[:, :, None]
+    return RenderOutput(np.ascontiguousarray(colour, dtype=np.float32), out.alpha, out.range)
 
 
 def to_uint8(colour: np.ndarray) -> np.ndarray:

@@ -234,7 +234,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:
         raise CliError(f"cannot read {args.ply}: {exc}") from None
     fmt = "jpeg" if Path(args.output).suffix.lower() in (".jpg", ".jpeg") else "png"
-    kwargs = {"projection": args.projection, "width": args.width}
+    kwargs = {"projection": args.projection, "width": args.width, "normalize": True}  # as the API renders
     if args.projection == "perspective":
         kwargs.update(height=args.height, fov_deg=args.fov_deg)
     _say(f"rendering {len(gaussians)} Gaussians, {args.projection} {args.width} px wide")

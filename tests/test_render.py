@@ -300,3 +300,23 @@ def test_footprints_order_with_many_layers_seam_and_poles(kind):
         ref = np.lexsort((fp.gaussian, r, fp.pixel))
         assert np.array_equal(ref, np.arange(len(fp)))
         assert np.unique(fp.pixel.astype(np.int64) * n + fp.gaussian).size == len(fp)
+
+
+def test_normalize_divides_colour_by_alpha_and_keeps_alpha():
+    """normalize=True is the guarded colour/alpha division the Yin-Yang ERP path applies."""
+    rng = np.random.default_rng(5)
+    n = 300
+    means = rng.normal(size=(n, 3)) * 0.5 + np.array([0.0, 0.0, 3.0])
+    g = Gaussians(means, np.full((n, 3), 0.05), np.tile([1.0, 0, 0, 0], (n, 1)), rng.uniform(0.05, 0.6, n),
+                  rgb_to_sh_dc(rng.uniform(0.2, 0.9, (n, 3)))[:, None, :])
+    for projection in ("perspective", "yin"):
+        plain = render(g, np.eye(4), projection=projection, width=96, height=72 if projection == "perspective" else None)
+        norm = render(g, np.eye(4), projection=projection, width=96, height=72 if projection == "perspective" else None,
+                      normalize=True)
+        assert np.array_equal(plain.alpha, norm.alpha) and np.array_equal(plain.range, norm.range)
+        ok = plain.alpha >= 1 / 255
+        assert ok.any() and (~ok).any()
+        assert np.allclose(norm.colour[ok], plain.colour[ok] / plain.alpha[ok][:, None], rtol=1e-5, atol=1e-6)
+        assert np.all(norm.colour[~ok] == 0)
+        # thin coverage no longer darkens: normalised colours stay within the Gaussians' colour range
+        assert norm.colour[ok].max() <= 0.9 + 1e-4 and norm.colour[ok].min() >= 0.2 - 1e-4
