@@ -6,8 +6,8 @@ For every split and target: Gaussian count, PLY bytes, render seconds
 (512x1024 ERP via Yin-Yang) and PSNR before and after each compaction step
 and all together; render-time culling (ERP and a 90-degree perspective
 view); and the two-pass adaptive near/far (seconds, PSNR, depth AbsRel on
-m3d GT). Sources: the real encoder (a 512x1024 model exported into
-``~/.cache/omnisplat/compaction``) and, where a scene has depth, GT-depth
+m3d GT). Sources: the real encoder (a 512x1024, 32-plane model from the
+bench model cache, :func:`service.bench_models.ensure_model`, or ``--model``) and, where a scene has depth, GT-depth
 Gaussians in the same grid layout. Writes compaction.json / compaction.md.
 Render timings are single runs: noisy; the report gives the load average.
 """
@@ -34,9 +34,10 @@ from rasterizer.splat import RenderLimitError
 from rasterizer.scene_folder import load_scene
 from rasterizer.yin_yang import erp_to_yin_yang
 
+from .bench_models import ensure_model
+
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = [REPO.parent / "shared" / "data" / "m3d_bedroom", REPO.parent / "shared" / "data" / "zind_room09"]
-CACHE = Path(os.environ.get("OMNISPLAT_CACHE", Path.home() / ".cache" / "omnisplat")) / "compaction"
 RENDER_WIDTH = 1024
 
 
@@ -76,20 +77,6 @@ def gt_gaussians(scene, refs, opacity: float = 0.9) -> tuple[Gaussians, Provenan
                                               thickness=0.1, opacity=opacity))
             index.append((v * 2 + g) * h * w + np.flatnonzero(ok.ravel()))
     return Gaussians.concatenate(parts), Provenance(("yin", "yang"), h, w, np.stack(poses), np.concatenate(index))
-
-
-def ensure_encoder_model(height: int, path: Path | None = None) -> Path:
-    """The cached model of this size (exported in a child process: service never imports torch)."""
-    import subprocess
-    path = path or CACHE / f"enc_{height}x{2 * height}_p32.onnx"
-    if path.exists():
-        return path
-    path.parent.mkdir(parents=True, exist_ok=True)
-    code = ("import torch; torch.set_num_threads(2)\nfrom export.onnx_export import export_model\n"
-            f"export_model({str(path)!r}, height={height}, width={2 * height}, num_planes=32)\n")
-    subprocess.run([sys.executable, "-c", code], cwd=REPO, check=True,
-                   env={**os.environ, "PYTHONPATH": str(REPO)})
-    return path
 
 
 def timed_render(g: Gaussians, c2w, **kw):
@@ -189,8 +176,8 @@ def bench_adaptive(encoder, coarse_encoder, scene, refs, targets, images) -> dic
 
 def run(data_dirs, model: Path | None, use_gt: bool, adaptive: bool) -> dict:
     from .encoder import OnnxEncoder
-    encoder = OnnxEncoder(ensure_encoder_model(512, model))
-    coarse = OnnxEncoder(ensure_encoder_model(256)) if adaptive else None
+    encoder = OnnxEncoder(model or ensure_model(512, 1024, 32))
+    coarse = OnnxEncoder(ensure_model(256, 512, 32)) if adaptive else None
     results: dict = {"model": encoder.metadata.get("name"), "model_sha256": encoder.metadata.get("sha256"),
                      "num_planes": encoder.num_planes, "render": f"ERP {RENDER_WIDTH}x{RENDER_WIDTH // 2} via Yin-Yang",
                      "cpu_count": os.cpu_count(), "load_avg_start": os.getloadavg(), "splits": []}

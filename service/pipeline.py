@@ -15,10 +15,9 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from rasterizer.compaction import CompactionOptions, Provenance, compact
 from rasterizer.gaussians import Gaussians
+from rasterizer.ply import finite_rows
 
 from .scene_adaptive import AdaptiveRangeOptions, reconstruct_adaptive
 
@@ -80,9 +79,7 @@ def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions) -
     timings["compaction"] = time.perf_counter() - t0
     info["compaction"] = stats
 
-    finite = np.all(np.isfinite(gaussians.means), axis=1) & np.isfinite(gaussians.opacities)
-    finite &= np.all(np.isfinite(gaussians.scales), axis=1) & np.all(np.isfinite(gaussians.quats), axis=1)
-    finite &= np.all(np.isfinite(gaussians.sh.reshape(len(gaussians), -1)), axis=1)
+    finite = finite_rows(gaussians)
     info["dropped_non_finite"] = int(len(gaussians) - finite.sum())
     if info["dropped_non_finite"]:
         gaussians = gaussians.subset(finite)
