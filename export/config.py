@@ -46,19 +46,36 @@ class EncoderConfig:
     zncc_weight: float = 0.5
     # aggregation (export/aggregation.py)
     agg_radii: tuple[int, ...] = (2, 6)
-    agg_eps: float = 1e-3
+    # 1e-2 (was 1e-3): m3d_bedroom 24.37 -> 24.42 dB, zind_room09 mean of 4 18.08 -> 18.20 dB
+    # (with scale_factor 0.5); 1e-4 was worse on both
+    agg_eps: float = 1e-2
     # read-out (export/readout.py)
     readout: str = "wta"  # "wta" (parabolic sub-plane) | "softargmin"
     softargmin_beta: float = 50.0
-    peak_margin_scale: float = 0.05
+    # Two confidences from the same peak margin (export/readout.py): the fill weights use a steep
+    # one (fill_margin_scale; None = peak_margin_scale), the output confidence / opacity a gentle
+    # one. One shared scale had to trade depth for rendering (0.02: AbsRel 00 0.119 -> 0.112 but
+    # m3d 24.37 -> 24.18 dB; 0.1: the reverse). Decoupled (with scale_factor 0.5, agg_eps 1e-2),
+    # fill 0.02 / opacity 0.1: AbsRel 0.112 / 0.062, m3d 24.77 dB, zind 18.40 dB; fill 0.01 /
+    # opacity 0.2: 0.109 / 0.062, 25.00 dB, 18.43 dB; opacity 0.4: 25.18 dB, 18.46 dB, same depth.
+    peak_margin_scale: float = 0.2
+    fill_margin_scale: float | None = 0.01
     lr_tol_planes: float = 1.5
-    # fill and upsampling
+    # fill and upsampling: "pushpull" (plain weighted pyramid) | "guided" (pyramid of local
+    # linear models in the grey guide, export/aggregation.guided_push_pull, eps = fill_eps)
+    # guided over pushpull (fill margin 0.01, opacity margin 0.2): AbsRel 00 0.1089 -> 0.1074,
+    # m3d 25.00 -> 25.11 dB, zind 18.43 -> 18.49 dB; fill_eps 3e-3: 25.22 dB but zind pano_5 -0.17 dB
+    fill: str = "guided"
+    fill_eps: float = 1e-2
     fill_min_weight: float = 0.05
     upsample: str = "guided"  # "guided" | "bilinear"
     upsample_radius: int = 2
     upsample_eps: float = 1e-3
     # Gaussian head (export/gaussian_head.py)
-    scale_factor: float = 0.75
+    # tangential sigma in pixel pitches (the GT-depth oracle uses 0.3). m3d_bedroom / zind mean of 4
+    # at the old defaults: 0.75 23.90 / 17.97 dB, 0.6 24.21 / 18.04, 0.5 24.37 / 18.08,
+    # 0.4 24.48 / 18.10, 0.3 24.55 / 18.08; zind SSIM falls below 0.5 (0.695 -> 0.670 at 0.3)
+    scale_factor: float = 0.5
     ray_scale_ratio: float = 0.1
     # opacity = min + (max - min) * confidence ** gamma. Tuned on renders (yinyang ERP at 512x256,
     # quality preset, cached ORT outputs re-mapped in numpy; m3d_bedroom 01 / zind_room09 mean of 4):
@@ -73,7 +90,7 @@ class EncoderConfig:
     near_per_baseline: float = 0.3
     far_per_baseline: float = 20.0
     name: str = "omnisplat-trainingfree"
-    version: str = "0.2.0"
+    version: str = "0.3.0"
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -86,6 +103,8 @@ class EncoderConfig:
             raise ValueError(f"matcher must be 'window' or 'descriptor', got {self.matcher!r}")
         if self.readout not in ("wta", "softargmin"):
             raise ValueError(f"readout must be 'wta' or 'softargmin', got {self.readout!r}")
+        if self.fill not in ("pushpull", "guided"):
+            raise ValueError(f"fill must be 'pushpull' or 'guided', got {self.fill!r}")
         if self.upsample not in ("guided", "bilinear"):
             raise ValueError(f"upsample must be 'guided' or 'bilinear', got {self.upsample!r}")
         if self.num_planes < 3:

@@ -76,7 +76,7 @@ class GaussianHead(nn.Module):
     -> means, scales, quats, opacities, sh_dc, each (N, k) with N = 2 G H W in
     [view][grid][row][col] order."""
 
-    def __init__(self, grids, height: int, width: int, scale_factor: float = 0.75,
+    def __init__(self, grids, height: int, width: int, scale_factor: float = 0.5,
                  ray_scale_ratio: float = 0.1, opacity_min: float = 0.15, opacity_max: float = 0.98,
                  opacity_gamma: float = 2.0) -> None:
         super().__init__()

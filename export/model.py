@@ -10,10 +10,12 @@ refinement can replace a stage without touching the geometry):
 4. :class:`SweepCostVolume` - A<-B and B<-A sphere sweeps, four pairings,
    mask blend (paper eq. 4), correlation;
 5. :class:`CostAggregation` - multi-scale guided filter per plane;
-6. :class:`DepthReadout` - sub-plane depth + peak confidence;
+6. :class:`DepthReadout` - sub-plane depth + two peak confidences (a steep
+   one weights the fill, a gentle one becomes the output confidence);
 7. left-right check (A->B vs B->A) by warping, inside the graph;
-8. push-pull fill of unreliable pixels, guided-filter smoothing, guided
-   upsampling to the Gaussian grid;
+8. fill of unreliable pixels (``guided_push_pull``: pyramid of local linear
+   models in the grey image, or plain push-pull), guided-filter smoothing,
+   guided upsampling to the Gaussian grid;
 9. :class:`GaussianHead`.
 
 Graph inputs (see :mod:`rasterizer.sweep` for the pose-dependent ones):
@@ -33,7 +35,8 @@ from torch import nn
 
 from rasterizer.geometry import grid_directions
 
-from .aggregation import CostAggregation, guided_filter, guided_filter_coeffs, pyramid_levels, push_pull
+from .aggregation import (CostAggregation, guided_filter, guided_filter_coeffs, guided_push_pull, pyramid_levels,
+                          push_pull)
 from .config import EncoderConfig
 from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, domain_mask, sample_maps
 from .features import GreyFeatures, TrainingFreeFeatures
@@ -67,7 +70,8 @@ class OmniSplatEncoder(nn.Module):
             matcher = CorrelationMatcher()
         self.cost_volume = SweepCostVolume(self.num_grids, erp_source=wrap, matcher=matcher)
         self.aggregation = CostAggregation(cfg.agg_radii, cfg.agg_eps, wrap=wrap)
-        self.readout = DepthReadout(cfg.readout, cfg.softargmin_beta, cfg.peak_margin_scale)
+        fill_scale = cfg.peak_margin_scale if cfg.fill_margin_scale is None else cfg.fill_margin_scale
+        self.readout = DepthReadout(cfg.readout, cfg.softargmin_beta, (cfg.peak_margin_scale, fill_scale))
         self.head = GaussianHead(cfg.grids, self.full_h, self.full_w, cfg.scale_factor,
                                  cfg.ray_scale_ratio, cfg.opacity_min, cfg.opacity_max,
                                  cfg.opacity_gamma)
@@ -157,15 +161,19 @@ class OmniSplatEncoder(nn.Module):
         cost = self.cost_volume(feats, warp_grids)  # (2, G, D, h, w)
         d_count = cost.shape[2]
         cost = self.aggregation(cost.reshape(2 * g_count, d_count, h, w), grey_low)
-        k, conf = self.readout(cost)  # (2G, 1, h, w)
+        k, conf, conf_fill = self.readout(cost)  # (2G, 1, h, w)
         inv = index_to_inverse(k, inv_depths)
 
         ok = self.lr_consistency(k.reshape(2, g_count, 1, h, w), inv.reshape(2, g_count, 1, h, w),
                                  warp_grids, rel_rt, inv_depths)
         obs = self.observability(rel_rt, inv_depths)
-        weight = conf * (ok * obs).reshape(2 * g_count, 1, h, w)
+        reliable = (ok * obs).reshape(2 * g_count, 1, h, w)
+        weight = conf * reliable
         fallback = inv_depths.mean()
-        filled = push_pull(inv, weight, self.levels, fallback)
+        if cfg.fill == "guided":
+            filled = guided_push_pull(inv, conf_fill * reliable, grey_low, self.levels, fallback, cfg.fill_eps)
+        else:
+            filled = push_pull(inv, conf_fill * reliable, self.levels, fallback)
         filled = guided_filter(grey_low, filled, 1, cfg.upsample_eps, wrap)
 
         size = (self.full_h, self.full_w)

@@ -20,13 +20,18 @@ from torch import nn
 
 
 class DepthReadout(nn.Module):
-    """cost (N, D, h, w) -> (plane index (N,1,h,w) float, peak confidence (N,1,h,w) in [0,1])."""
+    """cost (N, D, h, w) -> (plane index (N,1,h,w) float, peak confidences (N,1,h,w) in [0,1]).
 
-    def __init__(self, mode: str = "wta", beta: float = 50.0, margin_scale: float = 0.05) -> None:
+    Returns one confidence per entry of ``margin_scales`` (same peak margin,
+    different saturation): the model uses a steep one to weight the fill and
+    a gentler one for the output confidence / opacity.
+    """
+
+    def __init__(self, mode: str = "wta", beta: float = 50.0, margin_scales=(0.05,)) -> None:
         super().__init__()
         self.mode = mode
         self.beta = float(beta)
-        self.margin_scale = float(margin_scale)
+        self.margin_scales = tuple(float(m) for m in margin_scales)
 
     def forward(self, cost: torch.Tensor):
         d_count = cost.shape[1]
@@ -46,9 +51,8 @@ class DepthReadout(nn.Module):
             k = (p * planes).sum(dim=1, keepdim=True)
         far_from_peak = (planes - idx.to(cost.dtype)).abs() > 1.5
         second = torch.where(far_from_peak, cost, -2.0).amax(dim=1, keepdim=True)  # scalar: no (N, D, h, w) constant
-        conf = 1.0 - torch.exp(-(best - second).clamp(min=0.0) / self.margin_scale)
-        conf = torch.where(idx == d_count - 1, 0.0, conf)
-        return k, conf
+        margin = torch.where(idx == d_count - 1, 0.0, (best - second).clamp(min=0.0))
+        return (k,) + tuple(1.0 - torch.exp(margin * (-1.0 / m)) for m in self.margin_scales)
 
 
 def index_to_inverse(k: torch.Tensor, inv_depths: torch.Tensor) -> torch.Tensor:
