@@ -142,3 +142,96 @@ def guided_push_pull(value: torch.Tensor, weight: torch.Tensor, guide: torch.Ten
         F.interpolate(b, size=size, mode="bilinear", align_corners=False)
     alpha = (weight / saturation).clamp(max=1.0)
     return alpha * value + (1.0 - alpha) * coarse
+
+
+def solve_spd(mat: dict, rhs: list) -> list:
+    """Solve A x = b per pixel for a small symmetric positive definite A, unrolled (LDL^T).
+
+    ``mat[(i, j)]`` (i >= j) and ``rhs[i]`` are tensors of one shape; no
+    matrix inverse or decomposition op in the graph, only elementwise maths.
+    """
+    n = len(rhs)
+    lo: dict = {}
+    diag = []
+    for j in range(n):
+        dj = mat[(j, j)]
+        for k in range(j):
+            dj = dj - lo[(j, k)] * lo[(j, k)] * diag[k]
+        dj = dj.clamp(min=1e-8)
+        diag.append(dj)
+        for i in range(j + 1, n):
+            s = mat[(i, j)]
+            for k in range(j):
+                s = s - lo[(i, k)] * lo[(j, k)] * diag[k]
+            lo[(i, j)] = s / dj
+    y = []
+    for i in range(n):
+        s = rhs[i]
+        for k in range(i):
+            s = s - lo[(i, k)] * y[k]
+        y.append(s)
+    x = [None] * n
+    for i in range(n - 1, -1, -1):
+        s = y[i] / diag[i]
+        for k in range(i + 1, n):
+            s = s - lo[(k, i)] * x[k]
+        x[i] = s
+    return x
+
+
+def linear_push_pull(value: torch.Tensor, weight: torch.Tensor, guide: torch.Tensor, levels: int,
+                     fallback: torch.Tensor, saturation: float = 0.5) -> torch.Tensor:
+    """:func:`guided_push_pull` with a K-channel guide: v ~ a . g + b per pyramid cell.
+
+    ``guide`` (N or 1, K, h, w) is pre-scaled so that the regularisation is
+    the identity (a channel's eps is 1 in its units). With the three ray
+    direction components as guide this is a *planar* fill: a plane
+    n . X = c seen from the camera has inverse range (n . d) / c, exactly
+    linear in the ray direction d, so a textureless wall between confident
+    pixels is filled by the plane through them, not a constant. Adding the
+    grey level as a fourth channel keeps the fill edge-aware.
+
+    Each level solves (C + I) a = cov + a_up (C, cov: the cell's weighted
+    guide covariance and guide-value covariance; the prior is the upsampled
+    coarser slope), blends with the coarser model by min(w / saturation, 1),
+    and the finest pixels take the upsampled model at their own guide.
+    """
+    k_ch = guide.shape[1]
+    guide = guide.expand(value.shape[0], k_ch, *value.shape[-2:])
+    pairs = [(i, j) for i in range(k_ch) for j in range(i + 1)]
+    chans = [weight, weight * value, weight * guide, weight * value * guide]
+    chans += [weight * guide[:, i : i + 1] * guide[:, j : j + 1] for i, j in pairs]
+    mom = [torch.cat(chans, dim=1)]
+    for _ in range(levels):
+        mom.append(F.avg_pool2d(mom[-1], 2))
+
+    def fit(m: torch.Tensor, prior_eps: float, prior):
+        w, wv = m[:, 0:1], m[:, 1:2]
+        den = w + prior_eps
+        mean_v = (wv + prior_eps * fallback) / den
+        mean_g = [m[:, 2 + i : 3 + i] / den for i in range(k_ch)]
+        cov = [m[:, 2 + k_ch + i : 3 + k_ch + i] / den - mean_g[i] * mean_v for i in range(k_ch)]
+        mat = {}
+        for n_pair, (i, j) in enumerate(pairs):
+            c = m[:, 2 + 2 * k_ch + n_pair : 3 + 2 * k_ch + n_pair] / den - mean_g[i] * mean_g[j]
+            mat[(i, j)] = c + 1.0 if i == j else c
+        rhs = cov if prior is None else [c + p for c, p in zip(cov, prior)]
+        return w, mean_v, mean_g, solve_spd(mat, rhs)
+
+    def up(t: torch.Tensor, size) -> torch.Tensor:
+        return F.interpolate(t, size=size, mode="bilinear", align_corners=False)
+
+    _, mean_v, mean_g, a = fit(mom[-1], 1e-4, None)
+    b = mean_v - sum(ai * gi for ai, gi in zip(a, mean_g))
+    for lvl in range(levels - 1, 0, -1):
+        size = mom[lvl].shape[-2:]
+        a_up = [up(ai, size) for ai in a]
+        b_up = up(b, size)
+        w, mean_v, mean_g, own = fit(mom[lvl], 1e-6, a_up)
+        alpha = (w / saturation).clamp(max=1.0)
+        a = [alpha * o + (1.0 - alpha) * u for o, u in zip(own, a_up)]
+        b = alpha * (mean_v - sum(ai * gi for ai, gi in zip(a, mean_g))) + (1.0 - alpha) * b_up
+    size = value.shape[-2:]
+    coarse = up(b, size) + sum(up(ai, size) * guide[:, i : i + 1] for i, ai in enumerate(a))
+    alpha = (weight / saturation).clamp(max=1.0)
+    return alpha * value + (1.0 - alpha) * coarse

@@ -63,10 +63,20 @@ class EncoderConfig:
     lr_tol_planes: float = 1.5
     # fill and upsampling: "pushpull" (plain weighted pyramid) | "guided" (pyramid of local
     # linear models in the grey guide, export/aggregation.guided_push_pull, eps = fill_eps)
+    # | "planar" (local linear models of inverse range in the ray direction d: exact for planes,
+    # 1/r = n.d / c; export/aggregation.linear_push_pull, eps = fill_plane_scale^2 feature
+    # pixels^2 on d) | "planar_guided" (d and grey together, grey eps = fill_eps).
     # guided over pushpull (fill margin 0.01, opacity margin 0.2): AbsRel 00 0.1089 -> 0.1074,
     # m3d 25.00 -> 25.11 dB, zind 18.43 -> 18.49 dB; fill_eps 3e-3: 25.22 dB but zind pano_5 -0.17 dB
-    fill: str = "guided"
+    # 0.4.0, planar_guided over guided (AbsRel 00 / 02, m3d dB, zind mean of 4 dB; guided:
+    # 0.1074 / 0.0614, 25.11, 18.49): scale 4 0.1039 / 0.0594, 25.34, 18.80; scale 0.5 0.1037 /
+    # 0.0601, 25.53, 18.29; 1: 0.1021 / 0.0588, 25.49, 18.44; 2: 0.1025 / 0.0588, 25.43, 18.55;
+    # 3: 0.1032 / 0.0591, 25.38, 18.64; 8: 0.1054 / 0.0601, 25.28, 18.81. "planar" (no grey) at
+    # scale 2: 0.1028 / 0.0589, 25.30, 18.56. At scale 4, fill_eps 3e-3: 25.49, 18.64; 3e-2: 25.26,
+    # 18.92. fill_margin_scale 0.02 / 0.005 with it: 25.23 / 25.42 dB, zind 18.95 / 18.64.
+    fill: str = "planar_guided"
     fill_eps: float = 1e-2
+    fill_plane_scale: float = 4.0
     fill_min_weight: float = 0.05
     upsample: str = "guided"  # "guided" | "bilinear"
     upsample_radius: int = 2
@@ -86,11 +96,20 @@ class EncoderConfig:
     opacity_min: float = 0.15
     opacity_max: float = 0.98
     opacity_gamma: float = 2.0
+    # Tried in 0.4.0, did not pay: the warp GridSample as four GatherElements + lerps (indices from
+    # the warp grids in the graph): 0.19 -> 0.16 s alone (8 x 1 x 64 x 192 source, 64 planes, ORT
+    # 2 threads), but the whole quality model 1.39 / 0.88 / 0.91 s -> 1.44 / 0.88-1.03 / 1.28 s in
+    # interleaved runs on the loaded 2-core box (load 3.5-4.2): no consistent gain. Precomputed
+    # int64 indices + weights fed from numpy: 0.24 -> 0.08 s alone, but ~300 MB more inputs per pair.
+    # Also not paying: an opacity factor exp(-(s / tol)^2) for "flying" pixels between
+    # the sides of a depth step (s = min(v - min, max - v) / v of the filled inverse range v in a
+    # 3x3 feature window): tol 0.05 m3d 25.34 -> 25.17 dB, zind mean 18.80 -> 17.79; 0.15: 25.48,
+    # 18.55; 0.3: 25.40, 18.73.
     # default runtime sweep range in units of the baseline (rasterizer.sweep.default_near_far)
     near_per_baseline: float = 0.3
     far_per_baseline: float = 20.0
     name: str = "omnisplat-trainingfree"
-    version: str = "0.3.0"
+    version: str = "0.4.0"
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -103,10 +122,12 @@ class EncoderConfig:
             raise ValueError(f"matcher must be 'window' or 'descriptor', got {self.matcher!r}")
         if self.readout not in ("wta", "softargmin"):
             raise ValueError(f"readout must be 'wta' or 'softargmin', got {self.readout!r}")
-        if self.fill not in ("pushpull", "guided"):
-            raise ValueError(f"fill must be 'pushpull' or 'guided', got {self.fill!r}")
+        if self.fill not in ("pushpull", "guided", "planar", "planar_guided"):
+            raise ValueError(f"fill must be 'pushpull', 'guided', 'planar' or 'planar_guided', got {self.fill!r}")
         if self.upsample not in ("guided", "bilinear"):
             raise ValueError(f"upsample must be 'guided' or 'bilinear', got {self.upsample!r}")
+        if self.fill_plane_scale <= 0:
+            raise ValueError(f"fill_plane_scale must be > 0, got {self.fill_plane_scale}")
         if self.num_planes < 3:
             raise ValueError(f"num_planes must be >= 3, got {self.num_planes}")
 

@@ -13,9 +13,10 @@ refinement can replace a stage without touching the geometry):
 6. :class:`DepthReadout` - sub-plane depth + two peak confidences (a steep
    one weights the fill, a gentle one becomes the output confidence);
 7. left-right check (A->B vs B->A) by warping, inside the graph;
-8. fill of unreliable pixels (``guided_push_pull``: pyramid of local linear
-   models in the grey image, or plain push-pull), guided-filter smoothing,
-   guided upsampling to the Gaussian grid;
+8. fill of unreliable pixels (``linear_push_pull``: pyramid of local linear
+   models of inverse range in the ray direction and grey level - exact for
+   planes; or ``guided_push_pull`` in the grey level only, or plain
+   push-pull), guided-filter smoothing, guided upsampling to the Gaussian grid;
 9. :class:`GaussianHead`.
 
 Graph inputs (see :mod:`rasterizer.sweep` for the pose-dependent ones):
@@ -35,8 +36,8 @@ from torch import nn
 
 from rasterizer.geometry import grid_directions
 
-from .aggregation import (CostAggregation, guided_filter, guided_filter_coeffs, guided_push_pull, pyramid_levels,
-                          push_pull)
+from .aggregation import (CostAggregation, guided_filter, guided_filter_coeffs, guided_push_pull, linear_push_pull,
+                          pyramid_levels, push_pull)
 from .config import EncoderConfig
 from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, domain_mask, sample_maps
 from .features import GreyFeatures, TrainingFreeFeatures
@@ -79,6 +80,10 @@ class OmniSplatEncoder(nn.Module):
         self.register_buffer("feat_rays", torch.from_numpy(rays), persistent=False)  # (G, h, w, 3)
         self.register_buffer("luma", torch.tensor(_LUMA).view(1, 3, 1, 1), persistent=False)
         self.levels = pyramid_levels(self.feat_h, self.feat_w)
+        # planar fill guide: ray directions in units of fill_plane_scale feature-pixel pitches
+        pitch = (np.pi if cfg.erp_encoder else 0.5 * np.pi) / self.feat_h
+        plane_guide = rays.transpose(0, 3, 1, 2) / np.float32(pitch * cfg.fill_plane_scale)
+        self.register_buffer("plane_guide", torch.from_numpy(np.ascontiguousarray(plane_guide)), persistent=False)
 
     # -- stages ------------------------------------------------------------
     def grid_images(self, erp_a: torch.Tensor, erp_b: torch.Tensor) -> torch.Tensor:
@@ -172,6 +177,12 @@ class OmniSplatEncoder(nn.Module):
         fallback = inv_depths.mean()
         if cfg.fill == "guided":
             filled = guided_push_pull(inv, conf_fill * reliable, grey_low, self.levels, fallback, cfg.fill_eps)
+        elif cfg.fill in ("planar", "planar_guided"):
+            guide = self.plane_guide  # (G, 3, h, w) -> per (view, grid)
+            guide = guide.unsqueeze(0).expand(2, g_count, 3, h, w).reshape(2 * g_count, 3, h, w)
+            if cfg.fill == "planar_guided":
+                guide = torch.cat([guide, grey_low * float(cfg.fill_eps ** -0.5)], dim=1)
+            filled = linear_push_pull(inv, conf_fill * reliable, guide, self.levels, fallback)
         else:
             filled = push_pull(inv, conf_fill * reliable, self.levels, fallback)
         filled = guided_filter(grey_low, filled, 1, cfg.upsample_eps, wrap)

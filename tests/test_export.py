@@ -167,3 +167,40 @@ def test_guided_push_pull_fill():
     err_guided = (guided - value)[..., band].abs().mean()
     err_plain = (plain - value)[..., band].abs().mean()
     assert err_guided < 0.12 and err_guided < 0.5 * err_plain
+
+
+def test_solve_spd_matches_numpy():
+    from export.aggregation import solve_spd
+
+    rng = np.random.default_rng(0)
+    m = rng.normal(size=(5, 4, 4))
+    a = m @ m.transpose(0, 2, 1) + 0.1 * np.eye(4)
+    b = rng.normal(size=(5, 4))
+    mat = {(i, j): torch.tensor(a[:, i, j], dtype=torch.float64) for i in range(4) for j in range(i + 1)}
+    x = solve_spd(mat, [torch.tensor(b[:, i], dtype=torch.float64) for i in range(4)])
+    np.testing.assert_allclose(np.stack([t.numpy() for t in x], -1), np.linalg.solve(a, b[..., None])[..., 0],
+                               rtol=1e-8, atol=1e-8)
+
+
+def test_planar_fill_reproduces_planes():
+    """Inverse range of a plane is linear in the ray direction: a sparse fill recovers it."""
+    from export.aggregation import guided_push_pull, linear_push_pull, pyramid_levels
+    from rasterizer.geometry import grid_directions
+
+    h, w = 64, 192
+    rays = torch.from_numpy(grid_directions("yin", h, w).astype(np.float32)).permute(2, 0, 1)[None]
+    normal = torch.tensor([0.2, 1.0, 0.3])
+    normal = normal / normal.norm()
+    value = (rays * normal.view(1, 3, 1, 1)).sum(1, keepdim=True) / 1.5 + 1.0  # plane, shifted positive
+    weight = (torch.rand(1, 1, h, w, generator=torch.Generator().manual_seed(0)) < 0.1).float()
+    grey = torch.full((1, 1, h, w), 0.5)
+    levels, fallback = pyramid_levels(h, w), torch.tensor(0.5)
+    guide = rays / (0.5 * np.pi / h * 4.0)
+    full = linear_push_pull(value, torch.ones_like(value), guide, levels, fallback)
+    torch.testing.assert_close(full, value)
+    empty = linear_push_pull(value, torch.zeros_like(value), guide, levels, fallback)
+    torch.testing.assert_close(empty, torch.full_like(value, 0.5), atol=1e-3, rtol=0)
+    planar = linear_push_pull(value, weight, torch.cat([guide, grey * 10.0], 1), levels, fallback)
+    err_planar = (planar - value).abs().mean()
+    err_grey = (guided_push_pull(value, weight, grey, levels, fallback) - value).abs().mean()
+    assert err_planar < 0.01 and err_planar < 0.25 * err_grey
