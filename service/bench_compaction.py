@@ -9,7 +9,8 @@ view); and the two-pass adaptive near/far (seconds, PSNR, depth AbsRel on
 m3d GT). Sources: the real encoder (a 512x1024, 32-plane model from the
 bench model cache, :func:`service.bench_models.ensure_model`, or ``--model``) and, where a scene has depth, GT-depth
 Gaussians in the same grid layout. Writes compaction.json / compaction.md.
-Render timings are single runs: noisy; the report gives the load average.
+Render timings are the best of RENDER_REPEATS round-robin runs over the variants (noisy on a shared
+machine; the report gives the load average); render contributions are the load-free measure of render cost.
 """
 
 from __future__ import annotations
@@ -46,17 +47,25 @@ def _log(msg: str) -> None:
 
 
 def variants(n: int) -> dict[str, CompactionOptions]:
-    """Each step alone, all defaults, and a 60% count cap with and without the rest."""
+    """Each step alone, all defaults (with and without the smooth merge, and with 4x4 blocks),
+    and a 60% count cap with and without the rest."""
     off = CompactionOptions.off()
     cap = int(0.6 * n)
+
+    def only(**kw) -> CompactionOptions:
+        return CompactionOptions(**{**off.to_dict(), **kw})
+
     return {
         "none": off,
-        "min_opacity": off.__class__(**{**off.to_dict(), "min_opacity": 1.0 / 255.0}),
-        "overlap_split": off.__class__(**{**off.to_dict(), "resolve_overlap": "split"}),
-        "overlap_yin": off.__class__(**{**off.to_dict(), "resolve_overlap": "yin"}),
-        "duplicates": off.__class__(**{**off.to_dict(), "merge_duplicates": True}),
-        "cap60": off.__class__(**{**off.to_dict(), "max_count": cap}),
+        "min_opacity": only(min_opacity=1.0 / 255.0),
+        "overlap_split": only(resolve_overlap="split"),
+        "overlap_yin": only(resolve_overlap="yin"),
+        "duplicates": only(merge_duplicates=True),
+        "smooth": only(merge_smooth=True),
+        "cap60": only(max_count=cap),
+        "all_but_smooth": CompactionOptions(merge_smooth=False),
         "all": CompactionOptions(),
+        "all_smooth4x4": CompactionOptions(smooth_levels=2),
         "all+cap60": CompactionOptions(max_count=cap),
     }
 
@@ -79,36 +88,75 @@ def gt_gaussians(scene, refs, opacity: float = 0.9) -> tuple[Gaussians, Provenan
     return Gaussians.concatenate(parts), Provenance(("yin", "yang"), h, w, np.stack(poses), np.concatenate(index))
 
 
-def timed_render(g: Gaussians, c2w, **kw):
-    """(RenderOutput or None when the renderer refuses (RenderLimitError), seconds)."""
-    t = time.perf_counter()
-    try:
-        out = render(g, c2w, **kw)
-    except RenderLimitError:
-        out = None
-    return out, time.perf_counter() - t
+#: Render timings are the best of this many runs (one run on a shared machine is noisy).
+RENDER_REPEATS = 3
 
 
-def evaluate(g: Gaussians, target, gt_img) -> dict:
-    out, sec = timed_render(g, target.c2w, projection="erp", width=RENDER_WIDTH)
-    return {"count": len(g), "ply_bytes": len(ply_bytes(g)), "render_s": round(sec, 3),
-            "psnr": round(metrics.psnr(out.colour, gt_img), 4)}
+def timed_render(g: Gaussians, c2w, repeats: int = 1, **kw):
+    """(RenderOutput or None when the renderer refuses (RenderLimitError), best seconds of ``repeats``)."""
+    best = np.inf
+    out = None
+    for _ in range(max(1, repeats)):
+        t = time.perf_counter()
+        try:
+            out = render(g, c2w, **kw)
+        except RenderLimitError:
+            return None, time.perf_counter() - t
+        best = min(best, time.perf_counter() - t)
+    return out, best
+
+
+def contributions(g: Gaussians, c2w) -> int:
+    """(pixel, Gaussian) pairs the ERP render's Yin and Yang cameras composite (render cost, load-free)."""
+    from rasterizer.camera import Camera
+    from rasterizer.splat import footprints
+
+    h = RENDER_WIDTH // 4
+    return sum(len(footprints(g, Camera(kind, 3 * h, h, c2w), opacity_bound=g.opacities)) for kind in ("yin", "yang"))
+
+
+def evaluate(g: Gaussians, target, gt_img, reference: np.ndarray | None = None, repeats: int = 1) -> dict:
+    """Count, PLY bytes, render seconds, PSNR against the target image (and against ``reference``)."""
+    out, sec = timed_render(g, target.c2w, repeats, projection="erp", width=RENDER_WIDTH)
+    row = {"count": len(g), "ply_bytes": len(ply_bytes(g)), "render_s": round(sec, 3),
+           "psnr": round(metrics.psnr(out.colour, gt_img), 4), "contributions": contributions(g, target.c2w)}
+    if reference is not None:
+        row["psnr_vs_none"] = round(metrics.psnr(out.colour, reference), 2)
+    return row
 
 
 def bench_source(g: Gaussians, prov: Provenance, targets, images, conf=None) -> dict:
     """All variants x targets for one set of Gaussians; plus culling on the 'all' set."""
     res: dict = {"variants": {}, "culling": {}}
     kept_all = None
+    uncompacted = {tn: render(g, targets[tn].c2w, projection="erp", width=RENDER_WIDTH).colour for tn in targets}
+    sets = {}
     for name, opts in variants(len(g)).items():
-        t = time.perf_counter()
-        gc, stats = compact(g, prov, opts, confidence=conf)
-        sec = time.perf_counter() - t
-        per_t = {tn: evaluate(gc, targets[tn], images[tn]) for tn in targets}
-        res["variants"][name] = {"compact_s": round(sec, 3), "removed": stats["removed"], "targets": per_t}
-        _log(f"  {name}: {len(gc)} Gaussians, " + ", ".join(
-            f"{tn} {r['render_s']:.2f}s {r['psnr']:.3f}dB" for tn, r in per_t.items()))
+        best = np.inf
+        for _ in range(RENDER_REPEATS):  # best of a few: one run on a shared machine is noisy
+            t = time.perf_counter()
+            gc, stats = compact(g, prov, opts, confidence=conf)
+            best = min(best, time.perf_counter() - t)
+        per_t = {tn: evaluate(gc, targets[tn], images[tn], uncompacted[tn]) for tn in targets}
+        res["variants"][name] = {"compact_s": round(best, 3), "removed": stats["removed"],
+                                 "merge_smooth": stats.get("merge_smooth"), "seconds": stats.get("seconds"),
+                                 "targets": per_t}
+        sets[name] = gc
+        _log(f"  {name}: {len(gc)} Gaussians, " + ", ".join(f"{tn} {r['psnr']:.3f}dB" for tn, r in per_t.items()))
         if name == "all":
             kept_all = gc
+    # render timings round-robin over the variants, best of RENDER_REPEATS: a load change on the shared
+    # machine then hits every variant alike instead of whichever happened to run during it
+    best_s = {(name, tn): np.inf for name in sets for tn in targets}
+    for _ in range(RENDER_REPEATS):
+        for name, gc in sets.items():
+            for tn, tgt in targets.items():
+                best_s[name, tn] = min(best_s[name, tn], timed_render(gc, tgt.c2w, projection="erp",
+                                                                      width=RENDER_WIDTH)[1])
+    for (name, tn), sec in best_s.items():
+        res["variants"][name]["targets"][tn]["render_s"] = round(sec, 3)
+    _log("  render s (best of round-robin): " + ", ".join(
+        f"{name} {sum(best_s[name, tn] for tn in targets):.2f}" for name in sets))
     for tn, tgt in targets.items():
         t = time.perf_counter()
         idx = cull_for_camera(kept_all, tgt.c2w, "erp", width=RENDER_WIDTH)
@@ -224,7 +272,13 @@ def summary_rows(results: dict) -> list[dict]:
                     "render_less_pct": round(100 * (1 - sum(r["render_s"] for r in t.values())
                                                      / sum(r["render_s"] for r in base.values())), 1),
                     "dpsnr": round(float(np.mean([t[k]["psnr"] - base[k]["psnr"] for k in t])), 3),
+                    "dpsnr_min": round(float(np.min([t[k]["psnr"] - base[k]["psnr"] for k in t])), 3),
                     "psnr": round(float(np.mean([r["psnr"] for r in t.values()])), 3),
+                    "psnr_vs_none": round(float(np.mean([r.get("psnr_vs_none", np.inf) for r in t.values()])), 2),
+                    "contrib_less_pct": round(100 * (1 - sum(r.get("contributions", 0) for r in t.values())
+                                                     / max(1, sum(r.get("contributions", 0)
+                                                                  for r in base.values()))), 1),
+                    "compact_s": v.get("compact_s"),
                 })
     return rows
 
@@ -232,16 +286,41 @@ def summary_rows(results: dict) -> list[dict]:
 def markdown(results: dict) -> str:
     rows = summary_rows(results)
     lines = ["# Compaction bench", "",
-             f"Model {results['model']} ({results['num_planes']} planes), render {results['render']}, "
+             f"Model {results['model']} ({results['num_planes']} planes, sha256 {str(results.get('model_sha256'))[:12]}), "
+             f"render {results['render']}, "
              f"{results['cpu_count']} CPUs, load average {results['load_avg_start'][0]:.1f} -> "
-             f"{results['load_avg_end'][0]:.1f}. Render seconds are single runs: noisy, more so the higher "
-             "the load average; read them as a trend.", "",
-             "Per split and source, totals over the split's targets; ΔPSNR vs 'none', mean over targets.", "",
-             "| split | source | variant | Gaussians | fewer % | PLY MB | render s | render less % | PSNR | ΔPSNR dB |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             f"{results['load_avg_end'][0]:.1f}. Render seconds are the best of {RENDER_REPEATS} runs, "
+             "taken round-robin over the variants (culling: single runs): noisy, more so the higher the load average; read them as a trend, and "
+             "the contributions as the load-free render cost.", "",
+             "Per split and source, totals over the split's targets; ΔPSNR vs 'none' against the target images, "
+             "mean (and worst) over targets; 'vs none' = PSNR between this variant's and the uncompacted render "
+             "(mean over targets); contributions = (pixel, Gaussian) pairs the renderer composites (load-free "
+             f"render cost); compact s = the compaction itself, best of {RENDER_REPEATS} runs.", "",
+             "| split | source | variant | Gaussians | fewer % | PLY MB | compact s | render s | render less % | "
+             "contrib. less % | PSNR | ΔPSNR dB (worst) | vs none dB |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['split']} | {r['source']} | {r['variant']} | {r['count']:,} | {r['fewer_pct']} | "
-                     f"{r['ply_mb']} | {r['render_s']} | {r['render_less_pct']} | {r['psnr']} | {r['dpsnr']:+.3f} |")
+                     f"{r['ply_mb']} | {r['compact_s']} | {r['render_s']} | {r['render_less_pct']} | "
+                     f"{r['contrib_less_pct']} | {r['psnr']} | {r['dpsnr']:+.3f} ({r['dpsnr_min']:+.3f}) | "
+                     f"{r['psnr_vs_none']} |")
+    lines += ["", "## Compaction run time and the smooth merge (encoder Gaussians)", "",
+              "compact s: best of the runs; seconds per step: the last run.", "",
+              "| split | variant | compact s | seconds per step | smooth merge: inputs merged -> added (blocks) |",
+              "|---|---|---|---|---|"]
+    for e in results["splits"]:
+        res = e["sources"].get("encoder")
+        if res is None:
+            continue
+        for name in ("all_but_smooth", "all", "all_smooth4x4"):
+            v = res["variants"].get(name)
+            if v is None:
+                continue
+            secs = ", ".join(f"{k} {x:.3f}" for k, x in (v.get("seconds") or {}).items())
+            ms = v.get("merge_smooth") or {}
+            blocks = ", ".join(f"{k}x{k}: {c:,}" for k, c in (ms.get("blocks") or {}).items())
+            lines.append(f"| {e['scene']} {'+'.join(e['references'])} | {name} | {v['compact_s']} | {secs} | "
+                         f"{ms.get('merged', 0):,} -> {ms.get('added', 0):,} ({blocks}) |")
     lines += ["", "## Render-time culling (on the 'all' set)", "",
               "| split | source | target | ERP culled | ERP render s | ERP PSNR | persp culled | persp s before -> after | persp PSNR vs unculled |",
               "|---|---|---|---|---|---|---|---|---|"]
@@ -261,10 +340,23 @@ def markdown(results: dict) -> str:
                 lines.append(f"| {e['scene']} {'+'.join(e['references'])} | {name} | {r['encoder_s']} | {r['near']} | "
                              f"{r['far']} | {ps} | {r.get('abs_rel', '')} |")
     lines += ["", "## Notes", "",
-              "* Steps: `min_opacity` (encoder opacities are >= 0.35, so 1/255 removes nothing there), "
+              "* Steps: `min_opacity` (encoder opacities are >= 0.15, so 1/255 removes nothing there), "
               "`resolve_overlap` ('split' = larger domain margin keeps, the renderer's own merge rule; "
               "'yin' = Yin whole), `merge_duplicates` (other view's pixel at the same range within "
-              "`duplicate_range_tol`, the Gaussian farther from its own camera goes), `max_count`/`max_bytes` cap.",
+              "`duplicate_range_tol`, the Gaussian farther from its own camera goes), `merge_smooth` (2x2 blocks "
+              "of one grid, all present, DC colour within `smooth_colour_tol`, opacity within "
+              "`smooth_opacity_tol`, on a plane within `smooth_plane_tol` x range seen at most "
+              "`smooth_max_incidence_deg` off its normal -> one moment-matched Gaussian keeping the block's "
+              "optical depth; `all_smooth4x4` also merges 4x4 blocks), `max_count`/`max_bytes` cap. "
+              "'all' = the shipped default, 'all_but_smooth' = the default before the smooth merge.",
+              "* Smooth merge: the merged opacity keeps the block's optical depth (A' Li2(a') = sum A_i Li2(a_i), "
+              "footprint areas with half the renderer's low-pass at the grid's pixel size); it saturates at 0.99 "
+              "for opaque 2x2 blocks (about 93% coverage between merged Gaussians at the grid's resolution; the "
+              "ERP and service renders divide colour by alpha). 4x4 blocks (`smooth_levels` 2) merge only where "
+              "one Gaussian keeps the optical depth, widened in-plane to 0.45 of their size against lattice "
+              "ripple. The incidence limit is what keeps the PSNR: on zind pano_5 (2x2 blocks, against the "
+              "default without the merge) 75 / 60 / 45 degrees cost -0.12 / -0.09 / -0.00 dB; opacity and "
+              "colour tolerances mattered much less.",
               "* `min_confidence` (off by default) and the cap punch holes with the training-free encoder: "
               "unconfident pixels are whole regions (walls without texture), not scattered noise.",
               "* Culling: `rasterizer.render_cull.cull_for_camera` (near, frustum/domain widened by 3 sigma, "

@@ -2,8 +2,9 @@
 
 Steps: optional scene-adaptive depth range (:mod:`service.scene_adaptive`),
 the ONNX encoder, compaction (:mod:`rasterizer.compaction`: overlap,
-duplicates, transparent Gaussians, optional cap), and a final guard that
-drops any non-finite Gaussian. Options come as the API's ``options`` JSON
+duplicates, transparent Gaussians, merge of smooth 2x2 blocks, optional
+cap; the scene metadata's ``compaction`` says how many each step removed),
+and a final guard that drops any non-finite Gaussian. Options come as the API's ``options`` JSON
 object; structured keys ``compaction`` and ``adaptive_range`` hold the
 step options, ``near``/``far`` go to the encoder, ``min_opacity`` is a
 compaction threshold.

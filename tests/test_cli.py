@@ -112,6 +112,21 @@ def test_reconstruct_argument_errors(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
+def test_reconstruct_compaction_flags_map_to_options():
+    parser = cli.build_parser()
+
+    def opts(*flags):
+        return cli._pipeline_options(parser.parse_args(["reconstruct", "scene", *flags])).compaction
+
+    default = opts()
+    assert default.merge_smooth is True and default.smooth_levels == 1
+    assert opts("--no-merge-smooth").merge_smooth is False
+    assert opts("--smooth-levels", "2").smooth_levels == 2
+    assert opts("--no-compaction").merge_smooth is False
+    with pytest.raises(cli.CliError, match="smooth_levels"):
+        opts("--smooth-levels", "9")
+
+
 def test_render_argument_errors(tmp_path, capsys):
     assert cli.main(["render", "x.ply"]) == 2
     assert "exactly one of" in capsys.readouterr().err

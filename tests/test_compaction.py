@@ -59,7 +59,7 @@ def test_min_opacity_removes_only_transparent():
     op[::7] = 0.001
     g = g.with_(opacities=op)
     idx, stats = compact_index(g, prov, CompactionOptions.off().__class__(
-        min_opacity=0.01, resolve_overlap="off", merge_duplicates=False))
+        min_opacity=0.01, resolve_overlap="off", merge_duplicates=False, merge_smooth=False))
     assert stats["removed"]["min_opacity"] == len(range(0, len(g), 7))
     assert np.all(g.opacities[idx] >= 0.01)
 
@@ -68,7 +68,8 @@ def test_min_confidence_uses_layout_confidence():
     g, prov = two_view_box()
     conf = np.ones((2, 2, H, W), np.float32)
     conf[1, 0, :3] = 0.1  # view B, Yin, top three rows
-    opts = CompactionOptions(min_opacity=0, min_confidence=0.5, resolve_overlap="off", merge_duplicates=False)
+    opts = CompactionOptions(min_opacity=0, min_confidence=0.5, resolve_overlap="off", merge_duplicates=False,
+                             merge_smooth=False)
     _, stats = compact_index(g, prov, opts, confidence=conf)
     assert stats["removed"]["min_opacity"] == 3 * W
     with pytest.raises(CompactionError):
@@ -98,7 +99,7 @@ def test_overlap_covers_every_direction_once(mode):
 
 def test_overlap_step_counts_match_mask():
     g, prov = two_view_box()
-    opts = CompactionOptions(min_opacity=0, resolve_overlap="split", merge_duplicates=False)
+    opts = CompactionOptions(min_opacity=0, resolve_overlap="split", merge_duplicates=False, merge_smooth=False)
     _, stats = compact_index(g, prov, opts)
     assert stats["removed"]["resolve_overlap"] == 2 * int((~overlap_keep_mask(("yin", "yang"), H, W)).sum())
 
@@ -121,7 +122,7 @@ def test_duplicates_merge_on_a_plane_seen_by_both():
             d = geo.grid_directions(k, h, w)
             idx.append((v * 2 + gi) * h * w + np.flatnonzero((d[..., 2] > 0.3).ravel()))
     prov = Provenance(("yin", "yang"), h, w, np.stack(poses), np.concatenate(idx))
-    opts = CompactionOptions(min_opacity=0, resolve_overlap="off", merge_duplicates=True)
+    opts = CompactionOptions(min_opacity=0, resolve_overlap="off", merge_duplicates=True, merge_smooth=False)
     kept, stats = compact(g, prov, opts)
     removed = stats["removed"]["merge_duplicates"]
     assert 0.35 * len(g) < removed < 0.55 * len(g)
@@ -159,7 +160,7 @@ def test_cap_respects_count_and_bytes():
     op = np.linspace(0.05, 1.0, len(g)).astype(np.float32)
     g = g.with_(opacities=op)
     idx, stats = compact_index(g, prov, CompactionOptions.off().__class__(
-        min_opacity=0, resolve_overlap="off", merge_duplicates=False, max_count=100))
+        min_opacity=0, resolve_overlap="off", merge_duplicates=False, merge_smooth=False, max_count=100))
     assert idx.size == 100 and stats["removed"]["cap"] == len(g) - 100
     # the kept ones have the largest opacity x solid angle
     view = prov.decode(len(g))[0]
@@ -168,6 +169,7 @@ def test_cap_respects_count_and_bytes():
     assert score[idx].min() >= np.sort(score)[-100] - 1e-9
     budget = 20_000
     out, _ = compact(g, prov, CompactionOptions(min_opacity=0, resolve_overlap="off", merge_duplicates=False,
+                                                merge_smooth=False,
                                                 max_bytes=budget))
     assert len(ply_bytes(out)) <= budget
     assert len(out) == ply_count_for_bytes(budget, 1) and len(out) > 0

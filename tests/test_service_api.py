@@ -539,6 +539,15 @@ def test_compaction_options_change_the_count_and_are_reported(client):
     assert off["output"] == off["input"] == n_full and not any(off["removed"].values())
     capped = post_scene(client, a, b, options=json.dumps({"compaction": {"max_count": 1000}}))
     assert capped.status_code == 201 and capped.json()["num_gaussians"] <= 1000
+    # the smooth-region merge is counted like the other steps and can be switched off on its own
+    smooth = stats["merge_smooth"]
+    assert stats["removed"]["merge_smooth"] == smooth["merged"] - smooth["added"]
+    assert stats["options"]["merge_smooth"] is True
+    no_smooth = post_scene(client, a, b, options=json.dumps({"compaction": {"merge_smooth": False}}))
+    assert no_smooth.status_code == 201, no_smooth.text
+    ns = client.get(f"/v1/scenes/{no_smooth.json()['id']}").json()["compaction"]
+    assert ns["removed"]["merge_smooth"] == 0 and ns["merge_smooth"]["added"] == 0
+    assert no_smooth.json()["num_gaussians"] == n_comp + stats["removed"]["merge_smooth"]
 
 
 @pytest.mark.parametrize("options, word", [
