@@ -14,7 +14,9 @@ first), exactly the 3DGS / ODGS rules:
 Vectorised without a loop over pixels: ``log(1 - alpha)`` is cumulatively
 summed in float64 and the sum at each pixel's start is subtracted (a
 segmented exclusive cumsum); per-pixel totals come from ``np.add.reduceat``
-over the pixel segments.
+over the pixel segments. The contributions are processed in cache-sized
+chunks of whole pixels (:func:`composite_segments`), which the renderer also
+calls directly on its sorted footprint keys.
 
 The per-contribution weights and transmittances (``return_terms=True``) are
 what a backward pass (colour/opacity refinement with fixed geometry) needs.
@@ -49,6 +51,99 @@ class CompositeTerms:
     pixels: np.ndarray
 
 
+#: Contributions per chunk of the compositing maths (whole pixels per chunk): its ~20
+#: temporaries then stay in the core's cache instead of streaming through memory.
+_CHUNK = 1 << 16
+
+
+def segment_starts(pixel: np.ndarray) -> np.ndarray:
+    """(P,) int64 index of the first contribution of each run of equal ``pixel`` values."""
+    m = pixel.shape[0]
+    new = np.empty(m, dtype=bool)
+    if m:
+        new[0] = True
+        np.not_equal(pixel[1:], pixel[:-1], out=new[1:])
+    return np.flatnonzero(new)
+
+
+def composite_segments(m: int, starts: np.ndarray, fetch, table: np.ndarray, terms: bool = False):
+    """Front-to-back compositing of M contributions in pixel segments, chunk by chunk.
+
+    ``starts`` (P,): first contribution of each pixel; ``fetch(a, b)`` returns
+    (index (b-a,) into ``table``, opacity-free weight g (b-a,) float32) of
+    contributions a..b-1; ``table`` (N, 8) float32 C-contiguous rows
+    [opacity, r, g, b, range, 0, 0, 0] (:func:`gaussian_table`; one 32-byte
+    row per contribution is one memory access). Returns the per-pixel sums
+    (P, 5) float32 [alpha, r, g, b, range] of ``w_i = alpha_i T_i`` times
+    (1, colour, range), and with ``terms`` the full (M,) alpha, T and w.
+    The rules are those of the module docstring; the exclusive log-T is a
+    float64 cumulative sum restarted at every pixel.
+    """
+    p = starts.size
+    sums = np.empty((p, 5), dtype=np.float32)
+    if terms:
+        alpha_all = np.empty(m, dtype=np.float32)
+        trans_all = np.empty(m, dtype=np.float32)
+        weight_all = np.empty(m, dtype=np.float32)
+    rows32 = table.view(np.complex128).reshape(-1, 2)  # 32-byte rows
+    cuts = np.unique(np.searchsorted(starts, np.arange(0, m, _CHUNK), side="left"))
+    cuts = np.append(cuts[cuts < p], p)
+    ends = np.append(starts[1:], m)
+    amax, amin, log_tmin = np.float32(ALPHA_MAX), np.float32(ALPHA_MIN), np.log(T_MIN)
+    for sa, sb in zip(cuts[:-1], cuts[1:]):
+        a, b = int(starts[sa]), int(ends[sb - 1])
+        ls = starts[sa:sb] - a
+        idx, g = fetch(a, b)
+        rows = np.take(rows32, idx, axis=0).view(np.float32)  # (b-a, 8)
+        alpha = rows[:, 0] * g
+        np.minimum(alpha, amax, out=alpha)
+        alpha *= alpha >= amin  # skipped: exactly 0
+        log_keep = np.negative(alpha)
+        np.log1p(log_keep, out=log_keep)
+        log_keep = log_keep.astype(np.float64)  # <= 0; float64 ufuncs beat mixed-type ones
+        csum = np.cumsum(log_keep)  # inclusive, over the chunk
+        if ls.size > 1:
+            before = np.zeros(ls.size, dtype=np.float64)
+            before[1:] = csum[ls[1:] - 1]
+            csum -= np.repeat(before, np.diff(np.append(ls, b - a)))  # inclusive log T within each pixel
+        alive = csum >= log_tmin
+        csum -= log_keep  # exclusive
+        trans = np.exp(csum, out=csum).astype(np.float32)
+        weight = alpha * trans
+        weight *= alive  # terminated: exactly 0
+        out = sums[sa:sb]
+        out[:, 0] = np.add.reduceat(weight, ls)
+        for ch in range(1, 5):
+            out[:, ch] = np.add.reduceat(weight * rows[:, ch], ls)
+        if terms:
+            alpha_all[a:b], trans_all[a:b], weight_all[a:b] = alpha, trans, weight
+    if terms:
+        return sums, (alpha_all, trans_all, weight_all)
+    return sums, None
+
+
+def _images(sums: np.ndarray, pixels: np.ndarray, h: int, w: int):
+    """(colour (H, W, 3), alpha (H, W), range_sum (H, W)) float32 images of per-pixel sums."""
+    colour = np.zeros((h * w, 3), dtype=np.float32)
+    alpha_img = np.zeros(h * w, dtype=np.float32)
+    range_img = np.zeros(h * w, dtype=np.float32)
+    if pixels.size:
+        alpha_img[pixels] = sums[:, 0]
+        colour[pixels] = sums[:, 1:4]
+        range_img[pixels] = sums[:, 4]
+        np.clip(alpha_img, 0.0, 1.0, out=alpha_img)
+    return colour.reshape(h, w, 3), alpha_img.reshape(h, w), range_img.reshape(h, w)
+
+
+def gaussian_table(opacities: np.ndarray, colours: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+    """(N, 8) float32 C-contiguous rows [opacity, r, g, b, range, 0, 0, 0] for :func:`composite_segments`."""
+    table = np.zeros((ranges.shape[0], 8), dtype=np.float32)
+    table[:, 0] = opacities
+    table[:, 1:4] = colours
+    table[:, 4] = ranges
+    return table
+
+
 def accumulate(fp: Footprints, opacities: np.ndarray, colours: np.ndarray, *, return_terms: bool = False):
     """Premultiplied sums: colour (H, W, 3), alpha (H, W), range*alpha (H, W), float32.
 
@@ -56,49 +151,23 @@ def accumulate(fp: Footprints, opacities: np.ndarray, colours: np.ndarray, *, re
     Returns (colour, alpha, range_sum[, CompositeTerms]).
     """
     h, w = fp.height, fp.width
-    colour = np.zeros((h * w, 3), dtype=np.float32)
-    alpha_img = np.zeros(h * w, dtype=np.float32)
-    range_img = np.zeros(h * w, dtype=np.float32)
     m = len(fp)
     if m == 0:
-        out = (colour.reshape(h, w, 3), alpha_img.reshape(h, w), range_img.reshape(h, w))
+        out = _images(np.zeros((0, 5), np.float32), np.zeros(0, np.int64), h, w)
         if return_terms:
             z = np.zeros(0, np.float32)
             return out + (CompositeTerms(z, z, z, np.zeros(0, np.int64), np.zeros(0, np.int64)),)
         return out
-    opacities = np.asarray(opacities, dtype=np.float32)
-    colours = np.asarray(colours, dtype=np.float32)
-    gid = fp.gaussian
-    alpha = opacities[gid]
-    alpha *= fp.weight
-    np.minimum(alpha, np.float32(ALPHA_MAX), out=alpha)
-    alpha[alpha < np.float32(ALPHA_MIN)] = 0.0
-    log_keep = np.log1p(-alpha)  # float32, <= 0
-    csum = np.cumsum(log_keep, dtype=np.float64)  # inclusive, over all pixels
+    table = gaussian_table(np.asarray(opacities, dtype=np.float32), np.asarray(colours, dtype=np.float32),
+                           fp.ranges)
+    gid, g = fp.gaussian, fp.weight
     pix = fp.pixel
-    new = np.empty(m, dtype=bool)
-    new[0] = True
-    np.not_equal(pix[1:], pix[:-1], out=new[1:])
-    starts = np.flatnonzero(new)
-    del new
-    counts = np.diff(np.append(starts, m))
-    before = np.zeros(starts.size, dtype=np.float64)
-    before[1:] = csum[starts[1:] - 1]
-    csum -= np.repeat(before, counts)  # inclusive log T within each pixel
-    dead = csum < np.log(T_MIN)
-    csum -= log_keep  # exclusive
-    trans = np.exp(csum).astype(np.float32)
-    del csum
-    weight = alpha * trans
-    weight[dead] = 0.0
+    starts = segment_starts(pix)
+    sums, terms = composite_segments(m, starts, lambda a, b: (gid[a:b], g[a:b]), table, terms=return_terms)
     pixels = pix[starts]
-    alpha_img[pixels] = np.add.reduceat(weight, starts)
-    range_img[pixels] = np.add.reduceat(weight * fp.ranges[gid], starts)
-    for ch in range(3):
-        colour[pixels, ch] = np.add.reduceat(weight * np.ascontiguousarray(colours[:, ch])[gid], starts)
-    np.clip(alpha_img, 0.0, 1.0, out=alpha_img)
-    out = (colour.reshape(h, w, 3), alpha_img.reshape(h, w), range_img.reshape(h, w))
+    out = _images(sums, pixels, h, w)
     if return_terms:
+        alpha, trans, weight = terms
         return out + (CompositeTerms(alpha, trans, weight, starts, pixels),)
     return out
 

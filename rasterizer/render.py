@@ -29,22 +29,27 @@ Example::
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from functools import lru_cache
 from typing import Literal, NamedTuple
 
 import numpy as np
 
 from .camera import DEFAULT_NEAR, PROJECTIONS, Camera
-from .composite import accumulate, composite, normalise_range
+from .composite import (_images, accumulate, composite, composite_segments, gaussian_table, normalise_range,
+                        segment_starts)
 from .gaussians import Gaussians
 from .sh import sh_to_rgb
-from .splat import ALPHA_MIN, Footprints, footprints, gaussian_factors
-from .yin_yang import yin_yang_to_erp
+from . import splat
+from .splat import ALPHA_MIN, Footprints, footprints
+from . import yin_yang
 
 __all__ = ["RenderOutput", "render", "render_camera", "to_uint8", "Camera", "footprints", "composite",
            "Footprints"]
 
 #: Below this many Gaussians a second thread costs more than it saves.
 _THREAD_MIN_GAUSSIANS = 20_000
+#: footprints' default memory guard (see :func:`rasterizer.splat.footprints`).
+_MAX_CONTRIBUTIONS = 60_000_000
 
 Method = Literal["yinyang", "direct"]
 METHODS = ("yinyang", "direct")
@@ -64,14 +69,42 @@ def _check_gaussians(gaussians: Gaussians) -> None:
     gaussians.check_finite()
 
 
-def _premultiplied(gaussians: Gaussians, camera: Camera, colours: np.ndarray | None = None, factors=None,
-                   camera_points=None):
+def _premultiplied(gaussians: Gaussians, camera: Camera, colours: np.ndarray | None = None):
     """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) of one camera."""
     if colours is None:
         colours = sh_to_rgb(gaussians.sh, gaussians.means, camera.centre)
-    fp = footprints(gaussians, camera, opacity_bound=gaussians.opacities, factors=factors,
-                    camera_points=camera_points)
+    fp = footprints(gaussians, camera, opacity_bound=gaussians.opacities)
     return accumulate(fp, gaussians.opacities, colours)
+
+
+def _premultiplied_keys(camera: Camera, pose, qcut, tables):
+    """:func:`_premultiplied` for cameras sharing one pose (the Yin and Yang of a render).
+
+    Composites the sorted footprint keys directly: each key holds the Gaussian's
+    depth rank, and ``tables()`` returns the :func:`~rasterizer.composite.gaussian_table`
+    rows in rank order. Those rows are first re-gathered in the order the keys were
+    built (neighbouring boxes together), so that the per-contribution reads of the
+    pixel-sorted keys stay in cache: a rank -> row lookup (4 bytes) then a near read.
+    """
+    key, layout, _, job_ranks = splat._sorted_keys(pose, camera, qcut, _MAX_CONTRIBUTIONS)
+    h, w = camera.height, camera.width
+    if key is None:
+        return _images(np.zeros((0, 5), np.float32), np.zeros(0, np.int64), h, w)
+    pix = layout.pixels(key)
+    starts = segment_starts(pix)
+    table = tables()
+    if job_ranks is None:
+        def fetch(a, b):
+            return layout.ranks(key[a:b]), layout.weights(key[a:b])
+    else:
+        table = np.take(table.view(np.complex128).reshape(-1, 2), job_ranks, axis=0).view(np.float32)
+        row_of_rank = np.empty(pose.ranges.size, dtype=np.int32)
+        row_of_rank[job_ranks] = np.arange(job_ranks.size, dtype=np.int32)
+
+        def fetch(a, b):
+            return row_of_rank[layout.ranks(key[a:b])], layout.weights(key[a:b])
+    sums, _ = composite_segments(key.size, starts, fetch, table)
+    return _images(sums, pix[starts], h, w)
 
 
 def render_camera(gaussians: Gaussians, camera: Camera) -> RenderOutput:
@@ -87,26 +120,86 @@ def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: i
     w = 3 * h
     cams = [Camera(kind, w, h, c2w, near=near) for kind in ("yin", "yang")]
     colours = sh_to_rgb(gaussians.sh, gaussians.means, cams[0].centre)
-    factors = gaussian_factors(gaussians)
-    p_cam = cams[0].to_camera(gaussians.means)  # Yin and Yang share the pose
-    points = (p_cam, np.sqrt(np.einsum("ij,ij->i", p_cam, p_cam)))
+    pose = splat._pose(gaussians, cams[0])  # Yin and Yang share the pose
+    qcut = splat._qcut_all(gaussians.opacities, len(gaussians))
 
-    def one(cam):
-        c, a, r = _premultiplied(gaussians, cam, colours, factors, points)
+    def rank_tables():
+        order = pose.order  # depth ranks (a sort of all N)
+        return gaussian_table(gaussians.opacities, colours, pose.ranges)[order]
+
+    def one(cam, tables):
+        c, a, r = _premultiplied_keys(cam, pose, qcut, tables)
         return np.concatenate([c, a[:, :, None], r[:, :, None]], axis=2)
 
     if threads > 1 and len(gaussians) >= _THREAD_MIN_GAUSSIANS:
-        # numpy releases the GIL in sorts and large ufunc loops: Yin and Yang run side by side
+        # numpy releases the GIL in sorts, gathers and ufunc loops: the depth sort of all Gaussians
+        # runs beside the projections, then Yin (this thread) and Yang (a worker) run side by side
         with ThreadPoolExecutor(max_workers=2) as pool:
-            stacks = list(pool.map(one, cams))
+            tables = pool.submit(rank_tables)
+            yang = pool.submit(one, cams[1], tables.result)
+            stacks = [one(cams[0], tables.result), yang.result()]
+            merged = _merge_yin_yang(stacks[0], stacks[1], height, width, pool)
     else:
-        stacks = [one(cam) for cam in cams]
-    merged = yin_yang_to_erp(stacks[0], stacks[1], height, width)
+        tables = rank_tables()
+        stacks = [one(cam, lambda: tables) for cam in cams]
+        merged = _merge_yin_yang(stacks[0], stacks[1], height, width)
     alpha = np.clip(merged[:, :, 3], 0.0, 1.0)
     inv = _alpha_inverse(merged[:, :, 3])
     colour = merged[:, :, :3] * inv[:, :, None]
     rng = merged[:, :, 4] * inv
     return RenderOutput(np.ascontiguousarray(colour), np.ascontiguousarray(alpha), np.ascontiguousarray(rng))
+
+
+@lru_cache(maxsize=16)
+def _merge_taps(h: int, w: int, height: int, width: int):
+    """The taps of :func:`rasterizer.yin_yang.yin_yang_to_erp` without the zero-weight ones.
+
+    About 94% of ERP pixels read only one grid (4 of their 8 bilinear taps have
+    weight 0). Returns (pixels, idx, wts) for those with 4 taps (the non-zero
+    ones, in their original order; in two halves) and for the rest (all 8).
+    """
+    idx, wts = yin_yang._from_grid_maps(h, w, height, width)
+    yin_zero = ~np.any(wts[:, :4] != 0, axis=1)
+    yang_zero = ~np.any(wts[:, 4:] != 0, axis=1)
+    one = yin_zero | yang_zero
+    four = np.flatnonzero(one)
+    cols = np.where(yin_zero[four], 4, 0)[:, None] + np.arange(4)
+    idx4 = np.take_along_axis(idx[four], cols, axis=1)
+    wts4 = np.take_along_axis(wts[four], cols, axis=1)
+    eight = np.flatnonzero(~one)
+    half = four.size // 2  # two pieces of the 4-tap pixels, for two threads
+    out = ((four[:half], np.ascontiguousarray(idx4[:half]), np.ascontiguousarray(wts4[:half])),
+           (four[half:], np.ascontiguousarray(idx4[half:]), np.ascontiguousarray(wts4[half:])),
+           (eight, np.ascontiguousarray(idx[eight]), np.ascontiguousarray(wts[eight])))
+    for part in out:
+        for a in part:
+            a.setflags(write=False)
+    return out
+
+
+def _merge_yin_yang(yin: np.ndarray, yang: np.ndarray, height: int, width: int, pool=None) -> np.ndarray:
+    """:func:`~rasterizer.yin_yang.yin_yang_to_erp` of (h, w, C) stacks, skipping zero-weight taps.
+
+    The same weighted sums in the same order (only terms ``0 * value`` are left
+    out, values are finite), so the same image up to the sign of zeros. With a
+    ``pool`` (an executor) the pieces run in its threads.
+    """
+    h, w, c = yin.shape
+    both = np.concatenate([yin.reshape(-1, c), yang.reshape(-1, c)]).astype(np.float32, copy=False)[:, None, :]
+    out = np.empty((int(height) * int(width), c), dtype=np.float32)
+
+    def piece(taps):
+        pixels, idx, wts = taps
+        if pixels.size:
+            out[pixels] = yin_yang._gather(both, idx, wts)
+
+    pieces = _merge_taps(h, w, int(height), int(width))
+    if pool is None:
+        for taps in pieces:
+            piece(taps)
+    else:
+        list(pool.map(piece, pieces))
+    return out.reshape(int(height), int(width), c)
 
 
 def _alpha_inverse(alpha: np.ndarray) -> np.ndarray:

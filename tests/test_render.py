@@ -320,3 +320,106 @@ def test_normalize_divides_colour_by_alpha_and_keeps_alpha():
         assert np.all(norm.colour[~ok] == 0)
         # thin coverage no longer darkens: normalised colours stay within the Gaussians' colour range
         assert norm.colour[ok].max() <= 0.9 + 1e-4 and norm.colour[ok].min() >= 0.2 - 1e-4
+
+
+# --- fast paths of the renderer (shared pose, key compositing, chunking, sparse merge) --------------------
+
+def test_yinyang_render_is_the_same_with_one_or_two_threads_and_matches_footprints():
+    """The key-compositing Yin/Yang path gives what footprints + accumulate give, in any thread layout."""
+    from rasterizer import render as render_mod
+    from rasterizer.composite import accumulate
+    rng = np.random.default_rng(21)
+    g = random_scene(rng, 25_000, size=(0.01, 0.08))  # above the two-thread threshold
+    c2w = pose(rng)
+    one = render(g, c2w, projection="erp", width=128, threads=1)
+    two = render(g, c2w, projection="erp", width=128, threads=2)
+    for a, b in zip(one, two):
+        assert np.array_equal(a, b)
+    # per grid: the fused key path equals the public footprints + accumulate
+    from rasterizer import splat
+    from rasterizer.composite import gaussian_table
+    from rasterizer.sh import sh_to_rgb
+    cam0 = Camera("yin", 192, 64, c2w)
+    p = splat._pose(g, cam0)
+    qcut = splat._qcut_all(g.opacities, len(g))
+    colours = sh_to_rgb(g.sh, g.means, cam0.centre)
+    table = gaussian_table(g.opacities, colours, p.ranges)[p.order]
+    for kind in ("yin", "yang"):
+        cam = Camera(kind, 192, 64, c2w)
+        fused = render_mod._premultiplied_keys(cam, p, qcut, lambda: table)
+        ref = accumulate(footprints(g, cam, opacity_bound=g.opacities), g.opacities, colours)
+        assert fused[1].max() > 0.5
+        for a, b in zip(fused, ref):
+            assert np.array_equal(a, b)
+
+
+def test_accumulate_does_not_depend_on_its_chunking(monkeypatch):
+    from rasterizer import composite as comp
+    rng = np.random.default_rng(8)
+    g = random_scene(rng, 400)
+    fp = footprints(g, Camera("erp", 96, 48, np.eye(4)))
+    ref = comp.accumulate(fp, g.opacities, g.rgb, return_terms=True)
+    monkeypatch.setattr(comp, "_CHUNK", 37)  # many chunks, segments never split
+    small = comp.accumulate(fp, g.opacities, g.rgb, return_terms=True)
+    for a, b in zip(ref[:3], small[:3]):
+        assert np.allclose(a, b, atol=1e-6)
+    for name in ("alpha", "transmittance", "weight", "starts", "pixels"):
+        assert np.allclose(getattr(ref[3], name), getattr(small[3], name), atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["yin", "yang", "erp", "perspective"])
+def test_shared_pose_and_factors_give_the_same_footprints(kind):
+    """footprints with caller-provided camera points / factors (a shared pose) equal a fresh call."""
+    from rasterizer.splat import gaussian_factors
+    rng = np.random.default_rng(4)
+    g = random_scene(rng, 1500)
+    c2w = pose(rng)
+    cam = Camera(kind, 96 if kind != "perspective" else 64, 32 if kind != "perspective" else 48, c2w)
+    p_cam = cam.to_camera(g.means)
+    pts = (p_cam, np.sqrt(np.einsum("ij,ij->i", p_cam, p_cam)))
+    a = footprints(g, cam, opacity_bound=g.opacities)
+    b = footprints(g, cam, opacity_bound=g.opacities, factors=gaussian_factors(g), camera_points=pts)
+    assert len(a) > 1000
+    for f in ("pixel", "gaussian", "weight", "ranges"):
+        assert np.array_equal(getattr(a, f), getattr(b, f))
+
+
+def test_gaussian_factors_match_rotation_times_scales():
+    from rasterizer.gaussians import quat_to_rotmat
+    from rasterizer.splat import gaussian_factors
+    rng = np.random.default_rng(6)
+    g = random_scene(rng, 40_000)  # several chunks
+    f = gaussian_factors(g).T.reshape(-1, 3, 3)
+    ref = quat_to_rotmat(g.quats) * np.asarray(g.scales, dtype=np.float64)[:, None, :]
+    assert np.allclose(f, ref, atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["yin", "yang"])
+def test_grid_domain_cull_drops_only_gaussians_without_contributions(kind, monkeypatch):
+    """The shared Yin/Yang domain cull is conservative: without it the footprints are the same."""
+    from rasterizer import splat
+    rng = np.random.default_rng(12)
+    g = random_scene(rng, 3000, size=(0.02, 0.5))
+    cam = Camera(kind, 96, 32, pose(rng))
+    culled = footprints(g, cam)
+    kept = splat._grid_keep(splat._pose(g, cam), cam)
+    assert 0 < kept.size < len(g)
+    monkeypatch.setattr(splat, "_grid_keep",
+                        lambda p, c: np.flatnonzero(p.ranges >= c.near))
+    full = footprints(g, cam)
+    for f in ("pixel", "gaussian", "weight"):
+        assert np.array_equal(getattr(culled, f), getattr(full, f))
+
+
+@pytest.mark.parametrize("h", [3, 16, 40])
+def test_sparse_yin_yang_merge_equals_yin_yang_to_erp(h):
+    from concurrent.futures import ThreadPoolExecutor
+    from rasterizer.render import _merge_yin_yang
+    from rasterizer.yin_yang import yin_yang_to_erp
+    rng = np.random.default_rng(h)
+    a, b = (rng.random((h, 3 * h, 5)).astype(np.float32) for _ in range(2))
+    a[rng.random((h, 3 * h)) < 0.3] = 0
+    ref = yin_yang_to_erp(a, b, 2 * h, 4 * h)
+    assert np.array_equal(_merge_yin_yang(a, b, 2 * h, 4 * h), ref)
+    with ThreadPoolExecutor(2) as pool:
+        assert np.array_equal(_merge_yin_yang(a, b, 2 * h, 4 * h, pool), ref)
