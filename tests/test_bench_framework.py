@@ -234,3 +234,27 @@ def test_readme_block_replaces_only_the_marked_section(tmp_path):
     plain = tmp_path / "PLAIN.md"
     plain.write_text("no markers\n")
     assert not update_readme(plain, block) and plain.read_text() == "no markers\n"
+
+
+def test_compaction_readme_block_keeps_the_quality_block(tmp_path):
+    from service.bench_compaction import readme_block
+    from service.bench_report import README_START, readme_markers, update_readme
+
+    def variant(count, psnr, render_s, contrib):
+        t = {"count": count, "ply_bytes": count * 68, "render_s": render_s, "psnr": psnr, "contributions": contrib}
+        return {"targets": {"t0": t}, "compact_s": 0.1}
+
+    results = {"model": "m", "num_planes": 64, "render": "ERP 1024x512 via Yin-Yang", "load_avg_start": (1.0,),
+               "load_avg_end": (1.5,), "splits": [{"scene": "s", "references": ["a", "b"], "sources": {"encoder": {
+                   "variants": {"none": variant(1000, 20.0, 2.0, 100), "all_but_smooth": variant(800, 19.9, 1.6, 80),
+                                "all": variant(500, 19.85, 1.0, 60), "cap60": variant(600, 15.0, 1.0, 50)}}}}]}
+    block = readme_block(results, "docs/bench/compaction.md")
+    start, end = readme_markers("compaction")
+    assert block.startswith(start) and block.endswith(end)
+    assert "| s a+b | encoder | default | 500 | 50.0 | 40.0 | 1.0 | 50.0 | -0.150 (-0.150) | 0.1 |" in block
+    assert "cap60" not in block
+    readme = tmp_path / "README.md"
+    readme.write_text(f"{README_START}\nquality\n<!-- bench:quality:end -->\n\n{start}\nold\n{end}\n")
+    assert update_readme(readme, block, "compaction")
+    text = readme.read_text()
+    assert "quality\n" in text and "old" not in text and text.count(end) == 1
