@@ -14,6 +14,12 @@ from dataclasses import asdict, dataclass, field, replace
 #: 128 planes do not help further, and 128x384 features (downscale 2) with
 #: the same window sizes were worse and 4-6x slower, so both presets keep
 #: downscale 4 and differ in plane count.
+#: 0.5.0 re-check (planar fill, quality settings otherwise): 96 / 128 planes raise the target
+#: PSNR (25.34 -> 25.63 / 25.88 dB) but worsen AbsRel (00: 0.1039 -> 0.1129 / 0.1135; 02: 0.0594
+#: -> 0.0672 / 0.0638), zind mean 18.80 -> 18.84 / 18.74, and ONNX time ~1.5-2x (single runs,
+#: load ~3.5 on 2 cores); 128 planes with lr_tol_planes 3 (same inverse-range tolerance):
+#: 0.1080 / 0.0646, 26.13 dB, zind 18.69; also excluding 3 planes around the peak: 0.1068,
+#: 26.05, 18.79. So the quality preset stays at 64 planes.
 PRESETS: dict[str, dict] = {
     "fast": {"downscale": 4, "num_planes": 32},
     "quality": {"downscale": 4, "num_planes": 64},
@@ -41,8 +47,28 @@ class EncoderConfig:
     matcher: str = "window"
     zncc_radius: int = 2
     census_radii: tuple[int, ...] = (1, 3)
-    census_sigma: float = 0.03
-    zncc_eps: float = 0.02
+    # 0.5.0: zncc_eps 0.02 -> 0.002 and census_sigma 0.03 -> 0.015, quality preset, m3d_bedroom
+    # AbsRel 00 / 02, delta<1.25 00 / 02, target dB, zind_room09 mean of 4 dB: 0.4.0 0.1039 /
+    # 0.0594, 0.914 / 0.942, 25.34, 18.80 -> 0.0905 / 0.0530, 0.936 / 0.952, 25.41, 18.76 (fast
+    # preset: 0.1526 / 0.0904, 0.855 / 0.924, 24.93, 18.14 -> 0.1208 / 0.0764, 0.912 / 0.932, 25.09, 18.42).
+    # Same graph, same run time. Steps (AbsRel 00 / 02, dB, dB):
+    # zncc_eps 0.01: 0.1000 / 0.0573 (depth only); 0.005: 0.0958 / 0.0553, 25.19, 18.44;
+    # 0.002: 0.0912 / 0.0540, 25.20, 18.67; 0.001: 0.0906 / 0.0538 (depth only);
+    # 0.002 + census_sigma 0.015: 0.0905 / 0.0530, 25.41, 18.76; + census_sigma 0.01: 0.0905 /
+    # 0.0524, 25.27, 18.73; zncc_eps 0.001 + census 0.015: 0.0898 / 0.0527, 25.38, 18.52;
+    # + peak_margin_scale 0.4: 25.56, 18.79 (0.6: 25.59, 18.79; fast preset 0.1208 / 0.0764,
+    # 25.22, 18.42) but it lowers every opacity
+    # (m3d max 0.86 -> 0.62, 0.8% of Gaussians above 0.5 instead of 6%), so it stays 0.2;
+    # + fill_margin_scale 0.02 instead:
+    # 0.0908 / 0.0530, 25.37, 18.68. Depth-only screens at 0.4.0 that did not pay (AbsRel 00 /
+    # 02): zncc_radius 1 0.1080 / 0.0609, 3 0.1052 / 0.0607; census_radii (1, 2) 0.1069 / 0.0596,
+    # (2, 4) 0.1043 / 0.0603; agg_radii (2, 8) 0.1094, (3, 6) 0.1102, (1, 4) 0.1045,
+    # (2, 6, 12) 0.1134; agg_eps 3e-3 0.1030 / 0.0589, 3e-2 0.1073; zncc_weight 0.3 0.1039,
+    # 0.7 0.1091; census_sigma 0.06 0.1107; readout softargmin (beta 50 / 100) 0.1331 / 0.1149;
+    # lr_tol_planes 1.0 0.1058 / 0.0581, 2.0 0.1052, 3.0 0.1095; upsample_radius 1 / 4 0.1046 /
+    # 0.1050; excluding 1.0 or 2.5 planes (not 1.5) around the peak for the margin: no change.
+    census_sigma: float = 0.015
+    zncc_eps: float = 0.002
     zncc_weight: float = 0.5
     # aggregation (export/aggregation.py)
     agg_radii: tuple[int, ...] = (2, 6)
@@ -109,7 +135,7 @@ class EncoderConfig:
     near_per_baseline: float = 0.3
     far_per_baseline: float = 20.0
     name: str = "omnisplat-trainingfree"
-    version: str = "0.4.0"
+    version: str = "0.5.0"
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:

@@ -81,8 +81,10 @@ class WindowMatcher(nn.Module):
         return [torch.tanh(padded[..., p + dy : p + dy + h, p + dx : p + dx + w] - img) for dy, dx in self.offsets]
 
     def forward(self, target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
-        t = target  # (N, 1, h, w), broadcasts over the planes
-        wv = warped[:, 0]  # (N, D, h, w)
+        # centred on mid-grey: the same ZNCC, but the E[xy] - E[x]E[y] moments cancel less (with the
+        # small eps floor, rounding there shows as ORT-vs-torch differences in flat windows)
+        t = target - 0.5  # (N, 1, h, w), broadcasts over the planes
+        wv = warped[:, 0] - 0.5  # (N, D, h, w)
         r = self.radius
         mean_t = box_filter(t, r, self.wrap)
         var_t = box_filter(t * t, r, self.wrap) - mean_t * mean_t
