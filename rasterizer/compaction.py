@@ -43,7 +43,7 @@ from functools import lru_cache
 import numpy as np
 
 from . import geometry as geo
-from .gaussians import SH_C0, Gaussians, quat_to_rotmat, scale_rotation_from_covariance
+from .gaussians import SH_C0, Gaussians
 from .ply import ply_bytes
 from .yin_yang import blend_weight_yin
 
@@ -247,12 +247,23 @@ def owner_grid(directions: np.ndarray, mode: str = "split") -> np.ndarray:
 
 def footprint(gaussians: Gaussians) -> np.ndarray:
     """(N,) tangential size: geometric mean of the two largest scales (world units)."""
-    s = np.sort(gaussians.scales.astype(np.float64), axis=1)
-    return np.sqrt(s[:, 1] * s[:, 2])
+    s = gaussians.scales
+    a, b, c = s[:, 0], s[:, 1], s[:, 2]
+    hi = np.maximum(np.maximum(a, b), c)
+    mid = np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))  # the median (a selection, exact)
+    return np.sqrt(mid.astype(np.float64) * hi)
 
 
 def _ranges_from_own_camera(gaussians: Gaussians, view: np.ndarray, c2w: np.ndarray) -> np.ndarray:
-    return np.linalg.norm(gaussians.means.astype(np.float64) - c2w[view, :3, 3], axis=1)
+    cam = c2w[:, :3, 3]
+    m = gaussians.means
+    d = [m[:, k] - np.take(cam[:, k], view) for k in range(3)]  # float64
+    return np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])  # np.linalg.norm's order
+
+
+def _view_of(prov: Provenance, n: int) -> np.ndarray:
+    """(n,) reference view of each Gaussian (``prov.decode(n)[0]``, one division)."""
+    return prov.flat_index(n) // (len(prov.grids) * prov.height * prov.width)
 
 
 def duplicate_drop_mask(gaussians: Gaussians, prov: Provenance, alive: np.ndarray, *,
@@ -275,7 +286,7 @@ def duplicate_drop_mask(gaussians: Gaussians, prov: Provenance, alive: np.ndarra
     merges; measured 29% vs 41% removed on m3d_bedroom, same PSNR.)
     """
     n = len(gaussians)
-    view = prov.decode(n)[0]
+    view = _view_of(prov, n)
     h, w, g_count = prov.height, prov.width, len(prov.grids)
     flat = prov.flat_index(n)
     lookup = np.full(prov.full_count, -1, dtype=np.int64)
@@ -292,19 +303,22 @@ def duplicate_drop_mask(gaussians: Gaussians, prov: Provenance, alive: np.ndarra
         for u in range(prov.views):
             if u == v:
                 continue
-            d = means[xs_v] - prov.c2w[u, :3, 3]
+            d = np.take(means, xs_v, axis=0) - prov.c2w[u, :3, 3]  # np.take: faster than fancy indexing
             r_all = np.sqrt(np.einsum("ij,ij->i", d, d))
-            nearer_u = ((r_all < own[xs_v]) | ((r_all == own[xs_v]) & (u < v))) & (r_all > 0)
-            xs, r_x = xs_v[nearer_u], r_all[nearer_u]
-            p_u = d[nearer_u] @ np.ascontiguousarray(prov.c2w[u, :3, :3])
+            own_v = np.take(own, xs_v)
+            nearer_u = ((r_all < own_v) | ((r_all == own_v) & (u < v))) & (r_all > 0)
+            sel = np.flatnonzero(nearer_u)
+            xs, r_x = np.take(xs_v, sel), np.take(r_all, sel)
+            p_u = np.take(d, sel, axis=0) @ np.ascontiguousarray(prov.c2w[u, :3, :3])
+            fx = np.take(fp, xs)
             for g, kind in enumerate(prov.grids):
                 ci, ri, inside = _nearest_pixel(kind, p_u, h, w)
                 slot = ((u * g_count + g) * h + ri) * w + ci
-                ys = np.where(inside, lookup[slot], -1)
+                ys = np.where(inside, np.take(lookup, slot), -1)
                 ysafe = np.maximum(ys, 0)
-                err = np.abs(own[ysafe] - r_x) / r_x  # y belongs to view u: its own range is its range from u
-                fx, fy = fp[xs], fp[ysafe]
-                ok = (ys >= 0) & (err <= range_tol) & (err < best_err[xs])
+                err = np.abs(np.take(own, ysafe) - r_x) / r_x  # y belongs to view u: its own range is its range from u
+                fy = np.take(fp, ysafe)
+                ok = (ys >= 0) & (err <= range_tol) & (err < np.take(best_err, xs))
                 ok &= np.maximum(fx, fy) <= footprint_ratio * np.minimum(fx, fy)
                 best[xs[ok]] = ys[ok]
                 best_err[xs[ok]] = err[ok]
@@ -347,7 +361,7 @@ def cap_keep_mask(gaussians: Gaussians, prov: Provenance, alive: np.ndarray, cou
     idx = np.flatnonzero(alive)
     if count >= idx.size:
         return alive.copy()
-    view = prov.decode(len(gaussians))[0]
+    view = _view_of(prov, len(gaussians))
     rng = np.maximum(_ranges_from_own_camera(gaussians, view, prov.c2w), 1e-9)
     score = gaussians.opacities.astype(np.float64) * (footprint(gaussians) / rng) ** 2
     keep = np.zeros(len(gaussians), dtype=bool)
@@ -462,18 +476,7 @@ def _sym3_eigvals(s6: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
     Closed form (trigonometric roots of the characteristic polynomial),
     many times faster than ``np.linalg.eigh`` on small stacked matrices.
     """
-    xx, yy, zz, xy, xz, yz = (s6[:, k] for k in range(6))
-    q = (xx + yy + zz) / 3.0
-    p2 = (xx - q) ** 2 + (yy - q) ** 2 + (zz - q) ** 2 + 2.0 * (xy * xy + xz * xz + yz * yz)
-    p = np.sqrt(p2 / 6.0)
-    inv = np.where(p > 0, 1.0 / np.where(p > 0, p, 1.0), 0.0)
-    bxx, byy, bzz = (xx - q) * inv, (yy - q) * inv, (zz - q) * inv
-    bxy, bxz, byz = xy * inv, xz * inv, yz * inv
-    det = bxx * (byy * bzz - byz * byz) - bxy * (bxy * bzz - byz * bxz) + bxz * (bxy * byz - byy * bxz)
-    phi = np.arccos(np.clip(det / 2.0, -1.0, 1.0)) / 3.0
-    lo = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    hi = q + 2.0 * p * np.cos(phi)
-    return lo, 3.0 * q - lo - hi, hi, p
+    return _eigvals_c(*(s6[:, k] for k in range(6)))
 
 
 def _smallest_eigenpair(s6: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -532,55 +535,205 @@ def _combine(u: _Units, members: np.ndarray) -> _Units:
                   np.minimum.reduce([p.amin for p in parts]), np.maximum.reduce([p.amax for p in parts]))
 
 
-def _level1_units(gaussians: Gaussians, members: np.ndarray, cam: np.ndarray, colour_tol: float,
-                  opacity_tol: float, plane_tol: float, cos_incidence: float,
-                  pitch: float) -> tuple[np.ndarray, _Units]:
-    """Which 2x2 blocks of Gaussians ``members`` (m, 4) merge, and their units (for those that do)."""
-    dc = gaussians.sh[:, 0, :]
-    c = [dc[members[:, k]] for k in range(4)]
-    cmin, cmax = np.minimum.reduce(c), np.maximum.reduce(c)
-    ok = _max3(cmax - cmin) <= np.float32(colour_tol / SH_C0)  # colour tolerance in DC units
-    o = [gaussians.opacities[members[:, k]] for k in range(4)]
-    amin, amax = np.minimum.reduce(o), np.maximum.reduce(o)
+def _rows4(a: np.ndarray) -> np.ndarray:
+    """a[0] + a[1] + a[2] + a[3] in that order (the same rounding as summing four member arrays one by one)."""
+    return a[0] + a[1] + a[2] + a[3]
+
+
+def _eigvals_c(xx, yy, zz, xy, xz, yz):
+    """:func:`_sym3_eigvals` on the six components as separate arrays."""
+    q = (xx + yy + zz) / 3.0
+    p2 = (xx - q) ** 2 + (yy - q) ** 2 + (zz - q) ** 2 + 2.0 * (xy * xy + xz * xz + yz * yz)
+    p = np.sqrt(p2 / 6.0)
+    inv = np.where(p > 0, 1.0 / np.where(p > 0, p, 1.0), 0.0)
+    bxx, byy, bzz = (xx - q) * inv, (yy - q) * inv, (zz - q) * inv
+    bxy, bxz, byz = xy * inv, xz * inv, yz * inv
+    det = bxx * (byy * bzz - byz * byz) - bxy * (bxy * bzz - byz * bxz) + bxz * (bxy * byz - byy * bxz)
+    phi = np.arccos(np.clip(det / 2.0, -1.0, 1.0)) / 3.0
+    lo = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    hi = q + 2.0 * p * np.cos(phi)
+    return lo, 3.0 * q - lo - hi, hi, p
+
+
+def _plane_ok_c(wsafe, mux, muy, muz, m2, plane_tol: float, cos_incidence: float) -> np.ndarray:
+    """:func:`_plane_ok` on component arrays (bit for bit the same decisions), eigenvectors only where needed.
+
+    m2: six (m,) component arrays of the scatter. The cheap tests (spread, repeated eigenvalue, residual)
+    run first; the normal (cross products of rows of A - lambda I) only for the blocks that pass them.
+    """
+    xx, yy, zz, xy, xz, yz = (c / wsafe for c in m2)
+    lam, mid, _, p = _eigvals_c(xx, yy, zz, xy, xz, yz)
+    rng = np.sqrt(mux * mux + muy * muy + muz * muz)
+    ok = (p > 0) & (mid - lam > 1e-9 * p) & (rng > 0) & (np.maximum(lam, 0.0) <= (plane_tol * rng) ** 2)
+    i = np.flatnonzero(ok)
+    lam, xx, yy, zz, xy, xz, yz = (a[i] for a in (lam, xx, yy, zz, xy, xz, yz))
+    r0 = (xx - lam, xy, xz)
+    r1 = (xy, yy - lam, yz)
+    r2 = (xz, yz, zz - lam)
+
+    def cross(a, b):
+        return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+    cands = (cross(r0, r1), cross(r0, r2), cross(r1, r2))
+    norms = [c[0] * c[0] + c[1] * c[1] + c[2] * c[2] for c in cands]
+    # argmax, first of equal maxima
+    best1 = norms[1] > norms[0]
+    nmax = np.where(best1, norms[1], norms[0])
+    best2 = norms[2] > nmax
+    nb2 = np.where(best2, norms[2], nmax)
+    vec = [np.where(best2, cands[2][k], np.where(best1, cands[1][k], cands[0][k])) for k in range(3)]
+    nb = np.sqrt(nb2)
+    nbs = np.where(nb > 0, nb, 1.0)
+    mux, muy, muz, rng = mux[i], muy[i], muz[i], rng[i]
+    dot = (vec[0] / nbs) * mux + (vec[1] / nbs) * muy + (vec[2] / nbs) * muz
+    cos_inc = np.abs(dot) / rng
+    ok[i] = (nb > 0) & (cos_inc >= cos_incidence)
+    return ok
+
+
+def _block_views(a: np.ndarray, p: int, h: int, w: int) -> list[np.ndarray]:
+    """The four (P, h//2, w//2, ...) views of a full-layout array (member order of :func:`_blocks`)."""
+    h2, w2 = h // 2, w // 2
+    b = a.reshape((p, h, w) + a.shape[1:])[:, : 2 * h2, : 2 * w2].reshape((p, h2, 2, w2, 2) + a.shape[1:])
+    return [b[:, :, i, :, j] for i in range(2) for j in range(2)]
+
+
+@lru_cache(maxsize=8)
+def _block_tops(p: int, h: int, w: int) -> np.ndarray:
+    """(P * (h//2) * (w//2),) layout position of each 2x2 block's top-left pixel (read-only, cached)."""
+    tops = (np.arange(p)[:, None, None] * h + 2 * np.arange(h // 2)[None, :, None]) * w + 2 * np.arange(w // 2)
+    tops = tops.reshape(-1).astype(np.int64)
+    tops.setflags(write=False)
+    return tops
+
+
+def _block_min_max(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Min and max over each 2x2 block of (3 P, h, w) colour planes, as (3, P * (h//2) * (w//2)).
+
+    Row pairs first (contiguous inner loops), then column pairs; min / max are exact, so the order
+    does not change the result.
+    """
+    c, h, w = a.shape
+    h2, w2 = h // 2, w // 2
+    r = a[:, : 2 * h2, : 2 * w2].reshape(c, h2, 2, 2 * w2)
+    lo, hi = np.minimum(r[:, :, 0], r[:, :, 1]), np.maximum(r[:, :, 0], r[:, :, 1])
+    lo = np.minimum(lo[..., 0::2], lo[..., 1::2])
+    hi = np.maximum(hi[..., 0::2], hi[..., 1::2])
+    return lo.reshape(3, -1), hi.reshape(3, -1)
+
+
+def _level1_merge(gaussians: Gaussians, prov: Provenance, alive: np.ndarray, colour_tol: float, opacity_tol: float,
+                  plane_tol: float, cos_incidence: float, pitch: float):
+    """2x2 blocks that merge: (block ids into the (P, H/2, W/2) block grid, their units, (m, 4) member indices).
+
+    The colour, opacity and all-alive tests run on the block-reshaped layout
+    (no per-pixel gathers); only the blocks passing them are gathered, in
+    member-major float64 component arrays, and the plane test's eigenvectors
+    and the covariance / SH / optical-depth sums are computed only for the
+    blocks that get that far. Same decisions and sums as the per-block
+    formulas in :class:`_Units` (the same float64 operations in the same order).
+    """
+    n = len(gaussians)
+    n_grids, h, w = prov.views * len(prov.grids), prov.height, prov.width
+    sh = gaussians.sh
+    if prov.index is None:
+        prov.flat_index(n)
+        slot = None
+        al, op = alive, gaussians.opacities
+        dct = np.ascontiguousarray(sh[:, 0, :].T)  # (3, N) colour channel-major (long inner loops)
+    else:
+        flat = prov.flat_index(n)
+        slot = np.full(prov.full_count, -1, dtype=np.int64)
+        slot[flat[alive]] = np.flatnonzero(alive)
+        al = slot >= 0
+        dct = np.zeros((3, prov.full_count), dtype=np.float32)
+        dct[:, flat] = sh[:, 0, :].T
+        op = np.zeros(prov.full_count, dtype=np.float32)
+        op[flat] = gaussians.opacities
+    a4 = _block_views(al, n_grids, h, w)
+    ok = a4[0] & a4[1] & a4[2] & a4[3]
+    o4 = _block_views(op, n_grids, h, w)
+    amin = np.minimum(np.minimum(np.minimum(o4[0], o4[1]), o4[2]), o4[3])
+    amax = np.maximum(np.maximum(np.maximum(o4[0], o4[1]), o4[2]), o4[3])
     ok &= amax - amin <= np.float32(opacity_tol)
-    idx = np.flatnonzero(ok)
-    m, cam = members[idx], cam[idx]
-    # weights and positions (camera-relative) of the four members
-    a, area, pos = [], [], []
-    for k in range(4):
-        g = m[:, k]
-        sc = gaussians.scales[g].astype(np.float64)
-        area.append(sc[:, 0] * sc[:, 1] * sc[:, 2] / np.maximum(_min3(sc), 1e-300))  # two largest
-        a.append(gaussians.opacities[g].astype(np.float64))
-        pos.append(gaussians.means[g].astype(np.float64) - cam)
-    wk = [a[k] * area[k] for k in range(4)]
-    w = sum(wk)
-    wsafe = np.where(w > 0, w, 1.0)
-    mu = sum(wk[k][:, None] * pos[k] for k in range(4)) / wsafe[:, None]
-    m2 = sum(_outer6(pos[k] - mu, wk[k]) for k in range(4))
-    good = (w > 0) & _plane_ok(wsafe, mu, m2, plane_tol, cos_incidence)
+    cmin, cmax = _block_min_max(dct.reshape(3 * n_grids, h, w))
+    crange = cmax - cmin
+    ok &= (np.maximum(np.maximum(crange[0], crange[1]), crange[2]) <= np.float32(colour_tol / SH_C0)).reshape(
+        ok.shape)  # colour tolerance in DC units
+    blk = np.flatnonzero(ok)
+    top = _block_tops(n_grids, h, w)[blk]  # layout position of each candidate's top-left pixel
+    plane = top // (h * w)
+    mem = np.stack([top, top + 1, top + w, top + w + 1])  # (4, m) layout positions
+    if slot is not None:
+        mem = slot[mem]
+    cams = np.repeat(prov.c2w[:, :3, 3], len(prov.grids), axis=0)
+    parts = [_level1_chunk(gaussians, mem[:, i:i + _CHUNK], cams[plane[i:i + _CHUNK]], plane_tol, cos_incidence, pitch)
+             for i in range(0, blk.size, _CHUNK)]
+    sel = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, bool)
+    b = blk[sel]
+    k = gaussians.sh.shape[1]
+    cat = (lambda j, shape: np.concatenate([p[j] for p in parts]) if parts else np.zeros(shape))
+    units = _Units(cat(1, (0,)), cat(2, (0, 3)), cat(3, (0, 6)), cat(4, (0, 6)), cat(5, (0, k, 3)), cat(6, (0,)),
+                   cmin[:, b].T.astype(np.float64), cmax[:, b].T.astype(np.float64),
+                   amin.reshape(-1)[b].astype(np.float64), amax.reshape(-1)[b].astype(np.float64))
+    return b, units, mem[:, sel].T
+
+
+#: Candidate blocks per chunk of :func:`_level1_chunk` (its float64 temporaries then stay in the CPU cache).
+_CHUNK = 16384
+
+
+def _level1_chunk(gaussians: Gaussians, mem: np.ndarray, cam: np.ndarray, plane_tol: float, cos_incidence: float,
+                  pitch: float):
+    """Plane test and moment sums of candidate 2x2 blocks with member indices ``mem`` (4, m).
+
+    Returns (ok mask (m,), and for the blocks that merge: w, mu (., 3), m2 (., 6), weighted covariance
+    sum (., 6), weighted SH sum (., K, 3), optical depth sum), the same float64 arithmetic as
+    :func:`_outer6` / :func:`_plane_ok` / :func:`quat_to_rotmat` / :func:`_render_area` per member.
+    """
+    sc = np.take(gaussians.scales, mem, axis=0)  # (4, m, 3) float32 (np.take: faster than fancy indexing)
+    s0, s1, s2 = (sc[..., k].astype(np.float64) for k in range(3))
+    area = s0 * s1 * s2 / np.maximum(np.minimum(np.minimum(s0, s1), s2), 1e-300)  # two largest
+    opa = np.take(gaussians.opacities, mem).astype(np.float64)
+    wk = opa * area
+    mp = np.take(gaussians.means, mem, axis=0)
+    px, py, pz = (mp[..., k] - cam[:, k] for k in range(3))  # float64, camera-relative
+    wt = _rows4(wk)
+    wsafe = np.where(wt > 0, wt, 1.0)
+    mux, muy, muz = (_rows4(wk * pc) / wsafe for pc in (px, py, pz))
+    dx, dy, dz = px - mux, py - muy, pz - muz
+    tx, ty = wk * dx, wk * dy
+    m2 = [_rows4(tx * dx), _rows4(ty * dy), _rows4((wk * dz) * dz), _rows4(tx * dy), _rows4(tx * dz), _rows4(ty * dz)]
+    good = (wt > 0) & _plane_ok_c(wsafe, mux, muy, muz, m2, plane_tol, cos_incidence)
     sel = np.flatnonzero(good)
-    m = m[sel]
-    flat = m.T.ravel()  # member-major: all first members, then all second, ...
-    sub = gaussians.subset(flat)
-    rot = quat_to_rotmat(sub.quats)
-    rs = rot * (sub.scales.astype(np.float64) ** 2)[:, None, :]
-    cov_all = np.stack([_sum3(rs[:, i, :] * rot[:, j, :]) for i, j in _SYM], axis=1)
-    sh_all = sub.sh.astype(np.float64)
-    nsel = sel.size
-    w_all = np.concatenate([wk[k][sel] for k in range(4)])
-    rng_all = np.sqrt(np.concatenate([_sum3(pos[k][sel] ** 2) for k in range(4)]))
-    sc_all = sub.scales.astype(np.float64)
-    depth_all = _render_area(sc_all, rng_all * pitch) * opacity_depth(sub.opacities.astype(np.float64))
-
-    def per_block(x):
-        return x.reshape((4, nsel) + x.shape[1:]).sum(0)
-
-    units = _Units(w[sel], mu[sel], m2[sel], per_block(w_all[:, None] * cov_all),
-                   per_block(w_all[:, None, None] * sh_all), per_block(depth_all),
-                   cmin[idx[sel]].astype(np.float64), cmax[idx[sel]].astype(np.float64),
-                   amin[idx[sel]].astype(np.float64), amax[idx[sel]].astype(np.float64))
-    return idx[sel], units
+    m = mem[:, sel]
+    wk, s0, s1, s2, opa, px, py, pz = (np.take(a, sel, axis=1) for a in (wk, s0, s1, s2, opa, px, py, pz))
+    # member covariances R diag(s^2) R^T (quat_to_rotmat's arithmetic, component by component)
+    q = np.take(gaussians.quats, m, axis=0)  # (4, ms, 4) float32
+    qw, qx, qy, qz = (q[..., k].astype(np.float64) for k in range(4))
+    qn = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)  # np.linalg.norm's order
+    if (qn > 1e-12).all():
+        qw, qx, qy, qz = qw / qn, qx / qn, qy / qn, qz / qn
+    else:
+        nz, qs = qn > 1e-12, np.maximum(qn, 1e-12)
+        qw, qx, qy, qz = (np.where(nz, c / qs, d) for c, d in ((qw, 1.0), (qx, 0.0), (qy, 0.0), (qz, 0.0)))
+    r = ((1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)),
+         (2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)),
+         (2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)))
+    ss = (s0 ** 2, s1 ** 2, s2 ** 2)
+    rs = [[r[i][k] * ss[k] for k in range(3)] for i in range(3)]
+    cov = np.empty((m.shape[1], 6))
+    for c, (i, j) in enumerate(_SYM):
+        cov[:, c] = _rows4(wk * (rs[i][0] * r[j][0] + rs[i][1] * r[j][1] + rs[i][2] * r[j][2]))
+    shs = _rows4(wk[..., None, None] * np.take(gaussians.sh, m, axis=0).astype(np.float64))
+    rng = np.sqrt(px ** 2 + py ** 2 + pz ** 2)
+    s_max = np.maximum(np.maximum(s0, s1), s2)
+    s_min = np.minimum(np.minimum(s0, s1), s2)
+    s_mid = s0 + s1 + s2 - s_max - s_min
+    low = COVERAGE_LOW_PASS * (rng * pitch) ** 2
+    depth = _rows4(np.sqrt((s_mid**2 + low) * (s_max**2 + low)) * opacity_depth(opa))
+    return (good, wt[sel], np.stack([mux[sel], muy[sel], muz[sel]], axis=1), np.stack([c[sel] for c in m2], axis=1),
+            cov, shs, depth)
 
 
 #: Screen-space low-pass (pixel^2) assumed when matching coverage: half the renderer's 0.3
@@ -633,6 +786,47 @@ def _needed_depth(u: _Units, pitch: float, side: int = 1) -> np.ndarray:
     return u.depth / np.maximum(_render_area(sig, rng * pitch), 1e-300)
 
 
+def _scale_rotation6(cov6: np.ndarray, min_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`rasterizer.gaussians.scale_rotation_from_covariance` of covariances given as 6 components.
+
+    The same eigen-decomposition (``np.linalg.eigh``, so the same eigenvector
+    signs and quaternions); the reflection test uses the triple product of
+    the orthonormal eigenvectors instead of an LU determinant (same sign).
+    """
+    evals, r = np.linalg.eigh(_sym_full(cov6))
+    det = (r[:, 0, 0] * (r[:, 1, 1] * r[:, 2, 2] - r[:, 1, 2] * r[:, 2, 1])
+           - r[:, 0, 1] * (r[:, 1, 0] * r[:, 2, 2] - r[:, 1, 2] * r[:, 2, 0])
+           + r[:, 0, 2] * (r[:, 1, 0] * r[:, 2, 1] - r[:, 1, 1] * r[:, 2, 0]))
+    r[:, :, 2] *= np.where(det < 0, -1.0, 1.0)[:, None]
+    return np.sqrt(np.maximum(evals, min_scale**2)), _rotmat_to_quat(r)
+
+
+def _rotmat_to_quat(r: np.ndarray) -> np.ndarray:
+    """:func:`rasterizer.gaussians.rotmat_to_quat` (the same arithmetic), component by component."""
+    m00, m11, m22 = r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]
+    trace = m00 + m11 + m22
+    d21, d02, d10 = r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]
+    s01, s02, s12 = r[:, 0, 1] + r[:, 1, 0], r[:, 0, 2] + r[:, 2, 0], r[:, 1, 2] + r[:, 2, 1]
+    cand = ((1 + trace, d21, d02, d10),
+            (d21, 1 + m00 - m11 - m22, s01, s02),
+            (d02, s01, 1 - m00 + m11 - m22, s12),
+            (d10, s02, s12, 1 - m00 - m11 + m22))
+    # argmax over (trace, m00, m11, m22), the first of equal maxima
+    which = np.zeros(trace.shape, dtype=np.intp)
+    cur = trace
+    for k, d in ((1, m00), (2, m11), (3, m22)):
+        gt = d > cur
+        which[gt] = k
+        cur = np.where(gt, d, cur)
+    q = [np.choose(which, [c[k] for c in cand]) for k in range(4)]
+    norm = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    sign = np.where(q[0] / norm < 0, -1.0, 1.0)
+    out = np.empty(trace.shape + (4,))
+    for k in range(4):
+        out[:, k] = q[k] / norm * sign
+    return out
+
+
 def merged_gaussians(u: _Units, cam: np.ndarray, pitch: float, side: int = 2) -> Gaussians:
     """One Gaussian per block: moment-matched mean and covariance, mean colour, coverage-preserving opacity.
 
@@ -653,9 +847,8 @@ def merged_gaussians(u: _Units, cam: np.ndarray, pitch: float, side: int = 2) ->
     """
     w = u.w[:, None]
     mu = u.mu
-    cov = _sym_full(_merged_cov6(u, side))
     rng = np.sqrt(_sum3(mu * mu))
-    scales, quats = scale_rotation_from_covariance(cov, min_scale=1e-12)
+    scales, quats = _scale_rotation6(_merged_cov6(u, side), min_scale=1e-12)
     scales = np.maximum(scales, 1e-9 * rng[:, None])  # no zero scale (log-scale in the PLY)
     need = u.depth / np.maximum(_render_area(scales, rng * pitch), 1e-300)
     return Gaussians(mu + cam, scales, quats, opacity_for_depth(need), u.sh / w[..., None])
@@ -698,50 +891,47 @@ def smooth_merge_blocks(gaussians: Gaussians, prov: Provenance, alive: np.ndarra
     degrees kept the merge within 0.03 dB of no merge on every target.
     """
     n = len(gaussians)
-    flat = prov.flat_index(n)
     n_grids = prov.views * len(prov.grids)
     h, w = prov.height, prov.width
     cam_of_plane = np.repeat(prov.c2w[:, :3, 3], len(prov.grids), axis=0)  # (P, 3)
-    slot = np.full(prov.full_count, -1, dtype=np.int64)
-    slot[flat[alive]] = np.flatnonzero(alive)
-    ids = slot.reshape(n_grids, h, w)
     cos_inc = float(np.cos(np.radians(max_incidence_deg)))
     pitch = (np.pi if prov.grids[0] == "erp" else 2 * geo.YIN_LAT_MAX) / h  # angular pixel pitch
     per_level: list[tuple[np.ndarray, _Units, np.ndarray]] = []  # (block ids map, units, children ids)
+    ids_shape = (n_grids, h, w)
     for level in range(1, int(levels) + 1):
-        if ids.shape[1] < 2 or ids.shape[2] < 2:
+        if ids_shape[1] < 2 or ids_shape[2] < 2:
             break
-        blocks = _blocks(ids)
-        shape = blocks.shape[:3]
-        blocks = blocks.reshape(-1, 4)
-        cand = np.flatnonzero(np.all(blocks >= 0, axis=1))
-        cam = cam_of_plane[cand // (shape[1] * shape[2])]
+        shape = (ids_shape[0], ids_shape[1] // 2, ids_shape[2] // 2)
         if level == 1:
-            sel, units = _level1_units(gaussians, blocks[cand], cam, colour_tol, opacity_tol, plane_tol, cos_inc,
-                                       pitch)
+            # children: the (m, 4) input indices of each merged block's pixels
+            chosen, units, children = _level1_merge(gaussians, prov, alive, colour_tol, opacity_tol, plane_tol,
+                                                    cos_inc, pitch)
         else:
-            prev = per_level[-1][1]
-            u = _combine(prev, blocks[cand])
+            ids = np.full(ids_shape[0] * ids_shape[1] * ids_shape[2], -1, dtype=np.int64)
+            ids[per_level[-1][0]] = np.arange(per_level[-1][0].size)
+            blocks = _blocks(ids.reshape(ids_shape)).reshape(-1, 4)
+            cand = np.flatnonzero(np.all(blocks >= 0, axis=1))
+            u = _combine(per_level[-1][1], blocks[cand])
             ok = ((_max3(u.cmax - u.cmin) <= np.float32(colour_tol / SH_C0))
                   & (u.amax - u.amin <= np.float32(opacity_tol)) & (u.w > 0))
             ok &= _plane_ok(np.where(u.w > 0, u.w, 1.0), u.mu, u.m2, plane_tol, cos_inc)
             sel = np.flatnonzero(ok)
             units = u.take(sel)
-        if level >= 2 and sel.size:
-            # 4x4 and up only where one Gaussian can carry the block's optical depth (see merged_gaussians)
-            fine = _needed_depth(units, pitch, 2**level) <= _LI2_Y[-1]
-            sel, units = sel[fine], units.take(fine)
-        chosen = cand[sel]
-        new_ids = np.full(blocks.shape[0], -1, dtype=np.int64)
-        new_ids[chosen] = np.arange(chosen.size)
-        per_level.append((chosen, units, blocks[chosen]))
-        ids = new_ids.reshape(shape)
+            if sel.size:
+                # 4x4 and up only where one Gaussian can carry the block's optical depth (see merged_gaussians)
+                fine = _needed_depth(units, pitch, 2**level) <= _LI2_Y[-1]
+                sel, units = sel[fine], units.take(fine)
+            chosen = cand[sel]
+            children = blocks[chosen]
+        per_level.append((chosen, units, children))
+        ids_shape = shape
         if chosen.size == 0:
             break
     # top-down: a block absorbed into a merged parent is not emitted itself
     drop = np.zeros(n, dtype=bool)
     parts, index, side, counts = [], [], [], {}
     absorbed = None
+    slot = None
     for level in range(len(per_level), 0, -1):
         chosen, units, children = per_level[level - 1]
         emit = np.ones(chosen.size, dtype=bool) if absorbed is None else ~absorbed
@@ -750,7 +940,8 @@ def smooth_merge_blocks(gaussians: Gaussians, prov: Provenance, alive: np.ndarra
         plane, pix = np.divmod(chosen[emit], hl * wl)
         bi, bj = np.divmod(pix, wl)
         if emit.any():
-            parts.append(merged_gaussians(units.take(emit), cam_of_plane[plane], pitch, bs))
+            parts.append(merged_gaussians(units if absorbed is None else units.take(emit), cam_of_plane[plane],
+                                          pitch, bs))
             index.append((plane * h + bi * bs) * w + bj * bs)
             side.append(np.full(int(emit.sum()), bs, dtype=np.int64))
         counts[bs] = int(emit.sum())
@@ -758,7 +949,12 @@ def smooth_merge_blocks(gaussians: Gaussians, prov: Provenance, alive: np.ndarra
             absorbed = np.zeros(per_level[level - 2][0].size, dtype=bool)
             absorbed[children.ravel()] = True
         # members of emitted blocks: every pixel of the block in the layout
-        if emit.any():
+        if emit.any() and level == 1:
+            drop[children[emit].ravel()] = True
+        elif emit.any():
+            if slot is None:
+                slot = np.full(prov.full_count, -1, dtype=np.int64)
+                slot[prov.flat_index(n)[alive]] = np.flatnonzero(alive)
             r = (bi[:, None] * bs + np.arange(bs)[None, :])  # (m, bs)
             c = (bj[:, None] * bs + np.arange(bs)[None, :])
             pos = ((plane[:, None, None] * h + r[:, :, None]) * w + c[:, None, :]).ravel()
@@ -790,6 +986,44 @@ class CompactionResult:
     block: np.ndarray
     index: np.ndarray
     stats: dict
+
+
+def _interleave(gaussians: Gaussians, index: np.ndarray, pos: np.ndarray, merged: SmoothMerge):
+    """Kept inputs ``gaussians[index]`` (layout positions ``pos``) and the merged blocks, in layout order.
+
+    The same as concatenating both and a stable argsort by position; when both position lists are
+    already ascending (the usual case) each output row is written once, at its merged place.
+    """
+    m_pos = merged.index
+    if not (np.all(pos[1:] > pos[:-1]) and np.all(m_pos[1:] > m_pos[:-1])):
+        out_g = Gaussians.concatenate([gaussians.subset(index), merged.gaussians])
+        out_pos = np.concatenate([pos, m_pos])
+        out_block = np.concatenate([np.ones(index.size, dtype=np.int64), merged.block])
+        order = np.argsort(out_pos, kind="stable")
+        return out_g.subset(order), out_pos[order], out_block[order]
+    total = index.size + m_pos.size
+    m_slot = np.searchsorted(pos, m_pos, side="right") + np.arange(m_pos.size)  # inputs first on equal positions
+    is_m = np.zeros(total, dtype=bool)
+    is_m[m_slot] = True
+    in_slot = np.flatnonzero(~is_m)
+    mg = merged.gaussians
+    cols = []
+    for f in fields(Gaussians):
+        src, add = getattr(gaussians, f.name), getattr(mg, f.name)
+        if f.name == "sh" and add.shape[1] != src.shape[1]:
+            k = max(add.shape[1], src.shape[1])
+            src = np.pad(src, ((0, 0), (0, k - src.shape[1]), (0, 0)))
+            add = np.pad(add, ((0, 0), (0, k - add.shape[1]), (0, 0)))
+        out = np.empty((total,) + src.shape[1:], dtype=np.float32)
+        out[in_slot] = np.take(src, index, axis=0)
+        out[m_slot] = add
+        cols.append(out)
+    out_pos = np.empty(total, dtype=np.int64)
+    out_pos[in_slot] = pos
+    out_pos[m_slot] = m_pos
+    out_block = np.ones(total, dtype=np.int64)
+    out_block[m_slot] = merged.block
+    return Gaussians(*cols), out_pos, out_block
 
 
 def compact_result(gaussians: Gaussians, provenance: Provenance, options: CompactionOptions | None = None, *,
@@ -856,15 +1090,12 @@ def compact_result(gaussians: Gaussians, provenance: Provenance, options: Compac
 
     t0 = time.perf_counter()
     index = np.flatnonzero(alive)
-    out_g = gaussians.subset(index)
     out_pos = flat[index]
-    out_block = np.ones(index.size, dtype=np.int64)
     if merged is not None and len(merged.gaussians):
-        out_g = Gaussians.concatenate([out_g, merged.gaussians])
-        out_pos = np.concatenate([out_pos, merged.index])
-        out_block = np.concatenate([out_block, merged.block])
-        order = np.argsort(out_pos, kind="stable")
-        out_g, out_pos, out_block = out_g.subset(order), out_pos[order], out_block[order]
+        out_g, out_pos, out_block = _interleave(gaussians, index, out_pos, merged)
+    else:
+        out_g = gaussians.subset(index)
+        out_block = np.ones(index.size, dtype=np.int64)
     out_prov = Provenance(provenance.grids, provenance.height, provenance.width, provenance.c2w, out_pos)
     seconds["assemble"] = round(time.perf_counter() - t0, 4)
 
