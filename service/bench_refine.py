@@ -149,35 +149,31 @@ NOTES = [
     "with a line search over the scale of the update (0, 1/8, 1/4, 1/2, 3/4, 1: a single-reference update "
     "overshoots, nothing averages it with the other view). No step/scale lowering the cross-view MSE = "
     "reject: the unrefined colours are returned. Otherwise the usual two-reference solve runs (held-out early "
-    "stop). The relative cross-view changes above separate the scenes: m3d about -2% at scale 1/8 (accept), "
-    "zind_room09 positive at every step and scale (reject). Without the line search (full single-reference "
-    "update) m3d was +50% too and would have been rejected; fitting only the Gaussians seen by both "
-    "references (`cross_covis`) changed the curves by < 1% and is off.",
-    "* Miss: zind_room09 split 1 (references pano_4, pano_5) gains +0.15 dB unguarded (best step 1) but "
-    "its cross-view change is positive (+0.6% at best) and the guard rejects it. The guard never lost "
-    "against unrefined here; it gave up this small gain.",
-    "* Extra seconds (loaded machine, noisy): the guard is ~2 x 3 single-reference CG steps plus "
-    "line-search products, 7-10 s here at the default cap (4-6 s at cap 1: one step each); refinement "
-    "seconds at the default cap, guarded vs unguarded: m3d 10.7 vs 4.2 (accept), zind split 0 8.6 vs 6.2, "
-    "split 1 9.4 vs 4.8 (reject: the final solve is skipped). `cross_steps=1` would halve it; the "
-    "decision was the same at 1 step on all three (see the cap 1 lines).",
+    "stop). Each split's relative cross-view changes and decision are listed above. Fitting only the "
+    "Gaussians seen by both references (`cross_covis`) changed the curves by < 1% (encoder 0.2.0) and is off.",
+    "* Guarded against unguarded: compare each split's table with its 'unguarded' line. The guard is "
+    "conservative: when it rejects, +opt returns the unrefined colours, even where the unguarded fit would "
+    "have gained at the targets; where the unguarded fit loses at the targets it protects them. (With "
+    "encoder 0.2.0 it accepted on m3d_bedroom for +1.00 dB; with encoder 0.5.0 it rejected all three splits.)",
+    "* Extra seconds (noisy): the guard is ~2 x `cross_steps` single-reference CG steps plus line-search "
+    "products; a rejected guard skips the final two-reference solve. See the seconds column.",
     "* Loss variants (one IRLS re-weighting of the fitted pixels by their initial residual, guarded): Huber "
-    "(delta 0.1) and L1 (IRLS floor 0.01) both lose to L2 at the m3d target; L2 stays the default (`loss`).",
-    "* Held-out reference pixels alone (unguarded) cannot see wrong geometry: on zind_room09 the held-out "
-    "loss falls ~10x while the targets lose ~0.8 dB.",
+    "(delta 0.1) and L1 (IRLS floor 0.01); with encoder 0.2.0 both lost to L2 at the m3d target, so L2 stays "
+    "the default (`loss`).",
+    "* Held-out reference pixels alone (unguarded) cannot see wrong geometry: their loss keeps falling "
+    "while the targets can lose (zind_room09 split 0 unguarded).",
     "* Iteration = one Jacobi-preconditioned CG step on the normal equations of the L2 colour fit "
-    "(colour_reg = 2 x the mean data weight); the held-out early stop picks step 1 on m3d.",
-    "* The encoder model is re-exported by the bench (other engineers change export/): the unrefined m3d "
-    "PSNR is 23.94 here vs 23.15 in the previous version of this page, and the refinement gain +1.00 dB vs "
-    "+1.62 dB then. Earlier measurements (opacity Adam: no gain over the colour step, ~3 s per iteration; "
-    "h = 256: +0.01 SSIM for ~2x the time) were not repeated.",
+    "(colour_reg = 2 x the mean data weight).",
+    "* The encoder model is the shipped quality preset, re-exported whenever export/ changes (cache key = "
+    "exporter source hash). Earlier measurements (opacity Adam: no gain over the colour step, ~3 s per "
+    "iteration; h = 256: +0.01 SSIM for ~2x the time) were not repeated.",
 ]
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="omnisplat bench refine", description=__doc__.splitlines()[0])
     ap.add_argument("--data", nargs="+", type=Path, default=DEFAULT_DATA)
-    ap.add_argument("--model", type=Path, default=None, help="ONNX model (default: a 512x1024 bench model)")
+    ap.add_argument("--model", type=Path, default=None, help="ONNX model (default: the shipped 512x1024 quality-preset model)")
     ap.add_argument("--iterations", nargs="+", type=int, default=list(DEFAULT_ITERATIONS))
     ap.add_argument("--height", type=int, default=128, help="Yin/Yang working height")
     ap.add_argument("--colour-reg", type=float, default=2.0)
@@ -191,8 +187,10 @@ def main(argv: list[str] | None = None) -> int:
 
     model = args.model
     if model is None:
+        from export.config import PRESETS
+
         from .bench_models import ensure_model
-        model = ensure_model(512, 1024, 32, log=_log)
+        model = ensure_model(512, 1024, PRESETS["quality"]["num_planes"], log=_log)  # the shipped default
     encoder = OnnxEncoder(model, threads=args.threads)
     options = {"colour_reg": args.colour_reg}
     variants = {} if args.no_variants else VARIANTS
