@@ -75,9 +75,12 @@ class CompactionOptions:
 
     min_opacity: float = 1.0 / 255.0
     min_confidence: float = 0.0
-    resolve_overlap: str = "split"
-    merge_duplicates: bool = True
-    duplicate_range_tol: float = 0.05  # 0.1 cost 0.56 dB on m3d with the quality encoder; 0.05 stays within 0.2 dB
+    # Off by default since encoder 0.5.0 (Gaussians of 0.5 pixel pitches): on the dev splits the overlap
+    # step cost up to 0.52 dB (zind pano_5) and the duplicate step 0.66 dB (m3d) at the targets, while
+    # the smooth merge alone stays within 0.02 dB (docs/bench/compaction.md).
+    resolve_overlap: str = "off"
+    merge_duplicates: bool = False
+    duplicate_range_tol: float = 0.05  # 0.1 cost 0.56 dB on m3d with encoder 0.2.0; 0.05 stayed within 0.2 dB then
     duplicate_footprint_ratio: float = 4.0
     merge_smooth: bool = True
     # 2x2 blocks only. 2 (also 4x4) left 3-16% fewer Gaussians on the dev scenes, but rendered 1-5 dB

@@ -10,7 +10,8 @@ view); and the two-pass adaptive near/far (seconds, PSNR, depth AbsRel on
 m3d GT). Sources: the real encoder (the shipped 512x1024 "quality" preset from the
 bench model cache, :func:`service.bench_models.ensure_model`, or ``--model``) and, where a scene has depth, GT-depth
 Gaussians in the same grid layout. Writes compaction.json / compaction.md and, with
-``--readme``, the README's marked compaction block (default against none, per split).
+``--readme``, the README's marked compaction block (the shipped default and the other step sets
+against none, per split).
 Render timings are the best of RENDER_REPEATS round-robin runs over the variants (noisy on a shared
 machine; the report gives the load average); render contributions are the load-free measure of render cost.
 """
@@ -52,7 +53,8 @@ def _log(msg: str) -> None:
 
 
 def variants(n: int) -> dict[str, CompactionOptions]:
-    """Each step alone, all defaults (with and without the smooth merge, and with 4x4 blocks),
+    """Each step alone, the shipped default, every step on (with and without the smooth merge, and with
+    4x4 blocks),
     and a 60% count cap with and without the rest."""
     off = CompactionOptions.off()
     cap = int(0.6 * n)
@@ -68,9 +70,10 @@ def variants(n: int) -> dict[str, CompactionOptions]:
         "duplicates": only(merge_duplicates=True),
         "smooth": only(merge_smooth=True),
         "cap60": only(max_count=cap),
-        "all_but_smooth": CompactionOptions(merge_smooth=False),
+        "all_but_smooth": CompactionOptions(resolve_overlap="split", merge_duplicates=True, merge_smooth=False),
+        "all_steps": CompactionOptions(resolve_overlap="split", merge_duplicates=True),
         "all": CompactionOptions(),
-        "all_smooth4x4": CompactionOptions(smooth_levels=2),
+        "all_smooth4x4": CompactionOptions(resolve_overlap="split", merge_duplicates=True, smooth_levels=2),
         "all+cap60": CompactionOptions(max_count=cap),
     }
 
@@ -317,7 +320,7 @@ def markdown(results: dict) -> str:
         res = e["sources"].get("encoder")
         if res is None:
             continue
-        for name in ("all_but_smooth", "all", "all_smooth4x4"):
+        for name in ("all_but_smooth", "all_steps", "all", "all_smooth4x4"):
             v = res["variants"].get(name)
             if v is None:
                 continue
@@ -352,16 +355,17 @@ def markdown(results: dict) -> str:
               "of one grid, all present, DC colour within `smooth_colour_tol`, opacity within "
               "`smooth_opacity_tol`, on a plane within `smooth_plane_tol` x range seen at most "
               "`smooth_max_incidence_deg` off its normal -> one moment-matched Gaussian keeping the block's "
-              "optical depth; `all_smooth4x4` also merges 4x4 blocks), `max_count`/`max_bytes` cap. "
-              "'all' = the shipped default, 'all_but_smooth' = the default before the smooth merge.",
+              "optical depth; `all_smooth4x4` = `all_steps` with 4x4 blocks too), `max_count`/`max_bytes` cap. "
+              "'all' = the shipped default (min opacity + smooth merge); 'all_steps' = overlap, duplicates and "
+              "smooth merge; 'all_but_smooth' = overlap and duplicates (the default before encoder 0.5.0).",
               "* Smooth merge: the merged opacity keeps the block's optical depth (A' Li2(a') = sum A_i Li2(a_i), "
               "footprint areas with half the renderer's low-pass at the grid's pixel size); it saturates at 0.99 "
               "for opaque 2x2 blocks (about 93% coverage between merged Gaussians at the grid's resolution; the "
               "ERP and service renders divide colour by alpha). 4x4 blocks (`smooth_levels` 2) merge only where "
               "one Gaussian keeps the optical depth, widened in-plane to 0.45 of their size against lattice "
               "ripple. The incidence limit is what keeps the PSNR: on zind pano_5 (2x2 blocks, against the "
-              "default without the merge) 75 / 60 / 45 degrees cost -0.12 / -0.09 / -0.00 dB; opacity and "
-              "colour tolerances mattered much less.",
+              "overlap and duplicate steps alone, encoder 0.3.0 at 32 planes) 75 / 60 / 45 degrees cost -0.12 / "
+              "-0.09 / -0.00 dB; opacity and colour tolerances mattered much less.",
               "* `min_confidence` (off by default) and the cap punch holes with the training-free encoder: "
               "unconfident pixels are whole regions (walls without texture), not scattered noise.",
               "* Culling: `rasterizer.render_cull.cull_for_camera` (near, frustum/domain widened by 3 sigma, "
@@ -372,11 +376,11 @@ def markdown(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-README_VARIANTS = ("none", "all_but_smooth", "all")
+README_VARIANTS = ("none", "all_but_smooth", "all_steps", "all")
 
 
 def readme_block(results: dict, report_path: str) -> str:
-    """The README's compaction table: per split, no compaction, the default without and with the smooth merge."""
+    """The README's compaction table: per split, no compaction, the shipped default and the other step sets."""
     start, end = readme_markers("compaction")
     lines = [start, "",
              f"Model {results['model']} ({results['num_planes']} planes), render {results['render']}, load average "
@@ -385,7 +389,8 @@ def readme_block(results: dict, report_path: str) -> str:
              "| split | source | variant | Gaussians | fewer % | contributions less % | render s | render less % | "
              "ΔPSNR dB (worst target) | compact s |",
              "|---|---|---|---|---|---|---|---|---|---|"]
-    names = {"none": "none", "all_but_smooth": "default without smooth merge", "all": "default"}
+    names = {"none": "none", "all_but_smooth": "overlap + duplicates", "all_steps": "overlap + duplicates + smooth",
+             "all": "default (smooth merge)"}
     for r in summary_rows(results):
         if r["variant"] in README_VARIANTS:
             lines.append(f"| {r['split']} | {r['source']} | {names[r['variant']]} | {r['count']:,} | {r['fewer_pct']} | "

@@ -138,8 +138,8 @@ def _pipeline_options(args: argparse.Namespace):
                           ("max_bytes", "max_bytes"), ("min_opacity", "min_opacity")):
             if getattr(args, flag) is not None:
                 compaction[key] = getattr(args, flag)
-        if args.no_merge_duplicates:
-            compaction["merge_duplicates"] = False
+        if args.merge_duplicates:
+            compaction["merge_duplicates"] = True
         if args.no_merge_smooth:
             compaction["merge_smooth"] = False
         elif args.smooth_levels is not None:
@@ -292,12 +292,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--near", type=float, help="nearest depth in metres (default from the baseline)")
     r.add_argument("--far", type=float, help="farthest depth in metres")
     r.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
-    c = r.add_argument_group("leave out what the scene does not need (all on by default but the cap)")
+    c = r.add_argument_group("leave out what the scene does not need (default: min opacity and the smooth merge)")
     c.add_argument("--no-compaction", action="store_true", help="keep every pixel-aligned Gaussian")
     c.add_argument("--resolve-overlap", choices=["split", "yin", "off"],
-                   help="Yin/Yang overlap: keep each direction once (split, default) or keep all (off)")
-    c.add_argument("--no-merge-duplicates", action="store_true",
-                   help="keep both references' copies of a surface point")
+                   help="Yin/Yang overlap: keep each direction once (split, yin) or keep all (off, default)")
+    c.add_argument("--merge-duplicates", action="store_true",
+                   help="keep one of the two references' copies of a surface point (default: keep both)")
     c.add_argument("--no-merge-smooth", action="store_true",
                    help="keep flat, evenly coloured regions at one Gaussian per pixel (default: merge 2x2 blocks)")
     c.add_argument("--smooth-levels", type=int, help="largest merged block is 2^N pixels a side (default 1: 2x2)")

@@ -251,7 +251,7 @@ def test_compaction_readme_block_keeps_the_quality_block(tmp_path):
     block = readme_block(results, "docs/bench/compaction.md")
     start, end = readme_markers("compaction")
     assert block.startswith(start) and block.endswith(end)
-    assert "| s a+b | encoder | default | 500 | 50.0 | 40.0 | 1.0 | 50.0 | -0.150 (-0.150) | 0.1 |" in block
+    assert "| s a+b | encoder | default (smooth merge) | 500 | 50.0 | 40.0 | 1.0 | 50.0 | -0.150 (-0.150) | 0.1 |" in block
     assert "cap60" not in block
     readme = tmp_path / "README.md"
     readme.write_text(f"{README_START}\nquality\n<!-- bench:quality:end -->\n\n{start}\nold\n{end}\n")
