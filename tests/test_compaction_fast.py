@@ -16,8 +16,12 @@ from rasterizer.gaussians import (SH_C0, Gaussians, quat_to_rotmat, rotmat_to_qu
                                   scale_rotation_from_covariance)
 
 
-def _reference_level1(g: Gaussians, prov: Provenance, alive, colour_tol=0.04, opacity_tol=0.1, plane_tol=0.002,
-                      max_incidence_deg=45.0):
+_DEFAULTS = CompactionOptions()
+
+
+def _reference_level1(g: Gaussians, prov: Provenance, alive, colour_tol=_DEFAULTS.smooth_colour_tol,
+                      opacity_tol=_DEFAULTS.smooth_opacity_tol, plane_tol=_DEFAULTS.smooth_plane_tol,
+                      max_incidence_deg=_DEFAULTS.smooth_max_incidence_deg):
     """(drop mask, merged Gaussians, top-left layout positions) of the 2x2 merge, block by block formulas."""
     n = len(g)
     flat = prov.flat_index(n)
