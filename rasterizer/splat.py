@@ -161,24 +161,12 @@ def _factor_rows(quats: np.ndarray, scales: np.ndarray) -> list:
 
 
 def _covariance_2d(jac: np.ndarray, factors: np.ndarray, low_x=LOW_PASS, low_y=LOW_PASS):
-    """2-D covariance entries (a, b, c) and det of ``J F F^T J^T + diag(low_x, low_y)``.
+    """2-D covariance entries (a, b, c) and det of ``J F F^T J^T + diag(low_x, low_y)``, J (n, 2, 3).
 
-    Written elementwise on (n,) columns: T = J F is 2x3 and Sigma2D = T T^T;
-    the determinant uses Cauchy-Binet (sum of squared 2x2 minors of T) so it
-    is never negative, even for rank-deficient Gaussians.
+    See :func:`_covariance_rows` (the same with J given as rows of columns).
     """
-    t = [[None] * 3 for _ in range(2)]
-    for i in range(2):
-        j0, j1, j2 = (np.ascontiguousarray(jac[:, i, j]) for j in range(3))
-        for k in range(3):
-            t[i][k] = j0 * factors[k] + j1 * factors[3 + k] + j2 * factors[6 + k]
-    a = t[0][0] ** 2 + t[0][1] ** 2 + t[0][2] ** 2
-    b = t[0][0] * t[1][0] + t[0][1] * t[1][1] + t[0][2] * t[1][2]
-    c = t[1][0] ** 2 + t[1][1] ** 2 + t[1][2] ** 2
-    det0 = ((t[0][0] * t[1][1] - t[0][1] * t[1][0]) ** 2 + (t[0][0] * t[1][2] - t[0][2] * t[1][0]) ** 2
-            + (t[0][1] * t[1][2] - t[0][2] * t[1][1]) ** 2)
-    det = det0 + low_y * a + low_x * c + low_x * low_y
-    return a + low_x, b, c + low_y, det
+    rows = [[np.ascontiguousarray(jac[:, i, j]) for j in range(3)] for i in range(2)]
+    return _covariance_rows(rows[0], rows[1], factors, low_x, low_y)
 
 
 @dataclass
@@ -407,7 +395,12 @@ def _project_grid(pose: _Pose, camera: Camera) -> _Cols:
 
 
 def _covariance_rows(j0, j1, factors, low_x=LOW_PASS, low_y=LOW_PASS):
-    """:func:`_covariance_2d` with the Jacobian given as two rows of three (n,) columns."""
+    """2-D covariance (a, b, c) and det of ``J F F^T J^T + diag(low_x, low_y)``, J as two rows of three (n,) columns.
+
+    Elementwise: T = J F is 2x3 and Sigma2D = T T^T; the determinant uses
+    Cauchy-Binet (sum of squared 2x2 minors of T) so it is never negative,
+    even for rank-deficient Gaussians.
+    """
     t = [[None] * 3 for _ in range(2)]
     for i, (a0, a1, a2) in enumerate((j0, j1)):
         for k in range(3):
