@@ -507,21 +507,6 @@ def _smallest_eigenpair(s6: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
     return np.maximum(lam, 0.0), vec / np.where(nb > 0, nb, 1.0)[:, None], ok
 
 
-def _plane_ok(u_w, mu, m2, plane_tol: float, cos_incidence: float) -> np.ndarray:
-    """Blocks whose (weighted) centres lie on a plane seen at most at the incidence limit.
-
-    Residual = rms distance from the best plane (smallest eigenvalue of the
-    scatter), relative to the range of the block's centre; incidence = angle
-    between that plane's normal and the ray to the centre. The incidence
-    limit also rejects depth steps: a block whose pixels jump in range fits
-    a plane almost parallel to the rays.
-    """
-    lam, normal, ok = _smallest_eigenpair(m2 / u_w[:, None])
-    rng = np.sqrt(_sum3(mu * mu))
-    cos_inc = np.abs(_sum3(normal * mu)) / np.where(rng > 0, rng, 1.0)
-    return ok & (rng > 0) & (lam <= (plane_tol * rng) ** 2) & (cos_inc >= cos_incidence)
-
-
 def _blocks(ids: np.ndarray) -> np.ndarray:
     """(P, h, w) unit ids -> (P, h//2, w//2, 4) ids of each 2x2 block (odd last row/column left out)."""
     p, h, w = ids.shape
@@ -563,10 +548,17 @@ def _eigvals_c(xx, yy, zz, xy, xz, yz):
 
 
 def _plane_ok_c(wsafe, mux, muy, muz, m2, plane_tol: float, cos_incidence: float) -> np.ndarray:
-    """:func:`_plane_ok` on component arrays (bit for bit the same decisions), eigenvectors only where needed.
+    """Blocks whose (weighted) centres lie on a plane seen at most at the incidence limit.
+
+    Residual = rms distance from the best plane (smallest eigenvalue of the
+    scatter m2 / wsafe), relative to the range of the block's centre (mux,
+    muy, muz); incidence = angle between that plane's normal and the ray to
+    the centre. The incidence limit also rejects depth steps: a block whose
+    pixels jump in range fits a plane almost parallel to the rays.
 
     m2: six (m,) component arrays of the scatter. The cheap tests (spread, repeated eigenvalue, residual)
-    run first; the normal (cross products of rows of A - lambda I) only for the blocks that pass them.
+    run first; the normal (cross products of rows of A - lambda I, the longest one) only for the blocks
+    that pass them.
     """
     xx, yy, zz, xy, xz, yz = (c / wsafe for c in m2)
     lam, mid, _, p = _eigvals_c(xx, yy, zz, xy, xz, yz)
@@ -696,7 +688,7 @@ def _level1_chunk(gaussians: Gaussians, mem: np.ndarray, cam: np.ndarray, plane_
 
     Returns (ok mask (m,), and for the blocks that merge: w, mu (., 3), m2 (., 6), weighted covariance
     sum (., 6), weighted SH sum (., K, 3), optical depth sum), the same float64 arithmetic as
-    :func:`_outer6` / :func:`_plane_ok` / :func:`quat_to_rotmat` / :func:`_render_area` per member.
+    :func:`_outer6` / :func:`_plane_ok_c` / :func:`quat_to_rotmat` / :func:`_render_area` per member.
     """
     sc = np.take(gaussians.scales, mem, axis=0)  # (4, m, 3) float32 (np.take: faster than fancy indexing)
     s0, s1, s2 = (sc[..., k].astype(np.float64) for k in range(3))
@@ -924,7 +916,8 @@ def smooth_merge_blocks(gaussians: Gaussians, prov: Provenance, alive: np.ndarra
             u = _combine(per_level[-1][1], blocks[cand])
             ok = ((_max3(u.cmax - u.cmin) <= np.float32(colour_tol / SH_C0))
                   & (u.amax - u.amin <= np.float32(opacity_tol)) & (u.w > 0))
-            ok &= _plane_ok(np.where(u.w > 0, u.w, 1.0), u.mu, u.m2, plane_tol, cos_inc)
+            ok &= _plane_ok_c(np.where(u.w > 0, u.w, 1.0), u.mu[:, 0], u.mu[:, 1], u.mu[:, 2],
+                              [u.m2[:, k] for k in range(6)], plane_tol, cos_inc)
             sel = np.flatnonzero(ok)
             units = u.take(sel)
             if sel.size:

@@ -19,6 +19,22 @@ from rasterizer.gaussians import (SH_C0, Gaussians, quat_to_rotmat, rotmat_to_qu
 _DEFAULTS = CompactionOptions()
 
 
+def _reference_plane_ok(u_w, mu, m2, plane_tol: float, cos_incidence: float) -> np.ndarray:
+    """Array-form plane test, the reference for ``compaction._plane_ok_c``: blocks whose centres lie
+    on a plane seen at most at the incidence limit.
+
+    Residual = rms distance from the best plane (smallest eigenvalue of the
+    scatter), relative to the range of the block's centre; incidence = angle
+    between that plane's normal and the ray to the centre. The incidence
+    limit also rejects depth steps: a block whose pixels jump in range fits
+    a plane almost parallel to the rays.
+    """
+    lam, normal, ok = cp._smallest_eigenpair(m2 / u_w[:, None])
+    rng = np.sqrt(cp._sum3(mu * mu))
+    cos_inc = np.abs(cp._sum3(normal * mu)) / np.where(rng > 0, rng, 1.0)
+    return ok & (rng > 0) & (lam <= (plane_tol * rng) ** 2) & (cos_inc >= cos_incidence)
+
+
 def _reference_level1(g: Gaussians, prov: Provenance, alive, colour_tol=_DEFAULTS.smooth_colour_tol,
                       opacity_tol=_DEFAULTS.smooth_opacity_tol, plane_tol=_DEFAULTS.smooth_plane_tol,
                       max_incidence_deg=_DEFAULTS.smooth_max_incidence_deg):
@@ -56,7 +72,7 @@ def _reference_level1(g: Gaussians, prov: Provenance, alive, colour_tol=_DEFAULT
     wsafe = np.where(wt > 0, wt, 1.0)
     mu = sum(wk[k][:, None] * pos[k] for k in range(4)) / wsafe[:, None]
     m2 = sum(cp._outer6(pos[k] - mu, wk[k]) for k in range(4))
-    sel = np.flatnonzero((wt > 0) & cp._plane_ok(wsafe, mu, m2, plane_tol, cos_inc))
+    sel = np.flatnonzero((wt > 0) & _reference_plane_ok(wsafe, mu, m2, plane_tol, cos_inc))
     sub = g.subset(m[sel].T.ravel())
     rot = quat_to_rotmat(sub.quats)
     rs = rot * (sub.scales.astype(np.float64) ** 2)[:, None, :]
