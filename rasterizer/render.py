@@ -29,7 +29,6 @@ Example::
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from functools import lru_cache
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -138,68 +137,16 @@ def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: i
             tables = pool.submit(rank_tables)
             yang = pool.submit(one, cams[1], tables.result)
             stacks = [one(cams[0], tables.result), yang.result()]
-            merged = _merge_yin_yang(stacks[0], stacks[1], height, width, pool)
+            merged = yin_yang.yin_yang_to_erp(stacks[0], stacks[1], height, width, pool=pool)
     else:
         tables = rank_tables()
         stacks = [one(cam, lambda: tables) for cam in cams]
-        merged = _merge_yin_yang(stacks[0], stacks[1], height, width)
+        merged = yin_yang.yin_yang_to_erp(stacks[0], stacks[1], height, width)
     alpha = np.clip(merged[:, :, 3], 0.0, 1.0)
     inv = _alpha_inverse(merged[:, :, 3])
     colour = merged[:, :, :3] * inv[:, :, None]
     rng = merged[:, :, 4] * inv
     return RenderOutput(np.ascontiguousarray(colour), np.ascontiguousarray(alpha), np.ascontiguousarray(rng))
-
-
-@lru_cache(maxsize=16)
-def _merge_taps(h: int, w: int, height: int, width: int):
-    """The taps of :func:`rasterizer.yin_yang.yin_yang_to_erp` without the zero-weight ones.
-
-    About 94% of ERP pixels read only one grid (4 of their 8 bilinear taps have
-    weight 0). Returns (pixels, idx, wts) for those with 4 taps (the non-zero
-    ones, in their original order; in two halves) and for the rest (all 8).
-    """
-    idx, wts = yin_yang._from_grid_maps(h, w, height, width)
-    yin_zero = ~np.any(wts[:, :4] != 0, axis=1)
-    yang_zero = ~np.any(wts[:, 4:] != 0, axis=1)
-    one = yin_zero | yang_zero
-    four = np.flatnonzero(one)
-    cols = np.where(yin_zero[four], 4, 0)[:, None] + np.arange(4)
-    idx4 = np.take_along_axis(idx[four], cols, axis=1)
-    wts4 = np.take_along_axis(wts[four], cols, axis=1)
-    eight = np.flatnonzero(~one)
-    half = four.size // 2  # two pieces of the 4-tap pixels, for two threads
-    out = ((four[:half], np.ascontiguousarray(idx4[:half]), np.ascontiguousarray(wts4[:half])),
-           (four[half:], np.ascontiguousarray(idx4[half:]), np.ascontiguousarray(wts4[half:])),
-           (eight, np.ascontiguousarray(idx[eight]), np.ascontiguousarray(wts[eight])))
-    for part in out:
-        for a in part:
-            a.setflags(write=False)
-    return out
-
-
-def _merge_yin_yang(yin: np.ndarray, yang: np.ndarray, height: int, width: int, pool=None) -> np.ndarray:
-    """:func:`~rasterizer.yin_yang.yin_yang_to_erp` of (h, w, C) stacks, skipping zero-weight taps.
-
-    The same weighted sums in the same order (only terms ``0 * value`` are left
-    out, values are finite), so the same image up to the sign of zeros. With a
-    ``pool`` (an executor) the pieces run in its threads.
-    """
-    h, w, c = yin.shape
-    both = np.concatenate([yin.reshape(-1, c), yang.reshape(-1, c)]).astype(np.float32, copy=False)[:, None, :]
-    out = np.empty((int(height) * int(width), c), dtype=np.float32)
-
-    def piece(taps):
-        pixels, idx, wts = taps
-        if pixels.size:
-            out[pixels] = yin_yang._gather(both, idx, wts)
-
-    pieces = _merge_taps(h, w, int(height), int(width))
-    if pool is None:
-        for taps in pieces:
-            piece(taps)
-    else:
-        list(pool.map(piece, pieces))
-    return out.reshape(int(height), int(width), c)
 
 
 def _alpha_inverse(alpha: np.ndarray) -> np.ndarray:

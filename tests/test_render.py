@@ -412,14 +412,14 @@ def test_grid_domain_cull_drops_only_gaussians_without_contributions(kind, monke
 
 
 @pytest.mark.parametrize("h", [3, 16, 40])
-def test_sparse_yin_yang_merge_equals_yin_yang_to_erp(h):
+def test_sparse_yin_yang_merge_equals_the_dense_gather(h):
     from concurrent.futures import ThreadPoolExecutor
-    from rasterizer.render import _merge_yin_yang
-    from rasterizer.yin_yang import yin_yang_to_erp
+    from rasterizer.yin_yang import _from_grid_maps, _gather, yin_yang_to_erp
     rng = np.random.default_rng(h)
     a, b = (rng.random((h, 3 * h, 5)).astype(np.float32) for _ in range(2))
     a[rng.random((h, 3 * h)) < 0.3] = 0
-    ref = yin_yang_to_erp(a, b, 2 * h, 4 * h)
-    assert np.array_equal(_merge_yin_yang(a, b, 2 * h, 4 * h), ref)
+    both = np.concatenate([a.reshape(-1, 5), b.reshape(-1, 5)])[:, None, :]
+    ref = _gather(both, *_from_grid_maps(h, 3 * h, 2 * h, 4 * h)).reshape(2 * h, 4 * h, 5)  # all 8 taps
+    assert np.array_equal(yin_yang_to_erp(a, b, 2 * h, 4 * h), ref)
     with ThreadPoolExecutor(2) as pool:
-        assert np.array_equal(_merge_yin_yang(a, b, 2 * h, 4 * h, pool), ref)
+        assert np.array_equal(yin_yang_to_erp(a, b, 2 * h, 4 * h, pool=pool), ref)
