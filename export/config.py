@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass, field, replace
 #: 26.05, 18.79. So the quality preset stays at 64 planes.
 PRESETS: dict[str, dict] = {
     "fast": {"downscale": 4, "num_planes": 32},
-    "quality": {"downscale": 4, "num_planes": 64},
+    "quality": {"downscale": 4, "num_planes": 64, "fine_hypotheses": 11, "fine_fill": True},
 }
 
 
@@ -104,6 +104,23 @@ class EncoderConfig:
     fill_eps: float = 1e-2
     fill_plane_scale: float = 4.0
     fill_min_weight: float = 0.05
+    # cascade stage (export/fine_sweep.py): fine_hypotheses per pixel (0 = off) on a grid
+    # fine_downscale times smaller than the Gaussians', fine_step coarse plane steps apart; with
+    # fine_fill its own left-right check (fine_lr_tol coarse steps) and planar fill at that grid.
+    # 0.6.0, quality preset, torch run of the same graph (AbsRel 00 / 02, m3d 01 dB, zind mean of 4
+    # dB; 0.5.0: 0.0905 / 0.0530, 25.41, 18.76): J 9 no fill 0.0794 / 0.0453, 25.79, 18.82; J 7
+    # 25.82; J 13 0.0775 / 0.0478, 25.99, 18.75; J 17 25.70; step 0.25 25.75, 1.0 25.21; agg (1, 3)
+    # 25.70, (4, 12) 25.89; fine_downscale 1 25.37 (4.5 s); blending by fine confidence no better.
+    # With fine_fill: J 9 tol 1 / 2 / 3 / 100: 25.75 / 26.03 (J 7) / 26.38 / 25.73, zind (tol 3)
+    # 18.57; J 11 tol 3 0.0750 / 0.0429, 26.50, zind 18.55; tol 6 26.31, zind 18.74; tol 4 (the default)
+    # 0.0753 / 0.0432, 26.54, zind 18.68; 48 coarse planes 26.27 (AbsRel 0.092). zind's poses are approximate (~0.1-3 deg): the finer grid is
+    # more sensitive to them, and its fill costs ~0.2 dB there.
+    fine_hypotheses: int = 0
+    fine_downscale: int = 2
+    fine_step: float = 0.5
+    fine_agg_radii: tuple[int, ...] = (2, 6)
+    fine_fill: bool = False
+    fine_lr_tol: float = 4.0
     upsample: str = "guided"  # "guided" | "bilinear"
     upsample_radius: int = 2
     upsample_eps: float = 1e-3
@@ -135,7 +152,7 @@ class EncoderConfig:
     near_per_baseline: float = 0.3
     far_per_baseline: float = 20.0
     name: str = "omnisplat-trainingfree"
-    version: str = "0.5.0"
+    version: str = "0.6.0"
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -154,12 +171,22 @@ class EncoderConfig:
             raise ValueError(f"upsample must be 'guided' or 'bilinear', got {self.upsample!r}")
         if self.fill_plane_scale <= 0:
             raise ValueError(f"fill_plane_scale must be > 0, got {self.fill_plane_scale}")
+        if self.fine_hypotheses:
+            if self.fine_hypotheses < 3 or self.fine_hypotheses % 2 == 0:
+                raise ValueError(f"fine_hypotheses must be 0 or odd and >= 3, got {self.fine_hypotheses}")
+            if full_h % self.fine_downscale or full_w % self.fine_downscale:
+                raise ValueError(f"grid size {full_h}x{full_w} is not divisible by fine_downscale={self.fine_downscale}")
         if self.num_planes < 3:
             raise ValueError(f"num_planes must be >= 3, got {self.num_planes}")
 
     @property
     def grids(self) -> tuple[str, ...]:
         return ("erp",) if self.erp_encoder else ("yin", "yang")
+
+    @property
+    def cascade(self) -> bool:
+        """Whether the cascade stage runs: on, and its grid finer than the feature grid."""
+        return self.fine_hypotheses > 0 and self.fine_downscale < self.downscale
 
     @property
     def full_size(self) -> tuple[int, int]:

@@ -17,7 +17,11 @@ refinement can replace a stage without touching the geometry):
    models of inverse range in the ray direction and grey level - exact for
    planes; or ``guided_push_pull`` in the grey level only, or plain
    push-pull), guided-filter smoothing, guided upsampling to the Gaussian grid;
-9. :class:`GaussianHead`.
+9. optional cascade stage (:class:`export.fine_sweep.FineSweep`, ``fine_hypotheses``
+   > 0): a per-pixel sweep of a few hypotheses around that depth on a grid
+   ``fine_downscale`` times smaller than the Gaussians', its own left-right
+   check and planar fill (``fine_fill``), then the guided upsampling;
+10. :class:`GaussianHead`.
 
 Graph inputs (see :mod:`rasterizer.sweep` for the pose-dependent ones):
 ``erp_a``, ``erp_b`` (1, 3, H, W) float32 in [0, 1]; ``warp_grids``
@@ -41,6 +45,7 @@ from .aggregation import (CostAggregation, guided_filter, guided_filter_coeffs, 
 from .config import EncoderConfig
 from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, domain_mask, sample_maps
 from .features import GreyFeatures, TrainingFreeFeatures
+from .fine_sweep import FineSweep
 from .gaussian_head import GaussianHead
 from .readout import DepthReadout, index_to_inverse
 from .yin_yang_sampling import YinYangSampler
@@ -84,6 +89,18 @@ class OmniSplatEncoder(nn.Module):
         pitch = (np.pi if cfg.erp_encoder else 0.5 * np.pi) / self.feat_h
         plane_guide = rays.transpose(0, 3, 1, 2) / np.float32(pitch * cfg.fill_plane_scale)
         self.register_buffer("plane_guide", torch.from_numpy(np.ascontiguousarray(plane_guide)), persistent=False)
+        self.fine = None
+        if cfg.cascade:
+            self.fine_h, self.fine_w = self.full_h // cfg.fine_downscale, self.full_w // cfg.fine_downscale
+            fine_rays = np.stack([grid_directions(k, self.fine_h, self.fine_w) for k in cfg.grids]).astype(np.float32)
+            self.register_buffer("fine_rays", torch.from_numpy(fine_rays), persistent=False)
+            fine_guide = fine_rays.transpose(0, 3, 1, 2) / np.float32(pitch * cfg.fill_plane_scale)  # same angular scale
+            self.register_buffer("fine_plane_guide", torch.from_numpy(np.ascontiguousarray(fine_guide)), persistent=False)
+            self.fine_levels = pyramid_levels(self.fine_h, self.fine_w)
+            self.fine = FineSweep(cfg.grids, cfg.fine_hypotheses, WindowMatcher(*match_args, wrap=wrap),
+                                  CostAggregation(cfg.fine_agg_radii, cfg.agg_eps, wrap=wrap),
+                                  DepthReadout("wta", margin_scales=(cfg.peak_margin_scale, fill_scale)),
+                                  erp_width=self.fine_w if wrap else 0)
 
     # -- stages ------------------------------------------------------------
     def grid_images(self, erp_a: torch.Tensor, erp_b: torch.Tensor) -> torch.Tensor:
@@ -151,6 +168,35 @@ class OmniSplatEncoder(nn.Module):
             out.append(((travel - 2.0) / 6.0).clamp(0.0, 1.0).reshape(g_count, 1, h, w))
         return torch.stack(out)
 
+    def cascade(self, inv, grey_low, grey_full, obs, rel_rt, inv_depths):
+        """Coarse inverse range (2G, 1, h, w) -> refined on the fine grid, with that grid's grey guide.
+
+        Guided upsampling of the coarse map seeds :class:`FineSweep`; with
+        ``fine_fill`` its steep-confidence pixels that pass a fine left-right
+        check (and are observable) then refill the rest by the planar fill.
+        """
+        cfg = self.cfg
+        g_count, wrap = self.num_grids, cfg.erp_encoder
+        d_count = inv_depths.shape[0]
+        lo, hi = inv_depths[0], inv_depths[d_count - 1]
+        size = (self.fine_h, self.fine_w)
+        grey = F.avg_pool2d(grey_full, cfg.fine_downscale) if cfg.fine_downscale > 1 else grey_full
+        a, b = guided_filter_coeffs(grey_low, inv, cfg.upsample_radius, cfg.upsample_eps, wrap)
+        a = F.interpolate(a, size=size, mode="bilinear", align_corners=False)
+        b = F.interpolate(b, size=size, mode="bilinear", align_corners=False)
+        plane_step = (hi - lo) / (d_count - 1)
+        refined, _, conf_fill = self.fine((a * grey + b).clamp(min=lo, max=hi), grey, self.fine_rays, rel_rt,
+                                          plane_step * cfg.fine_step, lo, hi)
+        if not cfg.fine_fill:
+            return refined, grey
+        ok = self.fine.lr_consistency(refined, self.fine_rays, rel_rt, plane_step * cfg.fine_lr_tol)
+        obs = F.interpolate(obs.reshape(2 * g_count, 1, *obs.shape[-2:]), size=size, mode="bilinear",
+                            align_corners=False)
+        guide = self.fine_plane_guide.unsqueeze(0).expand(2, g_count, 3, *size).reshape(2 * g_count, 3, *size)
+        guide = torch.cat([guide, grey * float(cfg.fill_eps ** -0.5)], dim=1)
+        filled = linear_push_pull(refined, conf_fill * ok * obs, guide, self.fine_levels, inv_depths.mean())
+        return guided_filter(grey, filled, 1, cfg.upsample_eps, wrap), grey
+
     # -- forward -------------------------------------------------------------
     def forward(self, erp_a, erp_b, warp_grids, rel_rt, inv_depths, c2w, cam_quats):
         cfg = self.cfg
@@ -188,12 +234,14 @@ class OmniSplatEncoder(nn.Module):
         filled = guided_filter(grey_low, filled, 1, cfg.upsample_eps, wrap)
 
         size = (self.full_h, self.full_w)
-        if cfg.upsample == "guided" and cfg.downscale > 1:
+        if self.fine is not None:
+            filled, grey_low = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths)
+        if cfg.upsample == "guided" and filled.shape[-2:] != size:
             a, b = guided_filter_coeffs(grey_low, filled, cfg.upsample_radius, cfg.upsample_eps, wrap)
             a = F.interpolate(a, size=size, mode="bilinear", align_corners=False)
             b = F.interpolate(b, size=size, mode="bilinear", align_corners=False)
             inv_full = a * grey_full + b
-        elif cfg.downscale > 1:
+        elif filled.shape[-2:] != size:
             inv_full = F.interpolate(filled, size=size, mode="bilinear", align_corners=False)
         else:
             inv_full = filled

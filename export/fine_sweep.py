@@ -1,0 +1,148 @@
+"""Second, finer sweep around the coarse depth (a cascade stage, CasMVSNet-style).
+
+The coarse sweep resolves inverse range to one plane step on a grid
+``downscale`` times smaller than the Gaussians. This stage re-matches at a
+finer grid with a few hypotheses per pixel, spaced a fraction of a coarse
+step around the coarse estimate (so the hypotheses follow the coarse
+surface instead of fronto-parallel planes). Hypotheses are per pixel, so
+their source locations are projected inside the graph:
+
+* p = R (r d) + t in the source camera (``rel_rt`` input, no inverse);
+* lat = asin(-y / |p|), lon = asin(x / |(x, z)|) within 45 degrees of the
+  +z axis and +-acos(z / |(x, z)|) elsewhere: no Atan / atan2 in the
+  graph, and each arc function is used only where it is well conditioned;
+* ``grid_sample`` coordinates as in :func:`rasterizer.sweep.normalised_coords`
+  (Yin/Yang: x = lon / lon_max, y = -lat / lat_max, outside the domain
+  where |x| or |y| > 1: that is the validity mask).
+
+Matching, aggregation and the peak read-out reuse the coarse stage's
+modules; the read-out's margin becomes the fine confidence.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from rasterizer.geometry import YIN_LAT_MAX, YIN_LON_MAX
+from rasterizer.sweep import ERP_PAD
+
+from .cost_volume import sample_maps
+
+
+def _lon(x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """atan2(x, z) in [-pi, pi] without Atan, each arc function only where it is well conditioned:
+    asin(x / rho) within 45 degrees of +z, +-pi - asin(x / rho) within 45 degrees of -z, else
+    +-acos(z / rho) (|z / rho| < cos 45 deg there)."""
+    rho = torch.sqrt(x * x + z * z).clamp(min=1e-12)
+    s = torch.asin((x / rho).clamp(-1.0, 1.0))
+    c = torch.acos((z / rho).clamp(-1.0, 1.0))
+    pos = x >= 0
+    side = torch.where(pos, c, -c)
+    back = torch.where(pos, math.pi - s, -math.pi - s)
+    return torch.where(x.abs() <= z, s, torch.where(x.abs() <= -z, back, side))
+
+
+def project_normalised(p: torch.Tensor, kind: str, width: int = 0) -> torch.Tensor:
+    """Camera-frame points (..., 3) -> ``grid_sample`` (x, y) of the grid ``kind`` (..., 2).
+
+    ``width`` is the ERP width (the x coordinate addresses the source padded
+    by :data:`rasterizer.sweep.ERP_PAD` columns, as the coarse warp grids do).
+    """
+    x, y, z = p.unbind(-1)
+    if kind == "yang":
+        x, y, z = y, x, -z
+    norm = torch.sqrt(x * x + y * y + z * z).clamp(min=1e-12)
+    lat = torch.asin((-y / norm).clamp(-1.0, 1.0))
+    lon = _lon(x, z)
+    if kind == "erp":
+        col = (lon + math.pi) * (width / (2 * math.pi)) - 0.5
+        gx = (2.0 * (col + ERP_PAD) + 1.0) / (width + 2 * ERP_PAD) - 1.0
+        gy = -lat * (2.0 / math.pi)
+    else:
+        gx = lon * (1.0 / YIN_LON_MAX)
+        gy = -lat * (1.0 / YIN_LAT_MAX)
+    return torch.stack([gx, gy], dim=-1)
+
+
+class FineSweep(nn.Module):
+    """inv (2G, 1, h, w) coarse inverse range on the fine grid, grey (2G, 1, h, w),
+    rays (G, h, w, 3), rel_rt (2, 3, 4), step (scalar: one fine hypothesis apart)
+    -> refined inverse range and one confidence per margin scale of ``readout``, each (2G, 1, h, w).
+
+    Hypotheses inv + (j - J // 2) * step, j = 0 .. J - 1, clamped to
+    [inv_min, inv_max]. A peak at either end of the hypotheses (the coarse
+    estimate was off by more than the span) keeps the coarse value and
+    confidence 0.
+    """
+
+    def __init__(self, grids, num_hypotheses: int, matcher: nn.Module, aggregation: nn.Module,
+                 readout: nn.Module, erp_width: int = 0) -> None:
+        super().__init__()
+        self.grids = tuple(grids)
+        self.num = int(num_hypotheses)
+        self.matcher = matcher
+        self.aggregation = aggregation
+        self.readout = readout
+        self.erp_width = int(erp_width)
+        offsets = torch.arange(self.num, dtype=torch.float32) - (self.num // 2)
+        self.register_buffer("offsets", offsets.view(1, 1, self.num, 1, 1), persistent=False)
+
+    def points(self, inv_h: torch.Tensor, rays: torch.Tensor, rel_rt: torch.Tensor) -> torch.Tensor:
+        """(2G, 1, J, h, w) inverse ranges -> (2, G, J, h, w, 3) points in the source camera."""
+        g_count = len(self.grids)
+        _, _, j_count, h, w = inv_h.shape
+        rot, t = rel_rt[:, :, :3], rel_rt[:, :, 3]  # (2, 3, 3), (2, 3)
+        u = torch.matmul(rays.reshape(1, g_count * h * w, 3), rot.transpose(1, 2)).reshape(2, g_count, 1, h, w, 3)
+        return u * (1.0 / inv_h.reshape(2, g_count, j_count, h, w, 1)) + t.reshape(2, 1, 1, 1, 1, 3)
+
+    def sample(self, maps: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
+        """The other view's (2G, 1, h, w) ``maps`` at source-camera points (2, G, J, h, w, 3) -> (2G, 1, J, h, w).
+
+        Yin/Yang sources: each point is sampled once, in the Yin map if its
+        direction lies in the Yin domain, else in the Yang map (the two
+        cover the sphere), from one image with Yang stacked under Yin (a
+        replicated edge row each, so bilinear taps never mix them). This is
+        the mask blend of eq. 4 with the Yang mask zeroed where Yin is valid:
+        half the GridSample work of sampling both and averaging the overlap.
+        """
+        _, g_count, j_count, h, w, _ = pts.shape
+        views = maps.reshape(2, g_count, 1, h, w)
+        source = torch.stack([views[1], views[0]])  # [d] = view 1 - d, (2, G_s, 1, h, w)
+        if self.grids == ("erp",):
+            grid = project_normalised(pts, "erp", self.erp_width).reshape(2, g_count * j_count * h, w, 2)
+            sampled = sample_maps(source[:, 0], grid, True)
+        else:
+            x, y, z = pts.unbind(-1)
+            norm = torch.sqrt(x * x + y * y + z * z).clamp(min=1e-12)
+            in_yin = (y.abs() <= math.sin(YIN_LAT_MAX) * norm) & (z >= -x.abs())
+            qx, qy, qz = torch.where(in_yin, x, y), torch.where(in_yin, y, x), torch.where(in_yin, z, -z)
+            lat = torch.asin((-qy / norm).clamp(-1.0, 1.0))
+            gx = _lon(qx, qz) * (1.0 / YIN_LON_MAX)
+            row = (YIN_LAT_MAX - lat) * (h / (2 * YIN_LAT_MAX)) - 0.5 + torch.where(in_yin, 0.0, float(h + 2))
+            gy = (2.0 * row + 1.0) / (2 * h + 2) - 1.0
+            grid = torch.stack([gx, gy], dim=-1).reshape(2, g_count * j_count * h, w, 2)
+            yin, yang = source[:, 0], source[:, 1]  # (2, 1, h, w)
+            stacked = torch.cat([yin, yin[:, :, -1:], yang[:, :, :1], yang], dim=2)  # (2, 1, 2h + 2, w)
+            sampled = sample_maps(stacked, grid, False)
+        return sampled.reshape(2 * g_count, 1, j_count, h, w)
+
+    def lr_consistency(self, inv: torch.Tensor, rays: torch.Tensor, rel_rt: torch.Tensor, tol) -> torch.Tensor:
+        """1 where the other view's inverse range at a pixel's 3D point matches that point's (within ``tol``)."""
+        pts = self.points(inv.unsqueeze(2), rays, rel_rt)  # (2, G, 1, h, w, 3)
+        expected = 1.0 / torch.sqrt((pts * pts).sum(-1)).clamp(min=1e-6)
+        seen = self.sample(inv, pts)
+        return ((seen - expected.reshape(seen.shape)).abs() <= tol).to(inv.dtype).squeeze(2)
+
+    def forward(self, inv, grey, rays, rel_rt, step, inv_min, inv_max):
+        inv_h = (inv.unsqueeze(2) + self.offsets * step).clamp(min=inv_min, max=inv_max)  # (2G, 1, J, h, w)
+        warped = self.sample(grey, self.points(inv_h, rays, rel_rt))
+        cost = self.matcher(grey, warped)  # (2G, J, h, w)
+        cost = self.aggregation(cost, grey)
+        k, *confs = self.readout(cost)
+        inner = ((k > 0.5) & (k < self.num - 1.5)).to(k.dtype)
+        refined = inv + (k - self.num // 2) * step
+        return (inner * refined + (1.0 - inner) * inv,) + tuple(c * inner for c in confs)
