@@ -35,6 +35,17 @@ def guided_filter_coeffs(guide: torch.Tensor, src: torch.Tensor, radius: int, ep
     return a, b
 
 
+def guided_upsample(guide: torch.Tensor, src: torch.Tensor, guide_fine: torch.Tensor, radius: int, eps: float,
+                    wrap: bool = False) -> torch.Tensor:
+    """``src`` on ``guide``'s grid -> ``guide_fine``'s grid: guided-filter coefficients fitted on the
+    coarse grid, bilinearly upsampled and applied to the fine guide (edges follow the fine image)."""
+    a, b = guided_filter_coeffs(guide, src, radius, eps, wrap)
+    size = guide_fine.shape[-2:]
+    a = F.interpolate(a, size=size, mode="bilinear", align_corners=False)
+    b = F.interpolate(b, size=size, mode="bilinear", align_corners=False)
+    return a * guide_fine + b
+
+
 def guided_filter(guide: torch.Tensor, src: torch.Tensor, radius: int, eps: float, wrap: bool = False) -> torch.Tensor:
     """Edge-preserving smoothing of every channel of ``src`` guided by ``guide``."""
     a, b = guided_filter_coeffs(guide, src, radius, eps, wrap)

@@ -112,9 +112,10 @@ class EncoderConfig:
     # 25.82; J 13 0.0775 / 0.0478, 25.99, 18.75; J 17 25.70; step 0.25 25.75, 1.0 25.21; agg (1, 3)
     # 25.70, (4, 12) 25.89; fine_downscale 1 25.37 (4.5 s); blending by fine confidence no better.
     # With fine_fill: J 9 tol 1 / 2 / 3 / 100: 25.75 / 26.03 (J 7) / 26.38 / 25.73, zind (tol 3)
-    # 18.57; J 11 tol 3 0.0750 / 0.0429, 26.50, zind 18.55; tol 6 26.31, zind 18.74; tol 4 (the default)
-    # 0.0753 / 0.0432, 26.54, zind 18.68; 48 coarse planes 26.27 (AbsRel 0.092). zind's poses are approximate (~0.1-3 deg): the finer grid is
-    # more sensitive to them, and its fill costs ~0.2 dB there.
+    # 18.57; J 11 tol 3 0.0750 / 0.0429, 26.50, zind 18.55; tol 6 26.31, zind 18.74; tol 4 (the
+    # default) 0.0753 / 0.0432, 26.54, zind 18.68; 48 coarse planes 26.27 (AbsRel 0.092). zind's
+    # poses are approximate (~0.1-3 deg): the finer grid is more sensitive to them, and its fill
+    # costs 0.08 dB there at tol 4 (0.2 dB at tol 3).
     fine_hypotheses: int = 0
     fine_downscale: int = 2
     fine_step: float = 0.5

@@ -117,13 +117,12 @@ class FineSweep(nn.Module):
             sampled = sample_maps(source[:, 0], grid, True)
         else:
             x, y, z = pts.unbind(-1)
-            norm = torch.sqrt(x * x + y * y + z * z).clamp(min=1e-12)
+            norm = torch.sqrt(x * x + y * y + z * z)
             in_yin = (y.abs() <= math.sin(YIN_LAT_MAX) * norm) & (z >= -x.abs())
-            qx, qy, qz = torch.where(in_yin, x, y), torch.where(in_yin, y, x), torch.where(in_yin, z, -z)
-            lat = torch.asin((-qy / norm).clamp(-1.0, 1.0))
-            gx = _lon(qx, qz) * (1.0 / YIN_LON_MAX)
-            row = (YIN_LAT_MAX - lat) * (h / (2 * YIN_LAT_MAX)) - 0.5 + torch.where(in_yin, 0.0, float(h + 2))
-            gy = (2.0 * row + 1.0) / (2 * h + 2) - 1.0
+            # Yang points in the Yang frame (y, x, -z), where its layout is Yin's
+            q = torch.stack([torch.where(in_yin, x, y), torch.where(in_yin, y, x), torch.where(in_yin, z, -z)], -1)
+            gx, gy = project_normalised(q, "yin").unbind(-1)
+            gy = ((gy + 1.0) * h + torch.where(in_yin, 0.0, float(2 * h + 4))) / (2 * h + 2) - 1.0  # rows + h + 2
             grid = torch.stack([gx, gy], dim=-1).reshape(2, g_count * j_count * h, w, 2)
             yin, yang = source[:, 0], source[:, 1]  # (2, 1, h, w)
             stacked = torch.cat([yin, yin[:, :, -1:], yang[:, :, :1], yang], dim=2)  # (2, 1, 2h + 2, w)

@@ -40,7 +40,7 @@ from torch import nn
 
 from rasterizer.geometry import grid_directions
 
-from .aggregation import (CostAggregation, guided_filter, guided_filter_coeffs, guided_push_pull, linear_push_pull,
+from .aggregation import (CostAggregation, guided_filter, guided_push_pull, guided_upsample, linear_push_pull,
                           pyramid_levels, push_pull)
 from .config import EncoderConfig
 from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, domain_mask, sample_maps
@@ -181,12 +181,9 @@ class OmniSplatEncoder(nn.Module):
         lo, hi = inv_depths[0], inv_depths[d_count - 1]
         size = (self.fine_h, self.fine_w)
         grey = F.avg_pool2d(grey_full, cfg.fine_downscale) if cfg.fine_downscale > 1 else grey_full
-        a, b = guided_filter_coeffs(grey_low, inv, cfg.upsample_radius, cfg.upsample_eps, wrap)
-        a = F.interpolate(a, size=size, mode="bilinear", align_corners=False)
-        b = F.interpolate(b, size=size, mode="bilinear", align_corners=False)
+        seed = guided_upsample(grey_low, inv, grey, cfg.upsample_radius, cfg.upsample_eps, wrap).clamp(min=lo, max=hi)
         plane_step = (hi - lo) / (d_count - 1)
-        refined, _, conf_fill = self.fine((a * grey + b).clamp(min=lo, max=hi), grey, self.fine_rays, rel_rt,
-                                          plane_step * cfg.fine_step, lo, hi)
+        refined, _, conf_fill = self.fine(seed, grey, self.fine_rays, rel_rt, plane_step * cfg.fine_step, lo, hi)
         if not cfg.fine_fill:
             return refined, grey
         ok = self.fine.lr_consistency(refined, self.fine_rays, rel_rt, plane_step * cfg.fine_lr_tol)
@@ -237,10 +234,7 @@ class OmniSplatEncoder(nn.Module):
         if self.fine is not None:
             filled, grey_low = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths)
         if cfg.upsample == "guided" and filled.shape[-2:] != size:
-            a, b = guided_filter_coeffs(grey_low, filled, cfg.upsample_radius, cfg.upsample_eps, wrap)
-            a = F.interpolate(a, size=size, mode="bilinear", align_corners=False)
-            b = F.interpolate(b, size=size, mode="bilinear", align_corners=False)
-            inv_full = a * grey_full + b
+            inv_full = guided_upsample(grey_low, filled, grey_full, cfg.upsample_radius, cfg.upsample_eps, wrap)
         elif filled.shape[-2:] != size:
             inv_full = F.interpolate(filled, size=size, mode="bilinear", align_corners=False)
         else:
