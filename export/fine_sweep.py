@@ -24,7 +24,6 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from rasterizer.geometry import YIN_LAT_MAX, YIN_LON_MAX

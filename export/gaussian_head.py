@@ -49,21 +49,6 @@ def pixel_frames(kind: str, height: int, width: int):
     return ray.astype(np.float32), quats.astype(np.float32), foot.astype(np.float32)
 
 
-def quat_multiply(q1: torch.Tensor, q2: torch.Tensor) -> torch.Tensor:
-    """Hamilton product of (..., 4) (w, x, y, z) quaternions, broadcasting."""
-    w1, x1, y1, z1 = q1.unbind(-1)
-    w2, x2, y2, z2 = q2.unbind(-1)
-    return torch.stack(
-        [
-            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-        ],
-        dim=-1,
-    )
-
-
 def quat_left_matrix(q: torch.Tensor) -> torch.Tensor:
     """(..., 4) (w, x, y, z) -> (..., 4, 4) L with q * p = L @ p (Hamilton product)."""
     w, x, y, z = q.unbind(-1)

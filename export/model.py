@@ -40,8 +40,15 @@ from torch import nn
 
 from rasterizer.geometry import grid_directions
 
-from .aggregation import (CostAggregation, guided_filter, guided_push_pull, guided_upsample, linear_push_pull,
-                          pyramid_levels, push_pull)
+from .aggregation import (
+    CostAggregation,
+    guided_filter,
+    guided_push_pull,
+    guided_upsample,
+    linear_push_pull,
+    push_pull,
+    pyramid_levels,
+)
 from .config import EncoderConfig
 from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, domain_mask, sample_maps
 from .features import GreyFeatures, TrainingFreeFeatures
@@ -49,9 +56,6 @@ from .fine_sweep import FineSweep
 from .gaussian_head import GaussianHead
 from .readout import DepthReadout, index_to_inverse
 from .yin_yang_sampling import YinYangSampler
-
-INPUT_NAMES = ("erp_a", "erp_b", "warp_grids", "rel_rt", "inv_depths", "c2w", "cam_quats")
-OUTPUT_NAMES = ("means", "scales", "quats", "opacities", "sh_dc", "range_maps", "confidence")
 
 _LUMA = (0.299, 0.587, 0.114)
 

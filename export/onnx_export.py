@@ -18,10 +18,10 @@ import numpy as np
 import onnx
 import torch
 
-from rasterizer.sweep import ERP_PAD
+from rasterizer.sweep import ERP_PAD, INPUT_NAMES, OUTPUT_NAMES
 
 from .config import PRESETS, EncoderConfig, make_config
-from .model import INPUT_NAMES, OUTPUT_NAMES, OmniSplatEncoder
+from .model import OmniSplatEncoder
 
 OPSET = 18
 

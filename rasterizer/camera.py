@@ -135,8 +135,3 @@ class Camera:
             # lon = -pi sits at column -w/6 - 0.5
             return int(np.ceil(-self.width / 6.0 - 0.5))
         return 0
-
-    @property
-    def has_poles(self) -> bool:
-        """True for ERP: rows -0.5 and H - 0.5 are the poles."""
-        return self.kind == "erp"

@@ -122,7 +122,7 @@ def composite_segments(m: int, starts: np.ndarray, fetch, table: np.ndarray, ter
     return sums, None
 
 
-def _images(sums: np.ndarray, pixels: np.ndarray, h: int, w: int):
+def images_from_sums(sums: np.ndarray, pixels: np.ndarray, h: int, w: int):
     """(colour (H, W, 3), alpha (H, W), range_sum (H, W)) float32 images of per-pixel sums."""
     colour = np.zeros((h * w, 3), dtype=np.float32)
     alpha_img = np.zeros(h * w, dtype=np.float32)
@@ -153,7 +153,7 @@ def accumulate(fp: Footprints, opacities: np.ndarray, colours: np.ndarray, *, re
     h, w = fp.height, fp.width
     m = len(fp)
     if m == 0:
-        out = _images(np.zeros((0, 5), np.float32), np.zeros(0, np.int64), h, w)
+        out = images_from_sums(np.zeros((0, 5), np.float32), np.zeros(0, np.int64), h, w)
         if return_terms:
             z = np.zeros(0, np.float32)
             return out + (CompositeTerms(z, z, z, np.zeros(0, np.int64), np.zeros(0, np.int64)),)
@@ -165,7 +165,7 @@ def accumulate(fp: Footprints, opacities: np.ndarray, colours: np.ndarray, *, re
     starts = segment_starts(pix)
     sums, terms = composite_segments(m, starts, lambda a, b: (gid[a:b], g[a:b]), table, terms=return_terms)
     pixels = pix[starts]
-    out = _images(sums, pixels, h, w)
+    out = images_from_sums(sums, pixels, h, w)
     if return_terms:
         alpha, trans, weight = terms
         return out + (CompositeTerms(alpha, trans, weight, starts, pixels),)

@@ -23,7 +23,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-SH_C0 = 0.28209479177387814
+from .sh import SH_C0
 
 
 class GaussiansError(ValueError):
@@ -71,9 +71,9 @@ def rotmat_to_quat(rot: np.ndarray) -> np.ndarray:
     cand = np.stack(
         [
             np.stack([1 + trace, r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1),
-            np.stack([r[..., 2, 1] - r[..., 1, 2], 1 + m00 - m11 - m22, r[..., 0, 1] + r[..., 1, 0], r[..., 0, 2] + r[..., 2, 0]], -1),
-            np.stack([r[..., 0, 2] - r[..., 2, 0], r[..., 0, 1] + r[..., 1, 0], 1 - m00 + m11 - m22, r[..., 1, 2] + r[..., 2, 1]], -1),
-            np.stack([r[..., 1, 0] - r[..., 0, 1], r[..., 0, 2] + r[..., 2, 0], r[..., 1, 2] + r[..., 2, 1], 1 - m00 - m11 + m22], -1),
+            np.stack([r[..., 2, 1] - r[..., 1, 2], 1 + m00 - m11 - m22, r[..., 0, 1] + r[..., 1, 0], r[..., 0, 2] + r[..., 2, 0]], -1),  # noqa: E501
+            np.stack([r[..., 0, 2] - r[..., 2, 0], r[..., 0, 1] + r[..., 1, 0], 1 - m00 + m11 - m22, r[..., 1, 2] + r[..., 2, 1]], -1),  # noqa: E501
+            np.stack([r[..., 1, 0] - r[..., 0, 1], r[..., 0, 2] + r[..., 2, 0], r[..., 1, 2] + r[..., 2, 1], 1 - m00 - m11 + m22], -1),  # noqa: E501
         ],
         axis=-2,
     )
@@ -138,14 +138,6 @@ class Gaussians:
         object.__setattr__(self, "sh", sh)
 
     # -- construction -----------------------------------------------------
-    @classmethod
-    def from_covariances(cls, means, covariances, opacities, rgb=None, sh=None) -> "Gaussians":
-        """Build from world covariances (N, 3, 3) and either colours or SH."""
-        scales, quats = scale_rotation_from_covariance(covariances)
-        if sh is None:
-            sh = rgb_to_sh_dc(rgb)[:, None, :]
-        return cls(means, scales, quats, opacities, sh)
-
     @classmethod
     def empty(cls, sh_degree: int = 0) -> "Gaussians":
         k = (sh_degree + 1) ** 2

@@ -33,14 +33,20 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
+from . import splat, yin_yang
 from .camera import DEFAULT_NEAR, PROJECTIONS, Camera
-from .composite import (_images, accumulate, composite, composite_segments, gaussian_table, normalise_range,
-                        segment_starts)
+from .composite import (
+    accumulate,
+    composite,
+    composite_segments,
+    gaussian_table,
+    images_from_sums,
+    normalise_range,
+    segment_starts,
+)
 from .gaussians import Gaussians
 from .sh import sh_to_rgb
-from . import splat
 from .splat import ALPHA_MIN, Footprints, footprints
-from . import yin_yang
 
 __all__ = ["RenderOutput", "render", "render_camera", "to_uint8", "Camera", "footprints", "composite",
            "Footprints"]
@@ -85,10 +91,10 @@ def _premultiplied_keys(camera: Camera, pose, qcut, tables):
     built (neighbouring boxes together), so that the per-contribution reads of the
     pixel-sorted keys stay in cache: a rank -> row lookup (4 bytes) then a near read.
     """
-    key, layout, _, job_ranks = splat._sorted_keys(pose, camera, qcut, _MAX_CONTRIBUTIONS)
+    key, layout, _, job_ranks = splat.sorted_keys(pose, camera, qcut, _MAX_CONTRIBUTIONS)
     h, w = camera.height, camera.width
     if key is None:
-        return _images(np.zeros((0, 5), np.float32), np.zeros(0, np.int64), h, w)
+        return images_from_sums(np.zeros((0, 5), np.float32), np.zeros(0, np.int64), h, w)
     pix = layout.pixels(key)
     starts = segment_starts(pix)
     table = tables()
@@ -103,7 +109,7 @@ def _premultiplied_keys(camera: Camera, pose, qcut, tables):
         def fetch(a, b):
             return row_of_rank[layout.ranks(key[a:b])], layout.weights(key[a:b])
     sums, _ = composite_segments(key.size, starts, fetch, table)
-    return _images(sums, pix[starts], h, w)
+    return images_from_sums(sums, pix[starts], h, w)
 
 
 def render_camera(gaussians: Gaussians, camera: Camera) -> RenderOutput:
@@ -119,8 +125,8 @@ def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: i
     w = 3 * h
     cams = [Camera(kind, w, h, c2w, near=near) for kind in ("yin", "yang")]
     colours = sh_to_rgb(gaussians.sh, gaussians.means, cams[0].centre)
-    pose = splat._pose(gaussians, cams[0])  # Yin and Yang share the pose
-    qcut = splat._qcut_all(gaussians.opacities, len(gaussians))
+    pose = splat.shared_pose(gaussians, cams[0])  # Yin and Yang share the pose
+    qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
 
     def rank_tables():
         order = pose.order  # depth ranks (a sort of all N)

@@ -45,7 +45,7 @@ already sorted run of keys and that sort is a stable (timsort) merge of a
 few hundred runs, 2-4x cheaper than sorting random keys.
 
 Speed notes: depth ranks are over all N Gaussians of a pose (one sort shared
-by the Yin and Yang cameras of a render, see :class:`_Pose`); the Yin/Yang
+by the Yin and Yang cameras of a render, see :class:`SharedPose`); the Yin/Yang
 domain cull needs no trigonometry beyond one arctan2/arcsin and runs before
 any Jacobian; per-Gaussian maths (factors, projection, boxes) and the dense
 key blocks run in cache-sized chunks, because streaming dozens of
@@ -60,8 +60,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .camera import Camera
 from . import geometry as geo
+from .camera import Camera
 
 #: Low-pass filter added to every 2-D covariance (px^2), as in 3DGS / ODGS.
 LOW_PASS = 0.3
@@ -170,7 +170,7 @@ def _covariance_2d(jac: np.ndarray, factors: np.ndarray, low_x=LOW_PASS, low_y=L
 
 
 @dataclass
-class _Pose:
+class SharedPose:
     """Camera-frame data of all N Gaussians for one pose, shared by the cameras of that pose.
 
     x, y, z (N,) float64 contiguous camera-frame centres; ranges (N,) float64;
@@ -229,16 +229,16 @@ class _Pose:
         return self.rank_
 
 
-def _pose(gaussians, camera: Camera, factors: np.ndarray | None = None,
-          camera_points: tuple[np.ndarray, np.ndarray] | None = None) -> _Pose:
-    """The :class:`_Pose` of ``camera``'s pose (reuse it for other cameras with the same pose)."""
+def shared_pose(gaussians, camera: Camera, factors: np.ndarray | None = None,
+          camera_points: tuple[np.ndarray, np.ndarray] | None = None) -> SharedPose:
+    """The :class:`SharedPose` of ``camera``'s pose (reuse it for other cameras with the same pose)."""
     scales = np.asarray(gaussians.scales)
     s_max = np.maximum(np.maximum(scales[:, 0], scales[:, 1]), scales[:, 2]).astype(np.float64)
     if camera_points is not None:  # shared by cameras with the same pose
         p_cam = np.asarray(camera_points[0], dtype=np.float64)
         ranges = np.asarray(camera_points[1], dtype=np.float64)
         cols = [np.ascontiguousarray(p_cam[:, k]) for k in range(3)]
-        return _Pose(cols[0], cols[1], cols[2], ranges, s_max, gaussians, factors_=factors, p_cam_=p_cam)
+        return SharedPose(cols[0], cols[1], cols[2], ranges, s_max, gaussians, factors_=factors, p_cam_=p_cam)
     # camera.to_camera and the ranges, chunk by chunk, straight into contiguous columns
     pts = np.asarray(gaussians.means)
     n = pts.shape[0]
@@ -254,7 +254,7 @@ def _pose(gaussians, camera: Camera, factors: np.ndarray | None = None,
             pc[:, k] = d[0] * rot[0, k] + d[1] * rot[1, k] + d[2] * rot[2, k]
         ranges[c] = np.sqrt(np.einsum("ij,ij->i", pc, pc))
         xyz[:, c] = pc.T
-    return _Pose(xyz[0], xyz[1], xyz[2], ranges, s_max, gaussians, factors_=factors)
+    return SharedPose(xyz[0], xyz[1], xyz[2], ranges, s_max, gaussians, factors_=factors)
 
 
 def _grid_frame(kind: str, x, y, z):
@@ -262,7 +262,7 @@ def _grid_frame(kind: str, x, y, z):
     return (y, x, -z) if kind == "yang" else (x, y, z)
 
 
-def _grid_keep(pose: _Pose, camera: Camera) -> np.ndarray:
+def grid_keep(pose: SharedPose, camera: Camera) -> np.ndarray:
     """Indices of the Gaussians a Yin/Yang camera keeps: near test and not certainly outside its domain.
 
     A lower bound on the angular distance of the centre to the domain,
@@ -316,7 +316,7 @@ class _Cols:
     con_b: np.ndarray
     con_c: np.ndarray
     ranges: np.ndarray
-    pose: _Pose | None = None
+    pose: SharedPose | None = None
     p_cam_: np.ndarray | None = None
 
     @property
@@ -348,14 +348,14 @@ def _finish(idx, col, row, a, b, c, det, ranges, pose, p_cam=None) -> _Cols:
     return cols if ok.all() else cols.subset(np.flatnonzero(ok))
 
 
-def _project_grid(pose: _Pose, camera: Camera) -> _Cols:
+def _project_grid(pose: SharedPose, camera: Camera) -> _Cols:
     """Yin/Yang EWA projection: lat/lon and the analytic Jacobian from one set of grid-frame columns.
 
     Same maths as ``camera.project`` / ``camera.jacobian`` (geometry.project_to_grid,
     grid_jacobian, times R_cw), written once on contiguous columns of the kept Gaussians,
     chunk by chunk (see ``_PROJECT_CHUNK``).
     """
-    idx = _grid_keep(pose, camera)
+    idx = grid_keep(pose, camera)
     kind, h, w = camera.kind, camera.height, camera.width
     n = idx.size
     out = np.empty((6, n))
@@ -442,7 +442,7 @@ def _outside_frustum(camera: Camera, p_cam: np.ndarray, s_max: np.ndarray) -> np
     return out
 
 
-def _project_cols(pose: _Pose, camera: Camera) -> _Cols:
+def _project_cols(pose: SharedPose, camera: Camera) -> _Cols:
     """EWA projection of the pose's Gaussians into ``camera`` as columns (see :func:`project`)."""
     if camera.kind in ("yin", "yang"):
         return _project_grid(pose, camera)
@@ -474,7 +474,7 @@ def project(gaussians, camera: Camera, factors: np.ndarray | None = None, *,
     ``camera_points`` (camera-frame centres (N, 3), ranges (N,)) likewise, from
     ``camera.to_camera(gaussians.means)`` of a camera with the same pose.
     """
-    return _project_cols(_pose(gaussians, camera, factors, camera_points), camera).projected()
+    return _project_cols(shared_pose(gaussians, camera, factors, camera_points), camera).projected()
 
 
 def _size_class(k: np.ndarray) -> np.ndarray:
@@ -546,7 +546,7 @@ def _polar_split(my: np.ndarray, cov_c: np.ndarray, camera: Camera):
     return np.flatnonzero(~polar), np.flatnonzero(polar)
 
 
-def _polar(proj: Projected, camera: Camera):
+def polar_rows(proj: Projected, camera: Camera):
     """Split ERP Gaussians into (pixel-space, polar) index arrays into ``proj``."""
     return _polar_split(proj.mean[:, 1], proj.cov[:, 2], camera)
 
@@ -598,7 +598,7 @@ def _sphere_boxes(sph: _Sphere, camera: Camera):
     return x0.astype(np.int64), kx.astype(np.int64), row0.astype(np.int64), (row1 - row0 + 1).astype(np.int64)
 
 
-def _qcut_all(opacity_bound, n: int) -> np.ndarray | None:
+def opacity_cuts(opacity_bound, n: int) -> np.ndarray | None:
     """Mahalanobis radius^2 of every footprint, (N,) float64; None: Q_MAX for all."""
     if opacity_bound is None:
         return None
@@ -632,13 +632,13 @@ def footprints(gaussians, camera: Camera, *, opacity_bound: np.ndarray | None = 
     Footprints, sorted by pixel then range (see the class docstring).
     """
     n_all = len(gaussians)
-    pose = _pose(gaussians, camera, factors, camera_points)
-    key, layout, cols, _ = _sorted_keys(pose, camera, _qcut_all(opacity_bound, n_all), max_contributions)
+    pose = shared_pose(gaussians, camera, factors, camera_points)
+    key, layout, cols, _ = sorted_keys(pose, camera, opacity_cuts(opacity_bound, n_all), max_contributions)
     return _unpack_keys(key, layout, cols, pose, camera)
 
 
-def _unpack_keys(key, layout, cols: _Cols, pose: _Pose, camera: Camera) -> Footprints:
-    """:class:`Footprints` of sorted keys (see :func:`_sorted_keys`)."""
+def _unpack_keys(key, layout, cols: _Cols, pose: SharedPose, camera: Camera) -> Footprints:
+    """:class:`Footprints` of sorted keys (see :func:`sorted_keys`)."""
     n_all = pose.ranges.size
     ranges_all = np.zeros(n_all, dtype=np.float32)
     ranges_all[cols.index] = cols.ranges
@@ -651,7 +651,7 @@ def _unpack_keys(key, layout, cols: _Cols, pose: _Pose, camera: Camera) -> Footp
     return Footprints(pixel, gauss, weight, ranges_all, h, w)
 
 
-def _sorted_keys(pose: _Pose, camera: Camera, qcut_all: np.ndarray | None, max_contributions: int):
+def sorted_keys(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None, max_contributions: int):
     """(keys, layout, columns, job_ranks): the sorted uint64 keys ``pixel | rank | q`` of one camera.
 
     keys is None when nothing is visible. Ranks are the pose's (all N Gaussians).

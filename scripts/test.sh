@@ -4,4 +4,5 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 python3 -m venv .venv
 .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[export,test,bench]"
+.venv/bin/python -m ruff check .
 exec .venv/bin/python -m pytest "$@"

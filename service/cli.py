@@ -14,24 +14,67 @@ sub-command that needs them, so `omnisplat --help` is instant.
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import logging
 import sys
 import time
 from pathlib import Path
 
-#: Sub-commands handled by another module's ``main(argv)``: name -> (module, what to install if absent).
+
+def _main_of_export():
+    from export.onnx_export import main
+    return main
+
+
+# Loaders of the bench mains: the CLI is the only (lazy) door from service/ to bench/.
+def _bench_render():
+    from bench.render import main
+    return main
+
+
+def _bench_quality():
+    from bench.quality import main
+    return main
+
+
+def _bench_stability():
+    from bench.stability import main
+    return main
+
+
+def _bench_refine():
+    from bench.refine import main
+    return main
+
+
+def _bench_compaction():
+    from bench.compaction import main
+    return main
+
+
+def _bench_depth():
+    from bench.depth import main
+    return main
+
+
+def _bench_service():
+    from bench.service import main
+    return main
+
+
+#: Sub-commands handled by another module's ``main(argv)``: name -> (loader, what to install if absent).
 FORWARDED = {
-    "export": ("export.onnx_export", "the export extra: pip install -e '.[export]' (torch)"),
-    "refine": ("service.refine_cli", "the service package"),
+    "export": (_main_of_export, "the export extra: pip install -e '.[export]' (torch)"),
 }
+#: ``omnisplat bench NAME``: name -> (loader, what it measures). bench/ ships with the source, not the image.
 BENCH = {
-    "render": ("rasterizer.benchmark", "renderer timings (error against run time of the rasterizer)"),
-    "quality": ("service.bench_quality", "reconstruction quality against run time on scene folders"),
-    "stability": ("service.bench_stability", "stability of outputs under input perturbations"),
-    "refine": ("service.bench_refine", "+opt refinement: quality against iterations and seconds"),
-    "compaction": ("service.bench_compaction", "Gaussian count, PLY bytes, render time and PSNR per compaction step"),
+    "render": (_bench_render, "renderer timings (error against run time of the rasterizer)"),
+    "quality": (_bench_quality, "reconstruction quality against run time on scene folders"),
+    "stability": (_bench_stability, "stability of outputs under input perturbations"),
+    "refine": (_bench_refine, "+opt refinement: quality against iterations and seconds"),
+    "compaction": (_bench_compaction, "Gaussian count, PLY bytes, render time and PSNR per compaction step"),
+    "depth": (_bench_depth, "encoder depth error and ONNX run time on the dev scenes"),
+    "service": (_bench_service, "HTTP service timings: ready, POST, render, peak memory"),
 }
 
 
@@ -43,14 +86,14 @@ def _say(msg: str) -> None:
     print(f"[omnisplat] {msg}", file=sys.stderr, flush=True)
 
 
-def _forward(module: str, hint: str, argv: list[str]) -> int:
+def _forward(load, hint: str, argv: list[str]) -> int:
     try:
-        mod = importlib.import_module(module)
+        main = load()
     except ModuleNotFoundError as exc:
-        if exc.name and (module == exc.name or module.startswith(exc.name + ".")):
-            raise CliError(f"not available: module {module} is not installed in this checkout ({hint})") from None
-        raise CliError(f"not available: {module} needs {exc.name!r}, which is not installed ({hint})") from None
-    result = mod.main(argv)
+        if exc.name and exc.name.split(".")[0] in ("bench", "export", "service"):
+            raise CliError(f"not available: module {exc.name} is not installed here ({hint})") from None
+        raise CliError(f"not available: needs {exc.name!r}, which is not installed ({hint})") from None
+    result = main(argv)
     return int(result or 0)
 
 
@@ -156,7 +199,6 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
     from .config import Settings
     from .model_files import ModelUnavailable, ensure_model
-
     from .pipeline import build_scene
 
     erp_a, erp_b, c2w_a, c2w_b, source = _load_pair(args)  # bad inputs fail before any model build
@@ -250,6 +292,41 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- refine ---------------------------------------------------------------------
+
+def cmd_refine(args: argparse.Namespace) -> int:
+    """+opt: colours (and optionally opacities) of a PLY refined on its two references; JSON summary to stdout."""
+    from rasterizer.ply import read_ply, write_ply
+    from rasterizer.refine import RefineOptions, reference_views, refine
+
+    if not 0 <= args.holdout < 1 or args.iterations < 0 or args.height < 8:
+        raise CliError("need 0 <= --holdout < 1, --iterations >= 0, --height >= 8")
+    try:
+        g = read_ply(args.ply)
+    except (OSError, ValueError) as exc:
+        raise CliError(f"cannot read {args.ply}: {exc}") from None
+    erp_a, erp_b, c2w_a, c2w_b, desc = _load_pair(args)
+    t0 = time.perf_counter()
+    views = reference_views(g, [erp_a, erp_b], [c2w_a, c2w_b], height=args.height, holdout=args.holdout)
+    t_fp = time.perf_counter() - t0
+    opts = RefineOptions(iterations=args.iterations, sh_degree=args.sh_degree, colour_reg=args.colour_reg,
+                         optimise_opacity=args.optimise_opacity, opacity_lr=args.opacity_lr, patience=args.patience,
+                         cross_check=not args.no_cross_check, loss=args.loss)
+    res = refine(g, views, opts)
+    write_ply(args.out, res.gaussians)
+    first = res.history[0]
+    best = res.history[min(res.best_iteration, len(res.history) - 1)]
+    print(json.dumps({"out": str(args.out), "inputs": desc, "num_gaussians": len(res.gaussians),
+                      "best_iteration": res.best_iteration, "iterations_run": res.history[-1]["iteration"],
+                      "held_loss_start": first["held_loss"], "held_loss_best": best["held_loss"],
+                      "cross_check": None if res.cross is None else
+                      {"accepted": res.cross["accepted"], "steps": res.cross["steps"], "scale": res.cross["scale"],
+                       "mse_start": res.cross["total"][0][0], "mse_best": min(map(min, res.cross["total"])),
+                       "seconds": res.cross["seconds"]},
+                      "seconds": {"footprints": t_fp, "refine": res.seconds}}, indent=1))
+    return 0
+
+
 # -- parser ---------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
@@ -322,8 +399,28 @@ def build_parser() -> argparse.ArgumentParser:
 
     sub.add_parser("export", help="build an ONNX model (needs torch: the export extra); see 'export --help'",
                    add_help=False)
-    sub.add_parser("refine", help="refine a PLY's colours/opacities on its two reference views (+opt); "
-                   "see 'refine --help'", add_help=False)
+    f = sub.add_parser("refine", help="refine a PLY's colours/opacities on its two reference views (+opt)",
+                       description="+opt: refine the colours (and optionally opacities) of a PLY on its two "
+                                   "reference panoramas (a scene folder, or two images + --poses), geometry fixed, "
+                                   "behind the cross-view guard. A JSON summary goes to stdout.")
+    f.add_argument("ply", type=Path, help="Gaussians to refine (3DGS PLY, e.g. from 'omnisplat reconstruct')")
+    f.add_argument("inputs", nargs="+", help="scene folder, or two ERP images")
+    f.add_argument("--poses", help="JSON file {\"convention\": ..., \"c2w\": [A, B]} (with two images)")
+    f.add_argument("--refs", help="scene folder: the two reference frame names, 'A,B'")
+    f.add_argument("--split", type=int, default=0, help="scene folder: split whose references to use")
+    f.add_argument("--out", type=Path, required=True, help="refined PLY")
+    f.add_argument("--iterations", type=int, default=100)
+    f.add_argument("--height", type=int, default=128, help="Yin/Yang working height h")
+    f.add_argument("--sh-degree", type=int, default=0, choices=(0, 1))
+    f.add_argument("--colour-reg", type=float, default=2.0)
+    f.add_argument("--optimise-opacity", action="store_true")
+    f.add_argument("--opacity-lr", type=float, default=0.01)
+    f.add_argument("--holdout", type=float, default=0.1)
+    f.add_argument("--patience", type=int, default=5)
+    f.add_argument("--no-cross-check", action="store_true",
+                   help="skip the cross-view guard (fit each reference alone, score the other; reject if worse)")
+    f.add_argument("--loss", default="l2", choices=("l2", "huber", "l1"), help="colour fit loss (l2 measured best)")
+    f.set_defaults(func=cmd_refine)
     b = sub.add_parser("bench", help="benchmarks: " + ", ".join(f"'bench {k}'" for k in BENCH),
                        description="Benchmarks; each forwards its options to its own parser.")
     b.add_argument("which", choices=list(BENCH), help="; ".join(f"{k}: {v[1]}" for k, v in BENCH.items()))
@@ -335,10 +432,11 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         if argv and argv[0] in FORWARDED:
-            module, hint = FORWARDED[argv[0]]
-            return _forward(module, hint, argv[1:])
+            load, hint = FORWARDED[argv[0]]
+            return _forward(load, hint, argv[1:])
         if len(argv) >= 2 and argv[0] == "bench" and argv[1] in BENCH:
-            return _forward(BENCH[argv[1]][0], f"bench {argv[1]} is provided by {BENCH[argv[1]][0]}", argv[2:])
+            return _forward(BENCH[argv[1]][0], f"bench {argv[1]} is provided by bench.{argv[1]}, in the source tree",
+                            argv[2:])
         args = build_parser().parse_args(argv)
         return int(args.func(args) or 0)
     except CliError as exc:

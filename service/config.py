@@ -31,7 +31,8 @@ class Settings(BaseSettings):
 
     # -- model ----------------------------------------------------------------
     model_path: Path | None = Field(
-        None, description="ONNX model file. Unset: <models_dir>/omnisplat-default-<exporter hash>.onnx (built by `serve` if missing, rebuilt when the exporter changes)."
+        None, description="ONNX model file. Unset: <models_dir>/omnisplat-default-<exporter hash>.onnx "
+                          "(built by `serve` if missing, rebuilt when the exporter changes)."
     )
     models_dir: Path = DEFAULT_HOME / "models"
     ort_threads: int = Field(2, ge=1, le=256, description="onnxruntime intra-op threads")

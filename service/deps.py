@@ -8,11 +8,10 @@ from fastapi import Depends, Path, Request
 
 from .config import Settings
 from .errors import Busy
-from .inputs import SCENE_ID_PATTERN
 from .limits import WorkGate
 from .metrics import ServiceMetrics
 from .runtime import ModelRuntime
-from .store import SceneStore
+from .store import SCENE_ID_PATTERN, SceneStore
 
 
 def _settings(request: Request) -> Settings:

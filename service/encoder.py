@@ -19,12 +19,18 @@ import onnxruntime as ort
 
 from rasterizer.gaussians import Gaussians
 from rasterizer.geometry import PoseError, as_c2w
+from rasterizer.sweep import (
+    FAR_PER_BASELINE,
+    INPUT_NAMES,
+    MIN_BASELINE,
+    NEAR_PER_BASELINE,
+    OUTPUT_NAMES,
+    baseline,
+    default_near_far,
+    sweep_inputs,
+)
 from rasterizer.yin_yang import resize_erp
-from rasterizer.sweep import (FAR_PER_BASELINE, MIN_BASELINE, NEAR_PER_BASELINE, baseline, default_near_far,
-                              sweep_inputs)
 
-INPUT_NAMES = ("erp_a", "erp_b", "warp_grids", "rel_rt", "inv_depths", "c2w", "cam_quats")
-OUTPUT_NAMES = ("means", "scales", "quats", "opacities", "sh_dc", "range_maps", "confidence")
 KNOWN_OPTIONS = ("min_opacity",)
 
 

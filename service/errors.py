@@ -16,6 +16,9 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from rasterizer.geometry import PoseError
 
+from .encoder import EncoderInputError
+from .store import InvalidSceneId, SceneNotFound, StoreCorrupt
+
 log = logging.getLogger("omnisplat.service")
 
 
@@ -78,18 +81,14 @@ def _domain_error(exc: Exception) -> ServiceError | None:
         return exc
     if isinstance(exc, PoseError):
         return BadInput(str(exc), code="invalid_pose")
-    from .store import SceneNotFound, StoreCorrupt  # late: store imports this module's siblings
-
+    if isinstance(exc, InvalidSceneId):
+        return BadInput(str(exc), code="invalid_scene_id")
     if isinstance(exc, SceneNotFound):
         return NotFound(str(exc), code="scene_not_found")
     if isinstance(exc, StoreCorrupt):
         log.error("%s", exc)
         return ServiceError(str(exc), code="store_corrupt", status=500)
-    try:
-        from service.encoder import EncoderInputError
-    except ImportError:  # encoder module not present
-        EncoderInputError = ()  # type: ignore[assignment]
-    if EncoderInputError and isinstance(exc, EncoderInputError):
+    if isinstance(exc, EncoderInputError):
         return BadInput(str(exc), code="invalid_input")
     return None
 

@@ -9,31 +9,19 @@ from __future__ import annotations
 import inspect
 import json
 import math
-import re
 from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
 
 from rasterizer.geometry import PoseError, as_c2w
+from rasterizer.sweep import MIN_BASELINE
 
 from .errors import BadInput
 from .pipeline import STEP_OPTION_KEYS, PipelineOptions
 
-SCENE_ID_PATTERN = r"^[0-9a-f]{32}$"
-_SCENE_ID_RE = re.compile(SCENE_ID_PATTERN)
-MIN_BASELINE = 1e-6  # camera centres closer than this count as identical
-
 Projection = Literal["erp", "perspective", "yin", "yang"]
 ImageFormat = Literal["png", "jpeg"]
-
-
-def check_scene_id(scene_id: str) -> str:
-    """Scene ids are 32 lower-case hex digits; anything else (``..``, slashes) is refused."""
-    if not isinstance(scene_id, str) or not _SCENE_ID_RE.match(scene_id):
-        raise BadInput(f"malformed scene id {str(scene_id)[:80]!r}; expected 32 lower-case hex digits",
-                       code="invalid_scene_id")
-    return scene_id
 
 
 def _reject_constant(name: str) -> Any:

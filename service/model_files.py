@@ -13,7 +13,6 @@ import time
 from pathlib import Path
 from typing import Callable
 
-
 REPO_ROOT = Path(__file__).resolve().parents[1]
 #: rasterizer modules the exporter bakes into the graph
 _RASTERIZER_DEPS = ("geometry.py", "gaussians.py", "sweep.py", "yin_yang.py")

@@ -23,6 +23,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import shutil
 import threading
 import time
@@ -35,12 +36,26 @@ import numpy as np
 
 from rasterizer.gaussians import Gaussians
 
-from .inputs import check_scene_id
-
 log = logging.getLogger("omnisplat.store")
 
 _FIELDS = ("means", "scales", "quats", "opacities", "sh")
 _META_CACHE = 1024  # metadata dicts kept in memory
+
+
+#: Scene (and job) ids: 32 lower-case hex digits (a content hash); the store owns this format.
+SCENE_ID_PATTERN = r"^[0-9a-f]{32}$"
+_SCENE_ID_RE = re.compile(SCENE_ID_PATTERN)
+
+
+class InvalidSceneId(ValueError):
+    """A scene id that is not 32 lower-case hex digits (``..``, slashes, ...)."""
+
+
+def check_scene_id(scene_id: str) -> str:
+    """Return ``scene_id`` if well-formed, else raise :class:`InvalidSceneId`: no path ever leaves the store."""
+    if not isinstance(scene_id, str) or not _SCENE_ID_RE.match(scene_id):
+        raise InvalidSceneId(f"malformed scene id {str(scene_id)[:80]!r}; expected 32 lower-case hex digits")
+    return scene_id
 
 
 class SceneNotFound(KeyError):

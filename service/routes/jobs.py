@@ -21,9 +21,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from .. import jobs as work
 from ..deps import SceneId, StoreDep
 from ..errors import Busy, NotFound
-from ..inputs import SCENE_ID_PATTERN
 from ..limits import WorkGate
 from ..schemas import error_responses
+from ..store import SCENE_ID_PATTERN
 
 router = APIRouter(tags=["jobs"])
 

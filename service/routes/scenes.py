@@ -11,8 +11,7 @@ from fastapi import APIRouter, File, Form, Query, Response, UploadFile
 from fastapi.responses import FileResponse
 
 from .. import scenes as work
-from ..deps import (InferenceGateDep, MetricsDep, ReadyRuntimeDep, RenderGateDep, SceneId, SettingsDep,
-                    StoreDep)
+from ..deps import InferenceGateDep, MetricsDep, ReadyRuntimeDep, RenderGateDep, SceneId, SettingsDep, StoreDep
 from ..errors import NotFound
 from ..images import MEDIA_TYPES
 from ..inputs import ImageFormat, Projection, check_render_query, parse_options, parse_poses

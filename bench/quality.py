@@ -1,0 +1,326 @@
+"""``omnisplat bench quality``: error against run time over scene folders.
+
+For every scene split: decode the two references, reconstruct Gaussians with
+each setting's ONNX model, render every target, and score PSNR, SSIM and
+WS-PSNR (conventions section 6) with wall seconds per stage (decode,
+encoder, Gaussian head, render). Writes ``quality.json``, ``quality.md`` and
+``quality_psnr_vs_seconds.png`` into ``--out`` (default ``docs/bench``).
+
+    omnisplat bench quality --data ../shared/data/m3d_bedroom ../shared/data/zind_room09
+    omnisplat bench quality --data DIR --short          # CI smoke run: one scene, one small model
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from bench import metrics
+from rasterizer.scene_folder import SceneFolder, Split, load_scene
+
+from .baselines import copy_nearest
+from .machine import machine_info, machine_line
+from .models import DEFAULT_MODELS_DIR, bench_model
+from .report import ablation_markdown, aggregate, markdown, plot, readme_block, update_readme, write_json
+from .settings import Setting, full_grid, parse_setting, short_grid
+
+DEFAULT_OUT = Path(__file__).resolve().parents[1] / "docs" / "bench"
+#: A split whose targets lie farther than this many baselines from the reference segment is "extrapolation".
+EXTRAPOLATION_RATIO = 0.5
+
+
+def _log(msg: str) -> None:
+    print(f"[bench quality] {msg}", file=sys.stderr, flush=True)
+
+
+# -- scene handling -----------------------------------------------------------
+
+def is_extrapolation(scene: SceneFolder, split: Split, index: int) -> bool:
+    """True if the split says so, or a target is > EXTRAPOLATION_RATIO baselines off the reference segment."""
+    meta = scene.meta.get("splits", [])
+    if index < len(meta) and "extrapolation" in meta[index]:
+        return bool(meta[index]["extrapolation"])
+    a = scene.frames[split.references[0]].c2w[:3, 3]
+    b = scene.frames[split.references[1]].c2w[:3, 3]
+    ab = b - a
+    base = float(np.linalg.norm(ab))
+    for name in split.targets:
+        p = scene.frames[name].c2w[:3, 3]
+        t = np.clip((p - a) @ ab / max(base * base, 1e-12), 0.0, 1.0)
+        if np.linalg.norm(p - (a + t * ab)) > EXTRAPOLATION_RATIO * base:
+            return True
+    return False
+
+
+def resize_erp_box(image: np.ndarray, width: int) -> np.ndarray:
+    """Area-resample an ERP image to ``width`` x ``width/2`` (identity when already that size)."""
+    h, w = image.shape[:2]
+    if w == width:
+        return image
+    pil = Image.fromarray(np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8))
+    return np.asarray(pil.resize((width, width // 2), Image.Resampling.BOX), dtype=np.float32) / 255.0
+
+
+def score(pred: np.ndarray, target: np.ndarray) -> dict:
+    """PSNR, SSIM, WS-PSNR of a prediction against the ground truth (both clipped to [0, 1])."""
+    pred = np.clip(np.nan_to_num(pred, nan=0.0), 0.0, 1.0)
+    return {"psnr": metrics.psnr(pred, target), "ssim": metrics.ssim(pred, target), "ws_psnr": metrics.ws_psnr(pred, target)}
+
+
+# -- per-setting reconstruction ------------------------------------------------
+
+class Runner:
+    """Holds the encoders (one per model) and runs one setting on one split."""
+
+    def __init__(self, models_dir: Path, threads: int, warmup: bool):
+        self.models_dir = models_dir
+        self.threads = threads
+        self.warmup = warmup
+        self._encoders: dict = {}
+        self._warm: set = set()
+        self.paths: dict = {}  # model key -> ONNX path, filled before the sweep
+
+    def encoder(self, setting: Setting):
+        from service.encoder import OnnxEncoder
+
+        key = setting.model_key
+        if key not in self._encoders:
+            self._encoders.clear()  # keep one session in memory at a time
+            h, w, planes, erp, ds = key
+            path = self.paths.get(key) or bench_model(h, w, planes, erp, downscale=ds, models_dir=self.models_dir,
+                                                       threads=self.threads, log=_log)
+            self._encoders[key] = OnnxEncoder(path, threads=self.threads)
+        return self._encoders[key]
+
+    def gaussians(self, setting: Setting, refs: list[tuple[np.ndarray, np.ndarray]], depths) -> tuple:
+        """(Gaussians, {stage: seconds}) for a model or oracle setting."""
+        if setting.kind == "oracle":
+            from rasterizer.depth_gaussians import gaussians_from_depth
+
+            t0 = time.perf_counter()
+            g = oracle_gaussians(gaussians_from_depth, refs, depths)
+            return g, {"encoder": 0.0, "gaussian_head": time.perf_counter() - t0}
+        enc = self.encoder(setting)
+        (img_a, c2w_a), (img_b, c2w_b) = refs
+        if self.warmup and setting.model_key not in self._warm:
+            enc.reconstruct(img_a, img_b, c2w_a, c2w_b)
+            self._warm.add(setting.model_key)
+        t0 = time.perf_counter()
+        rec = enc.reconstruct(img_a, img_b, c2w_a, c2w_b)
+        wall = time.perf_counter() - t0
+        return rec.gaussians, encoder_stages(rec.timings, wall)
+
+
+def encoder_stages(timings: dict, wall: float) -> dict:
+    """Split the encoder's wall time into "encoder" and "gaussian_head" using its own timings.
+
+    Timing keys naming the head (``head``, ``gaussian``) count as the head;
+    the rest of the wall time (resampling, ONNX run, pose inputs) is "encoder".
+    """
+    head = sum(float(v) for k, v in (timings or {}).items()
+               if isinstance(v, (int, float)) and ("head" in k.lower() or "gaussian" in k.lower()) and "total" not in k.lower())
+    head = min(head, wall)
+    return {"encoder": wall - head, "gaussian_head": head}
+
+
+def oracle_gaussians(gaussians_from_depth, refs, depths):
+    """GT-depth Gaussians of both references, concatenated."""
+    from rasterizer.gaussians import Gaussians
+
+    parts = [gaussians_from_depth(img, depth, c2w) for (img, c2w), depth in zip(refs, depths)]
+    return Gaussians.concatenate(parts)
+
+
+def render_view(gaussians, c2w: np.ndarray, width: int, rasterizer: str):
+    """(colour, alpha) of an ERP render."""
+    from rasterizer.render import render
+
+    out = render(gaussians, c2w, projection="erp", width=width, method=rasterizer)
+    return np.asarray(out.colour), np.asarray(out.alpha)
+
+
+def alpha_normalised(colour: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """colour / alpha where alpha >= 1/255, else 0: what the Yin-Yang merge does, applied to a direct render."""
+    ok = alpha[..., None] >= 1.0 / 255.0
+    return np.where(ok, colour / np.maximum(alpha[..., None], 1.0 / 255.0), 0.0)
+
+
+# -- the bench ---------------------------------------------------------------------
+
+def run(scene_dirs: list[Path], settings: list[Setting], *, models_dir: Path, threads: int = 2,
+        render_width: int | None = None, warmup: bool = False, max_splits: int | None = None) -> list[dict]:
+    """Per-target records for every (setting, scene split, target)."""
+    runner = Runner(models_dir, threads, warmup)
+    # Build every model first: the whole sweep then uses one snapshot of the exporter's code.
+    for key in dict.fromkeys(s.model_key for s in settings if s.kind == "model"):
+        h, w, planes, erp, ds = key
+        runner.paths[key] = bench_model(h, w, planes, erp, downscale=ds, models_dir=models_dir, threads=threads,
+                                         log=_log)
+    records: list[dict] = []
+    scenes = [load_scene(d) for d in scene_dirs]
+    for setting in settings:
+        for scene in scenes:
+            if setting.kind == "oracle" and not scene.has_depth:
+                continue
+            for si, split in enumerate(scene.splits[:max_splits]):
+                extra = is_extrapolation(scene, split, si)
+                group = f"{scene.name} (extrapolation)" if extra else scene.name
+                t0 = time.perf_counter()
+                refs = [(scene.frames[n].image(), scene.frames[n].c2w) for n in split.references]
+                decode = time.perf_counter() - t0
+                depths = [scene.frames[n].depth() for n in split.references] if setting.kind == "oracle" else None
+                stages = {"encoder": 0.0, "gaussian_head": 0.0}
+                g = None
+                model_info = {}
+                if setting.kind != "copy":
+                    g, stages = runner.gaussians(setting, refs, depths)
+                if setting.kind == "model":
+                    enc = runner.encoder(setting)
+                    model_info = {"model_file": enc.path.name, "model_sha256": enc.metadata.get("sha256", "")[:16]}
+                for name in split.targets:
+                    frame = scene.frames[name]
+                    gt = frame.image()
+                    width = render_width or gt.shape[1]
+                    gt = resize_erp_box(gt, width)
+                    t0 = time.perf_counter()
+                    alpha = None
+                    if setting.kind == "copy":
+                        pred = copy_nearest(refs, frame.c2w, width // 2, width)
+                    else:
+                        pred, alpha = render_view(g, frame.c2w, width, setting.rasterizer)
+                    t_render = time.perf_counter() - t0
+                    rec = {"setting": setting.slug, "setting_name": setting.name, "scene": scene.name,
+                           "split": si, "group": group, "extrapolation": extra, "target": name,
+                           "references": list(split.references), "width": width,
+                           "finite": bool(np.all(np.isfinite(pred))),
+                           **score(pred, gt),
+                           "seconds": {"decode": decode, **stages, "render": t_render}}
+                    if alpha is not None and setting.rasterizer == "direct":
+                        rec["psnr_alpha_normalised"] = metrics.psnr(np.clip(alpha_normalised(pred, alpha), 0, 1), gt)
+                    if g is not None:
+                        rec["num_gaussians"] = len(g)
+                    rec.update(model_info)
+                    records.append(rec)
+                    _log(f"{setting.name} | {group} {name}: PSNR {rec['psnr']:.2f} dB, "
+                         f"{sum(rec['seconds'].values()):.2f} s")
+    return records
+
+
+def ablation_tables(settings: list[Setting], summary: list[dict]) -> list[str]:
+    """The paper's Table 3 (encoder x rasterizer) for every model point where all four cells ran."""
+    points: dict[tuple, dict] = {}
+    for s in settings:
+        if s.kind == "model":
+            cell = ("Yin-Yang encoder" if not s.erp_encoder else "ERP encoder",
+                    "Yin-Yang rasterizer" if s.rasterizer == "yinyang" else "direct ERP rasterizer")
+            points.setdefault((s.height, s.width, s.planes, s.downscale), {})[cell] = s.slug
+    out = []
+    for (h, w, planes, ds), cells in points.items():
+        if len(cells) == 4:
+            feats = "" if ds is None else f", features /{ds}"
+            out.append(ablation_markdown(summary, cells, f"Paper Table 3 ablation ({h}x{w}, {planes} planes{feats}): "
+                                                         "mean PSNR / SSIM over scenes"))
+    return out
+
+
+def code_version() -> dict:
+    """Git HEAD (read-only query) and whether the tree had local changes, plus the exporter source hash."""
+    import subprocess
+
+    from .models import REPO_ROOT, export_code_hash
+
+    def git(*args):
+        try:
+            return subprocess.run(["git", *args], cwd=REPO_ROOT, capture_output=True, text=True, timeout=10).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+
+    return {"git_head": git("rev-parse", "--short", "HEAD"), "uncommitted_changes": bool(git("status", "--porcelain")),
+            "export_code_hash": export_code_hash()}
+
+
+NOTES = [
+    "Per-scene mean over targets, then the unweighted mean over scenes; splits whose targets lie more than "
+    f"{EXTRAPOLATION_RATIO} baselines off the reference segment (zind_room09 refs pano_4+pano_5) are extrapolation, "
+    "reported separately and kept out of the mean.",
+    "Seconds are wall clock per novel view: decode = reading the two reference PNGs; encoder = "
+    "`OnnxEncoder.reconstruct` minus its Gaussian stage (resampling, sweep inputs, the ONNX run, which also "
+    "holds the pixel-aligned Gaussian head's maths); Gaussian head = the encoder's own `gaussians` timing "
+    "(building the Gaussians from the graph outputs), for the oracle building the GT-depth Gaussians; "
+    "render = one ERP render at the evaluation width. Reconstruction stages are shared by the targets of a "
+    "split; no warm-up run (ONNX first-run overhead is included).",
+    "Timings are wall clock on a 2-core machine and noisy, more so the higher the load average above; "
+    "compare settings, not absolute numbers.",
+    "The direct ERP rasterizer composites colour over black (docs/contracts.md) while the Yin-Yang path divides "
+    "the merged colour by alpha; the ablation table also gives the direct render divided by its alpha (same "
+    "render, no extra time), which separates the projection from that normalisation.",
+    "copy nearest reference = the nearest reference rotated into the target's orientation (depth at infinity). "
+    "GT-depth oracle = Gaussians from the ground-truth depth of both references (scenes with depth only, so its "
+    "mean covers m3d_bedroom alone).",
+    "Generated by `omnisplat bench quality`; do not edit by hand.",
+]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="omnisplat bench quality", description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", nargs="+", required=True, type=Path, help="scene folders (conventions section 2)")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output folder (default docs/bench)")
+    p.add_argument("--models-dir", type=Path, default=DEFAULT_MODELS_DIR, help="ONNX model cache")
+    p.add_argument("--setting", action="append", default=None,
+                   help="run only these settings: 'HxW:planes[:yy|erp][:yinyang|direct]', 'oracle', 'copy' (repeatable)")
+    p.add_argument("--short", action="store_true", help="smoke run: first scene, first split, one 64x128/16-plane model")
+    p.add_argument("--render-width", type=int, default=None, help="evaluation width (default: the target image's)")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--warmup", action="store_true", help="one untimed reconstruction per model before timing")
+    p.add_argument("--name", default="quality", help="output file stem (default 'quality')")
+    p.add_argument("--readme", type=Path, default=None,
+                   help="also replace the marked quality block of this README (e.g. README.md) with the mean table")
+    args = p.parse_args(argv)
+
+    missing = [d for d in args.data if not (d / "scene.json").exists()]
+    if missing:
+        p.error(f"not a scene folder (no scene.json): {', '.join(map(str, missing))}")
+    if args.setting:
+        settings = [parse_setting(s) for s in args.setting]
+    else:
+        settings = short_grid() if args.short else full_grid()
+    data = args.data[:1] if args.short else args.data
+    width = args.render_width or (256 if args.short else None)
+    info = machine_info()
+    t0 = time.perf_counter()
+    records = run(data, settings, models_dir=args.models_dir, threads=args.threads, render_width=width,
+                  warmup=args.warmup, max_splits=1 if args.short else None)
+    summary = aggregate(records)
+    line = machine_line(info)
+    code = code_version()
+    models = sorted({r["model_file"] for r in records if "model_file" in r})
+    notes = NOTES + [f"Code: git {code['git_head']}{' + uncommitted changes' if code['uncommitted_changes'] else ''}; "
+                     f"models: {', '.join(models) or 'none'} (the suffix hashes the exporter source; "
+                     "a run that mixes suffixes mixes encoder versions)."]
+    notes += [f"Command: `omnisplat bench quality {' '.join(argv if argv is not None else sys.argv[1:])}`; "
+                     f"total bench wall time {time.perf_counter() - t0:.0f} s."]
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_json(args.out / f"{args.name}.json", {"machine": info, "code": code, "notes": notes,
+                                                 "settings": [s.to_dict() for s in settings],
+                                                 "summary": summary, "records": records})
+    md = markdown(summary, line, notes) + f"\n![PSNR against seconds]({args.name}_psnr_vs_seconds.png)\n"
+    md += "".join("\n" + t for t in ablation_tables(settings, summary))
+    (args.out / f"{args.name}.md").write_text(md)
+    plot(summary, args.out / f"{args.name}_psnr_vs_seconds.png", line)
+    _log(f"wrote {args.out / (args.name + '.md')}")
+    if args.readme is not None:
+        rel = os.path.relpath(args.out, args.readme.resolve().parent)
+        block = readme_block(md, line, f"{rel}/{args.name}_psnr_vs_seconds.png", f"{rel}/{args.name}.md")
+        if not update_readme(args.readme, block):
+            _log(f"{args.readme} has no quality markers; left unchanged")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,153 @@
+"""Measure the service end to end: POST /v1/scenes and GET render latency, and peak RSS.
+
+    python -m bench.service --model models/omnisplat-default.onnx [--repeats 5] [--json out.json]
+
+Starts ``omnisplat serve`` as a subprocess on 127.0.0.1 (fresh temporary store), posts two
+512x1024 panoramas (the dev scene when present, else synthetic ones) ``repeats`` times with
+distinct options so each POST really reconstructs, renders a 512x1024 ERP ``repeats`` times,
+and reads the server's peak RSS (VmHWM) from /proc. Timings on a shared CPU are noisy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import os
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench import DEV_DATA
+
+DEV_SCENE = DEV_DATA / "m3d_bedroom"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _inputs(height: int) -> tuple[bytes, bytes, list, list]:
+    from PIL import Image
+
+    def encode(arr: np.ndarray) -> bytes:
+        buf = io.BytesIO()
+        Image.fromarray(arr).save(buf, format="PNG")
+        return buf.getvalue()
+
+    scene = DEV_SCENE / "scene.json"
+    if scene.is_file():
+        meta = json.loads(scene.read_text())
+        frames = {f["name"]: f for f in meta["frames"]}
+        a, b = (frames[n] for n in meta["splits"][0]["references"])
+        imgs = [np.asarray(Image.open(DEV_SCENE / f["image"]).convert("RGB").resize((2 * height, height)))
+                for f in (a, b)]
+        return encode(imgs[0]), encode(imgs[1]), a["c2w"], b["c2w"]
+    rng = np.random.default_rng(0)
+    img = (rng.random((height, 2 * height, 3)) * 255).astype(np.uint8)
+    eye, moved = np.eye(4), np.eye(4)
+    moved[0, 3] = 0.5
+    return encode(img), encode(np.roll(img, 8, axis=1)), eye.tolist(), moved.tolist()
+
+
+def _peak_rss_mb(pid: int) -> float | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    import httpx
+
+    p = argparse.ArgumentParser(prog="python -m bench.service", description=__doc__.splitlines()[0])
+    p.add_argument("--model", type=Path, required=True, help="ONNX model to serve")
+    p.add_argument("--height", type=int, default=512, help="panorama height (width = 2 x height)")
+    p.add_argument("--render-width", type=int, default=1024)
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--json", type=Path, help="write the results here too")
+    args = p.parse_args(argv)
+
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}"
+    with tempfile.TemporaryDirectory() as store:
+        cmd = [sys.executable, "-m", "service.cli", "serve", "--no-build", "--model", str(args.model),
+               "--store", store, "--port", str(port), "--log-level", "warning"]
+        proc = subprocess.Popen(cmd, cwd=Path(__file__).resolve().parents[1])
+        try:
+            t0 = time.perf_counter()
+            while True:
+                try:
+                    if httpx.get(url + "/readyz", timeout=2).status_code == 200:
+                        break
+                except httpx.TransportError:
+                    pass
+                if proc.poll() is not None or time.perf_counter() - t0 > 300:
+                    raise SystemExit("server did not become ready")
+                time.sleep(0.1)
+            ready_s = time.perf_counter() - t0
+            a, b, ca, cb = _inputs(args.height)
+            poses = json.dumps({"convention": "opencv", "c2w": [ca, cb]})
+            post_s, render_s, stage_sums, sid, n = [], [], {}, None, 0
+            with httpx.Client(base_url=url, timeout=600) as c:
+                for i in range(args.repeats):
+                    # distinct far plane -> distinct scene id -> a real reconstruction each time
+                    opts = json.dumps({"far": 20.0 + 0.01 * i})
+                    t = time.perf_counter()
+                    r = c.post("/v1/scenes", files={"image_a": ("a.png", a), "image_b": ("b.png", b)},
+                               data={"poses": poses, "options": opts})
+                    post_s.append(time.perf_counter() - t)
+                    r.raise_for_status()
+                    body = r.json()
+                    sid, n = body["id"], body["num_gaussians"]
+                    for k, v in body["timings"].items():
+                        stage_sums.setdefault(k, []).append(v)
+                    print(f"POST {i + 1}/{args.repeats}: {post_s[-1]:.2f} s", file=sys.stderr)
+                c2w = ",".join(str(v) for v in np.asarray(ca, dtype=float).ravel())
+                for i in range(args.repeats):
+                    t = time.perf_counter()
+                    r = c.get(f"/v1/scenes/{sid}/render", params={"c2w": c2w, "width": args.render_width})
+                    render_s.append(time.perf_counter() - t)
+                    r.raise_for_status()
+                    print(f"GET render {i + 1}/{args.repeats}: {render_s[-1]:.2f} s", file=sys.stderr)
+                info = c.get("/v1/info").json()
+            result = {
+                "model": {k: info["model"].get(k) for k in ("name", "version", "sha256")},
+                "inputs": f"two {args.height}x{2 * args.height} PNG panoramas"
+                          + (" (m3d_bedroom, resized)" if (DEV_SCENE / "scene.json").is_file() else " (synthetic)"),
+                "num_gaussians": n,
+                "ready_seconds": round(ready_s, 2),
+                "post_scene_seconds": {"median": statistics.median(post_s), "all": post_s},
+                "post_stage_median_seconds": {k: statistics.median(v) for k, v in stage_sums.items()},
+                "render_erp_seconds": {"width": args.render_width, "median": statistics.median(render_s),
+                                       "all": render_s},
+                "peak_rss_mb": _peak_rss_mb(proc.pid),
+                "cpu_count": os.cpu_count(),
+                "load_average_1_5_15min": [round(x, 2) for x in os.getloadavg()],
+            }
+        finally:
+            proc.terminate()
+            try:
+                proc.wait(30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.json:
+        args.json.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,97 @@
+"""service.encoder.OnnxEncoder: metadata, reconstruction on dev data, input errors, no torch."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from export.onnx_export import export_model
+from rasterizer.geometry import grid_directions, project_to_grid
+from rasterizer.scene_folder import load_scene
+from service.encoder import EncoderInputError, OnnxEncoder
+
+
+@pytest.fixture(scope="module")
+def encoder(tmp_path_factory):
+    path = export_model(tmp_path_factory.mktemp("enc") / "small.onnx", height=128, width=256, num_planes=16)
+    return OnnxEncoder(path, threads=2)
+
+
+@pytest.fixture(scope="module")
+def m3d(m3d_dir):
+    scene = load_scene(m3d_dir)
+    return scene.frames["00"], scene.frames["02"]
+
+
+def test_metadata(encoder):
+    meta = encoder.metadata
+    assert len(meta["sha256"]) == 64
+    assert meta["input_height"] == "128" and meta["num_planes"] == "16"
+    assert meta["settings"]["num_planes"] == 16
+    assert encoder.feature_size == (16, 48)
+
+
+def test_reconstruct_m3d_depth_is_metric(encoder, m3d):
+    fa, fb = m3d
+    rec = encoder.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w)
+    g = rec.gaussians
+    assert len(g) == 2 * 2 * 64 * 192
+    g.check_finite()
+    assert set(rec.timings) >= {"resample", "sweep_inputs", "onnx", "gaussians", "total"}
+    assert rec.info["baseline"] == pytest.approx(1.0)
+    assert rec.range_maps.shape == rec.confidence.shape == (2, 2, 64, 192)
+    assert 0.0 <= rec.confidence.min() and rec.confidence.max() <= 1.0
+    # Yin range map of view A against GT at the same directions (nearest ERP pixel)
+    gt = fa.depth()
+    col, row = project_to_grid("erp", grid_directions("yin", 64, 192), *gt.shape)
+    gt_yin = gt[np.clip(np.round(row).astype(int), 0, gt.shape[0] - 1), np.round(col).astype(int) % gt.shape[1]]
+    ok = gt_yin > 0
+    rel = np.abs(rec.range_maps[0, 0][ok] - gt_yin[ok]) / gt_yin[ok]
+    assert np.median(rel) < 0.2
+    # means are range x ray from the camera centre
+    d = np.linalg.norm(g.means[: 64 * 192] - fa.c2w[:3, 3], axis=1)
+    np.testing.assert_allclose(d, rec.range_maps[0, 0].ravel(), rtol=1e-4)
+
+
+def test_any_2to1_size_and_dtype(encoder, m3d):
+    fa, fb = m3d
+    a8 = (fa.image() * 255).round().astype(np.uint8)
+    small_b = fb.image()[::2, ::2]  # 256 x 512
+    r1 = encoder.reconstruct(a8, small_b, fa.c2w, fb.c2w)
+    r2 = encoder.reconstruct(a8.astype(np.float32) / 255, small_b, fa.c2w, fb.c2w)
+    np.testing.assert_allclose(r1.range_maps, r2.range_maps, rtol=1e-5)
+
+
+def test_near_far_override_and_pruning(encoder, m3d):
+    fa, fb = m3d
+    rec = encoder.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w, near=1.0, far=5.0, min_opacity=0.5)
+    assert rec.info["near"] == 1.0 and rec.info["far"] == 5.0
+    assert rec.range_maps.min() >= 1.0 - 1e-4 and rec.range_maps.max() <= 5.0 + 1e-3
+    assert len(rec.gaussians) < rec.info["num_gaussians_raw"]
+    assert rec.gaussians.opacities.min() >= 0.5
+
+
+@pytest.mark.parametrize("bad, match", [
+    (dict(erp_a=np.zeros((100, 300, 3), np.float32)), "width = 2 x height"),
+    (dict(erp_a=np.full((64, 128, 3), np.nan, np.float32)), "NaN"),
+    (dict(erp_a=np.zeros((64, 128), np.float32)), "RGB"),
+    (dict(erp_a=np.full((64, 128, 3), 7.0, np.float32)), r"\[0, 1\]"),
+    (dict(c2w_b=np.eye(4)), "coincide"),
+    (dict(c2w_b=np.diag([1.0, 1.0, -1.0, 1.0])), "mirror"),
+    (dict(near=5.0, far=1.0), "near < far"),
+    (dict(colour_mode="x"), "unknown encoder option"),
+])
+def test_bad_inputs_raise_clear_errors(encoder, bad, match):
+    args = dict(erp_a=np.zeros((64, 128, 3), np.float32), erp_b=np.zeros((64, 128, 3), np.float32),
+                c2w_a=np.eye(4), c2w_b=np.diag([1.0, 1.0, 1.0, 1.0]))
+    args["c2w_b"][2, 3] = 1.0
+    args.update(bad)
+    with pytest.raises(EncoderInputError, match=match):
+        encoder.reconstruct(args.pop("erp_a"), args.pop("erp_b"), args.pop("c2w_a"), args.pop("c2w_b"), **args)
+    assert issubclass(EncoderInputError, ValueError)
+
+
+def test_runtime_never_imports_torch():
+    code = "import sys, service.encoder, rasterizer.sweep; assert 'torch' not in sys.modules; assert 'export' not in sys.modules"
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=str(__import__("pathlib").Path(__file__).parents[2]))

@@ -1,0 +1,195 @@
+"""The vectorised smooth merge / duplicate step give what the straightforward per-block formulas give.
+
+``_reference_level1`` is the 2x2 merge as first written (per-member gathers, ``quat_to_rotmat``,
+``scale_rotation_from_covariance``); the shipped code works on the block-reshaped layout in
+chunks and must decide the same blocks and build the same Gaussians.
+"""
+
+import numpy as np
+import pytest
+
+from rasterizer import compaction as cp
+from rasterizer import geometry as geo
+from rasterizer.compaction import CompactionOptions, Provenance, compact_result, smooth_merge_blocks
+from rasterizer.depth_gaussians import gaussians_from_depth
+from rasterizer.gaussians import SH_C0, Gaussians, quat_to_rotmat, rotmat_to_quat, scale_rotation_from_covariance
+
+_DEFAULTS = CompactionOptions()
+
+
+def _reference_plane_ok(u_w, mu, m2, plane_tol: float, cos_incidence: float) -> np.ndarray:
+    """Array-form plane test, the reference for ``compaction._plane_ok_c``: blocks whose centres lie
+    on a plane seen at most at the incidence limit.
+
+    Residual = rms distance from the best plane (smallest eigenvalue of the
+    scatter), relative to the range of the block's centre; incidence = angle
+    between that plane's normal and the ray to the centre. The incidence
+    limit also rejects depth steps: a block whose pixels jump in range fits
+    a plane almost parallel to the rays.
+    """
+    lam, normal, ok = cp._smallest_eigenpair(m2 / u_w[:, None])
+    rng = np.sqrt(cp._sum3(mu * mu))
+    cos_inc = np.abs(cp._sum3(normal * mu)) / np.where(rng > 0, rng, 1.0)
+    return ok & (rng > 0) & (lam <= (plane_tol * rng) ** 2) & (cos_inc >= cos_incidence)
+
+
+def _reference_level1(g: Gaussians, prov: Provenance, alive, colour_tol=_DEFAULTS.smooth_colour_tol,
+                      opacity_tol=_DEFAULTS.smooth_opacity_tol, plane_tol=_DEFAULTS.smooth_plane_tol,
+                      max_incidence_deg=_DEFAULTS.smooth_max_incidence_deg):
+    """(drop mask, merged Gaussians, top-left layout positions) of the 2x2 merge, block by block formulas."""
+    n = len(g)
+    flat = prov.flat_index(n)
+    h, w = prov.height, prov.width
+    cam_of_plane = np.repeat(prov.c2w[:, :3, 3], len(prov.grids), axis=0)
+    slot = np.full(prov.full_count, -1, dtype=np.int64)
+    slot[flat[alive]] = np.flatnonzero(alive)
+    blocks = cp._blocks(slot.reshape(-1, h, w))
+    shape = blocks.shape[:3]
+    blocks = blocks.reshape(-1, 4)
+    cand = np.flatnonzero(np.all(blocks >= 0, axis=1))
+    members, cam = blocks[cand], cam_of_plane[cand // (shape[1] * shape[2])]
+    cos_inc = float(np.cos(np.radians(max_incidence_deg)))
+    pitch = (np.pi if prov.grids[0] == "erp" else 2 * geo.YIN_LAT_MAX) / h
+    dc = g.sh[:, 0, :]
+    c = [dc[members[:, k]] for k in range(4)]
+    cmin, cmax = np.minimum.reduce(c), np.maximum.reduce(c)
+    ok = cp._max3(cmax - cmin) <= np.float32(colour_tol / SH_C0)
+    o = [g.opacities[members[:, k]] for k in range(4)]
+    amin, amax = np.minimum.reduce(o), np.maximum.reduce(o)
+    ok &= amax - amin <= np.float32(opacity_tol)
+    idx = np.flatnonzero(ok)
+    m, cam = members[idx], cam[idx]
+    a, area, pos = [], [], []
+    for k in range(4):
+        sc = g.scales[m[:, k]].astype(np.float64)
+        area.append(sc[:, 0] * sc[:, 1] * sc[:, 2] / np.maximum(cp._min3(sc), 1e-300))
+        a.append(g.opacities[m[:, k]].astype(np.float64))
+        pos.append(g.means[m[:, k]].astype(np.float64) - cam)
+    wk = [a[k] * area[k] for k in range(4)]
+    wt = sum(wk)
+    wsafe = np.where(wt > 0, wt, 1.0)
+    mu = sum(wk[k][:, None] * pos[k] for k in range(4)) / wsafe[:, None]
+    m2 = sum(cp._outer6(pos[k] - mu, wk[k]) for k in range(4))
+    sel = np.flatnonzero((wt > 0) & _reference_plane_ok(wsafe, mu, m2, plane_tol, cos_inc))
+    sub = g.subset(m[sel].T.ravel())
+    rot = quat_to_rotmat(sub.quats)
+    rs = rot * (sub.scales.astype(np.float64) ** 2)[:, None, :]
+    cov_all = np.stack([cp._sum3(rs[:, i, :] * rot[:, j, :]) for i, j in cp._SYM], axis=1)
+    w_all = np.concatenate([wk[k][sel] for k in range(4)])
+    rng_all = np.sqrt(np.concatenate([cp._sum3(pos[k][sel] ** 2) for k in range(4)]))
+    depth_all = (cp._render_area(sub.scales.astype(np.float64), rng_all * pitch)
+                 * cp.opacity_depth(sub.opacities.astype(np.float64)))
+
+    def per_block(x):
+        return x.reshape((4, sel.size) + x.shape[1:]).sum(0)
+
+    wb, mub, m2b = wt[sel], mu[sel], m2[sel]
+    covb = per_block(w_all[:, None] * cov_all)
+    shb = per_block(w_all[:, None, None] * sub.sh.astype(np.float64))
+    depth = per_block(depth_all)
+    cov = cp._sym_full((covb + m2b) / wb[:, None])
+    rngb = np.sqrt(cp._sum3(mub * mub))
+    scales, quats = scale_rotation_from_covariance(cov, min_scale=1e-12)
+    scales = np.maximum(scales, 1e-9 * rngb[:, None])
+    need = depth / np.maximum(cp._render_area(scales, rngb * pitch), 1e-300)
+    merged = Gaussians(mub + cam[sel], scales, quats, cp.opacity_for_depth(need), shb / wb[:, None, None])
+    chosen = cand[idx[sel]]
+    plane, pix = np.divmod(chosen, shape[1] * shape[2])
+    bi, bj = np.divmod(pix, shape[2])
+    top = (plane * h + 2 * bi) * w + 2 * bj
+    drop = np.zeros(n, dtype=bool)
+    drop[slot[np.concatenate([top, top + 1, top + w, top + w + 1])]] = True
+    return drop, merged, top
+
+
+def room(h=32, seed=0, views=2):
+    """Every Yin and Yang pixel of ``views`` references inside a box room (a full layout, index None),
+    with noisy patches (depth, colour, opacity) so that all of the merge's tests reject some blocks."""
+    rng = np.random.default_rng(seed)
+    w = 3 * h
+    parts, poses = [], []
+    for v in range(views):
+        c2w = np.eye(4)
+        c2w[:3, 3] = [0.3 * v, -0.1, 0.2 * v]
+        for kind in ("yin", "yang"):
+            d = geo.grid_directions(kind, h, w) @ np.eye(3)
+            r = 2.0 / np.max(np.abs(d) * np.array([1.0, 0.8, 1.3]), axis=-1)
+            noisy = rng.random((h, w)) < 0.15
+            r = np.where(noisy, r * (1 + 0.05 * rng.standard_normal((h, w))), r)
+            img = np.empty((h, w, 3), np.float32)
+            img[..., 0] = 0.45 + 0.1 * d[..., 0]
+            img[..., 1] = 0.5 + 0.05 * d[..., 1]
+            img[..., 2] = np.where(rng.random((h, w)) < 0.1, rng.random((h, w)), 0.35)
+            g = gaussians_from_depth(img, r, c2w, kind, scale_factor=0.75, thickness=0.1, opacity=0.6)
+            assert len(g) == h * w
+            parts.append(g)
+        poses.append(c2w)
+    g = Gaussians.concatenate(parts)
+    # random rotations about the normal and a little scale jitter: covariances that are not axis-aligned
+    q = g.quats.astype(np.float64) + 0.05 * rng.standard_normal(g.quats.shape)
+    opa = np.where(rng.random(len(g)) < 0.05, 0.95, 0.6)
+    g = g.with_(quats=q, scales=g.scales * rng.uniform(0.95, 1.05, g.scales.shape), opacities=opa)
+    return g, Provenance(("yin", "yang"), h, w, np.stack(poses))
+
+
+def _assert_same(sm, drop, merged, top):
+    np.testing.assert_array_equal(sm.drop, drop)
+    np.testing.assert_array_equal(sm.index, top)
+    for f in ("means", "scales", "quats", "opacities", "sh"):
+        np.testing.assert_allclose(getattr(sm.gaussians, f), getattr(merged, f), rtol=1e-6, atol=1e-7, err_msg=f)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_full_layout_merge_matches_reference(seed):
+    g, prov = room(seed=seed)
+    alive = np.random.default_rng(seed).random(len(g)) > 0.02
+    sm = smooth_merge_blocks(g, prov, alive, levels=1)
+    drop, merged, top = _reference_level1(g, prov, alive)
+    assert 0 < len(merged) < len(g) // 4  # the noise rejects some blocks, the walls merge
+    _assert_same(sm, drop, merged, top)
+
+
+def test_partial_layout_merge_matches_reference():
+    g, prov = room(seed=3)
+    keep = np.random.default_rng(3).random(len(g)) > 0.1
+    idx = np.flatnonzero(keep)
+    gp = g.subset(idx)
+    pp = Provenance(prov.grids, prov.height, prov.width, prov.c2w, idx)
+    alive = np.ones(len(gp), bool)
+    sm = smooth_merge_blocks(gp, pp, alive, levels=1)
+    drop, merged, top = _reference_level1(gp, pp, alive)
+    assert len(merged) > 0
+    _assert_same(sm, drop, merged, top)
+
+
+def test_compact_result_order_matches_argsort_assembly():
+    g, prov = room(seed=4)
+    res = compact_result(g, prov, CompactionOptions())
+    assert np.all(np.diff(res.provenance.index) > 0)
+    kept = res.block == 1
+    np.testing.assert_array_equal(res.gaussians.means[kept], g.means[res.index])
+    np.testing.assert_array_equal(res.provenance.index[kept], res.index)  # full layout: position = input index
+
+
+def test_footprint_and_ranges_match_plain_formulas():
+    g, prov = room(seed=5)
+    s = np.sort(g.scales.astype(np.float64), axis=1)
+    np.testing.assert_array_equal(cp.footprint(g), np.sqrt(s[:, 1] * s[:, 2]))
+    view = prov.decode(len(g))[0]
+    np.testing.assert_array_equal(cp._view_of(prov, len(g)), view)
+    np.testing.assert_array_equal(cp._ranges_from_own_camera(g, view, prov.c2w),
+                                  np.linalg.norm(g.means.astype(np.float64) - prov.c2w[view, :3, 3], axis=1))
+
+
+def test_quaternion_helpers_match_gaussians_module():
+    rng = np.random.default_rng(6)
+    a = rng.standard_normal((500, 3, 3))
+    cov6 = np.stack([(a @ a.transpose(0, 2, 1))[:, i, j] for i, j in cp._SYM], axis=1)
+    cov6[:5, 3:] = 0.0  # diagonal ones (the quaternion's other branches)
+    cov6[5:10, :3] = 1.0
+    s_ref, q_ref = scale_rotation_from_covariance(cp._sym_full(cov6))
+    s, q = cp._scale_rotation6(cov6, 1e-12)
+    np.testing.assert_array_equal(s, s_ref)
+    np.testing.assert_array_equal(q, q_ref)
+    rot = quat_to_rotmat(rng.standard_normal((500, 4)))
+    np.testing.assert_array_equal(cp._rotmat_to_quat(rot), rotmat_to_quat(rot))

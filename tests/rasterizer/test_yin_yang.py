@@ -1,0 +1,75 @@
+"""ERP <-> Yin/Yang image resampling and ERP resizing."""
+
+import numpy as np
+import pytest
+
+from bench.metrics import psnr
+from rasterizer import geometry as geo
+from rasterizer.yin_yang import blend_weight_yin, erp_to_yin_yang, resize_erp, yin_yang_to_erp
+
+
+def smooth_erp(h, w):
+    """A smooth function of the viewing direction (continuous across seam and poles)."""
+    d = geo.grid_directions("erp", h, w)
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    return np.stack([0.5 + 0.3 * x * z + 0.1 * y, 0.5 + 0.25 * np.sin(6 * x + 3 * y) * np.cos(5 * z),
+                     0.5 + 0.2 * z * y - 0.1 * x], -1)
+
+
+def test_shapes_and_direction_sampling():
+    erp = smooth_erp(64, 128)
+    yin, yang = erp_to_yin_yang(erp)
+    assert yin.shape == yang.shape == (32, 96, 3) and yin.dtype == np.float32
+    yin2d, _ = erp_to_yin_yang(erp[..., 0])
+    assert yin2d.shape == (32, 96)
+    # each Yin/Yang pixel holds the value of its own direction
+    for kind, img in (("yin", yin), ("yang", yang)):
+        d = geo.grid_directions(kind, 32, 96)
+        x, y, z = d[..., 0], d[..., 1], d[..., 2]
+        exact = 0.5 + 0.3 * x * z + 0.1 * y
+        assert np.abs(img[..., 0] - exact).max() < 5e-3
+
+
+def test_round_trip_psnr_of_a_smooth_image():
+    erp = smooth_erp(256, 512)
+    yin, yang = erp_to_yin_yang(erp)
+    back = yin_yang_to_erp(yin, yang, 256, 512)
+    value = psnr(back, erp)
+    print(f"ERP -> Yin/Yang -> ERP round trip PSNR (smooth 256x512): {value:.1f} dB")
+    assert value > 50
+
+
+def test_blend_weights_cover_the_sphere_without_a_seam():
+    d = geo.grid_directions("erp", 256, 512)
+    feather = np.radians(0.7)
+    w = blend_weight_yin(d, feather)
+    assert w.min() >= 0 and w.max() <= 1
+    in_yin, in_yang = geo.in_grid_domain("yin", d), geo.in_grid_domain("yang", d)
+    assert np.all(in_yin | in_yang)
+    # Yin alone where Yang does not reach (even with the feather), and vice versa
+    assert np.all(w[~in_yin] < 1) and np.all(w[in_yin & ~in_yang] > 0)
+    assert np.all(blend_weight_yin(d)[in_yin & ~in_yang] == 1) and np.all(blend_weight_yin(d)[~in_yin] == 0)
+    overlap = (in_yin & in_yang).mean()
+    assert 0.03 < overlap < 0.09  # the ~6% overlap where both contribute
+    # continuous: neighbouring pixels never jump by much
+    # continuous, or (where the edges coincide) spread over at least two pixels: no 0 -> 1 switch
+    assert np.abs(np.diff(w, axis=1)).max() < 0.75 and np.abs(np.diff(w, axis=0)).max() < 0.75
+    # a constant image survives the merge exactly (weights sum to 1)
+    ones = np.ones((128, 384))
+    assert np.allclose(yin_yang_to_erp(ones, ones, 256, 512), 1, atol=1e-6)
+
+
+def test_resize_erp():
+    img = smooth_erp(64, 128)
+    half = resize_erp(img, 32, 64)
+    assert half.shape == (32, 64, 3)
+    # area averaging by 2: each output is the mean of its 2x2 block
+    assert np.allclose(half, img.reshape(32, 2, 64, 2, 3).mean(axis=(1, 3)), atol=1e-6)
+    # upsampling then area downsampling returns (almost) the original
+    up = resize_erp(img, 128, 256)
+    assert psnr(resize_erp(up, 64, 128), img) > 45
+    # longitude wraps: a column shift commutes with resizing by an integer factor
+    assert np.allclose(resize_erp(np.roll(img, 2, axis=1), 32, 64), np.roll(half, 1, axis=1), atol=1e-6)
+    assert np.allclose(resize_erp(np.full((10, 20), 0.3), 7, 14), 0.3, atol=1e-6)
+    with pytest.raises(ValueError):
+        resize_erp(img, 0, 10)

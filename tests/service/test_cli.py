@@ -1,0 +1,186 @@
+"""The `omnisplat` command line: help, argument errors, dispatch to other modules."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from service import cli
+from service.model_files import default_model_name
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_help_lists_every_command(capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main(["--help"])
+    assert info.value.code == 0
+    out = capsys.readouterr().out
+    for command in ("serve", "reconstruct", "render", "export", "bench", "refine"):
+        assert command in out
+    assert "OpenCV" in out
+
+
+@pytest.mark.parametrize("command", ["serve", "reconstruct", "render", "bench"])
+def test_subcommand_help(command, capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main([command, "--help"])
+    assert info.value.code == 0
+    assert "usage: omnisplat" in capsys.readouterr().out
+
+
+def test_help_does_not_import_heavy_modules():
+    code = ("import sys; from service import cli; "
+            "import contextlib, io\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n"
+            "    try: cli.main(['--help'])\n"
+            "    except SystemExit: pass\n"
+            "bad = [m for m in ('torch', 'onnxruntime', 'fastapi', 'uvicorn') if m in sys.modules]\n"
+            "print(bad); sys.exit(1 if bad else 0)")
+    run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stdout + run.stderr
+
+
+def test_service_imports_no_torch():
+    code = ("import sys, service.app, service.cli, service.store, service.scenes; "
+            "sys.exit(1 if 'torch' in sys.modules else 0)")
+    run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+
+
+def test_missing_command_is_an_error(capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main([])
+    assert info.value.code == 2
+
+
+def test_unknown_bench_is_an_error(capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main(["bench", "nonsense"])
+    assert info.value.code == 2
+    assert "invalid choice" in capsys.readouterr().err
+
+
+def test_forward_to_absent_module_is_a_clear_error(monkeypatch, capsys):
+    def load():
+        raise ModuleNotFoundError("No module named 'torch'", name="torch")
+
+    monkeypatch.setitem(cli.FORWARDED, "export", (load, "the export extra"))
+    assert cli.main(["export", "--help"]) == 2
+    err = capsys.readouterr().err
+    assert "not available" in err and "'torch'" in err and "export extra" in err
+
+
+def test_bench_dispatch(monkeypatch):
+    seen = {}
+
+    class Fake:
+        @staticmethod
+        def main(argv):
+            seen["argv"] = argv
+            return 3
+
+    monkeypatch.setitem(sys.modules, "bench.render", Fake)
+    assert cli.main(["bench", "render", "--json", "--x", "1"]) == 3
+    assert seen["argv"] == ["--json", "--x", "1"]
+
+
+def test_reconstruct_argument_errors(tmp_path, capsys):
+    # input errors are reported before any model is loaded or built
+    missing = tmp_path / "none.onnx"
+    assert cli.main(["reconstruct", str(tmp_path), "--model", str(missing)]) == 2
+    assert "not a scene folder" in capsys.readouterr().err
+    assert cli.main(["reconstruct", "a.png", "b.png", "--model", str(missing)]) == 2
+    assert "--poses" in capsys.readouterr().err
+    assert cli.main(["reconstruct", "a.png", "b.png", "c.png", "--model", str(missing)]) == 2
+    capsys.readouterr()
+    (tmp_path / "poses.json").write_text('{"c2w": [[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], '
+                                         '[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]]}')
+    assert cli.main(["reconstruct", "a.png", "b.png", "--poses", str(tmp_path / "poses.json")]) == 2
+    assert "identical" in capsys.readouterr().err
+    from PIL import Image
+
+    for name in ("a.png", "b.png"):
+        Image.new("RGB", (64, 32)).save(tmp_path / name)
+    (tmp_path / "poses.json").write_text('{"c2w": [[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], '
+                                         '[[1,0,0,1],[0,1,0,0],[0,0,1,0],[0,0,0,1]]]}')
+    argv = ["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--poses", str(tmp_path / "poses.json"),
+            "--model", str(missing), "--no-build"]
+    assert cli.main(argv) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_reconstruct_compaction_flags_map_to_options():
+    parser = cli.build_parser()
+
+    def opts(*flags):
+        return cli._pipeline_options(parser.parse_args(["reconstruct", "scene", *flags])).compaction
+
+    default = opts()
+    assert default.merge_smooth is True and default.smooth_levels == 1
+    assert opts("--no-merge-smooth").merge_smooth is False
+    assert opts("--smooth-levels", "2").smooth_levels == 2
+    assert opts("--no-compaction").merge_smooth is False
+    with pytest.raises(cli.CliError, match="smooth_levels"):
+        opts("--smooth-levels", "9")
+
+
+def test_render_argument_errors(tmp_path, capsys):
+    assert cli.main(["render", "x.ply"]) == 2
+    assert "exactly one of" in capsys.readouterr().err
+    assert cli.main(["render", "x.ply", "--c2w", "1,2,3"]) == 2
+    assert "16" in capsys.readouterr().err
+
+
+def test_serve_without_model_and_no_build(tmp_path, capsys):
+    assert cli.main(["serve", "--model", str(tmp_path / "missing.onnx"), "--no-build"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_console_script_is_declared():
+    text = (ROOT / "pyproject.toml").read_text()
+    assert 'omnisplat = "service.cli:main"' in text
+
+
+def _importable(name: str) -> bool:
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec(name) is not None
+    except ModuleNotFoundError:
+        return False
+
+
+def test_ensure_model_builds_once_atomically(tmp_path):
+    from service.model_files import ensure_model
+
+    target = tmp_path / "models" / "m.onnx"
+    messages = []
+    path = ensure_model(target, progress=messages.append, height=64, width=128, num_planes=4)
+    assert path == target and target.stat().st_size > 0
+    assert [p.name for p in target.parent.iterdir()] == ["m.onnx"]  # no temporary left behind
+    assert any("building" in m for m in messages)
+    mtime = target.stat().st_mtime_ns
+    assert ensure_model(target, progress=messages.append) == target and target.stat().st_mtime_ns == mtime
+
+
+def test_settings_from_environment(monkeypatch, tmp_path):
+    from pydantic import ValidationError
+
+    from service.config import Settings
+
+    monkeypatch.setenv("OMNISPLAT_STORE_DIR", str(tmp_path / "s"))
+    monkeypatch.setenv("OMNISPLAT_MAX_UPLOAD_BYTES", "5000")
+    monkeypatch.setenv("OMNISPLAT_INFERENCE_QUEUE", "0")
+    s = Settings()
+    assert s.store_dir == tmp_path / "s" and s.max_upload_bytes == 5000 and s.inference_queue == 0
+    assert s.resolved_model_path.name == default_model_name()
+    assert re.fullmatch(r"omnisplat-default-[0-9a-f]{10}\.onnx", default_model_name())
+    assert Settings(port=9000).port == 9000  # explicit values (CLI flags) win over the environment
+    monkeypatch.setenv("OMNISPLAT_PORT", "not a port")
+    with pytest.raises(ValidationError):
+        Settings()

@@ -1,0 +1,47 @@
+"""``omnisplat refine`` (service.cli) on a tiny synthetic scene."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from PIL import Image
+
+from rasterizer.ply import read_ply, write_ply
+from rasterizer.render import render
+from service.cli import main as cli_main
+from tests.rasterizer.test_refine import _toy_scene
+
+
+def main(argv):
+    return cli_main(["refine", *argv])
+
+
+def test_refine_cli_writes_refined_ply(tmp_path, capsys):
+    truth = _toy_scene(4, n=300)
+    c2ws = [np.eye(4), np.eye(4)]
+    c2ws[1][0, 3] = 0.3
+    for name, c2w in zip("ab", c2ws):
+        img = render(truth, c2w, projection="erp", width=64).colour
+        Image.fromarray((np.clip(img, 0, 1) * 255).astype(np.uint8)).save(tmp_path / f"{name}.png")
+    (tmp_path / "poses.json").write_text(json.dumps({"convention": "opencv", "c2w": [m.tolist() for m in c2ws]}))
+    rng = np.random.default_rng(0)
+    start = truth.__class__(truth.means, truth.scales, truth.quats, truth.opacities,
+                            truth.sh + rng.normal(0, 0.5, truth.sh.shape).astype(np.float32))
+    write_ply(tmp_path / "in.ply", start)
+    rc = main([str(tmp_path / "in.ply"), str(tmp_path / "a.png"), str(tmp_path / "b.png"),
+               "--poses", str(tmp_path / "poses.json"), "--out", str(tmp_path / "out.ply"),
+               "--height", "16", "--iterations", "10"])
+    assert rc == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["held_loss_best"] < summary["held_loss_start"]
+    assert summary["cross_check"]["accepted"] and summary["cross_check"]["mse_best"] < summary["cross_check"]["mse_start"]
+    out = read_ply(tmp_path / "out.ply")
+    assert len(out) == len(start)
+    np.testing.assert_allclose(out.means, start.means, atol=1e-6)
+
+
+def test_refine_cli_bad_arguments(tmp_path):
+    assert main([str(tmp_path / "missing.ply"), str(tmp_path), "--out", str(tmp_path / "o.ply")]) == 2
+    assert main([str(tmp_path / "missing.ply"), str(tmp_path), "--out", str(tmp_path / "o.ply"),
+                 "--no-cross-check", "--loss", "huber"]) == 2

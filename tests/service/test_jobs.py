@@ -1,0 +1,170 @@
+"""Refinement jobs over HTTP: 202 + Location, status flow, idempotent result id, 4xx on bad input."""
+
+from __future__ import annotations
+
+import io
+import time
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from service.jobs import JobRegistry, result_id_for, store_references
+from tests.service.test_service_api import LiveServer, make_settings, model_path, panorama, post_scene  # noqa: F401
+
+ZERO_ID = "0" * 32
+
+
+@pytest.fixture(scope="module")
+def live(model_path, tmp_path_factory):  # noqa: F811  (model_path is the imported fixture)
+    store = tmp_path_factory.mktemp("jobs-store")
+    with LiveServer(make_settings(model_path, store)) as server:
+        yield server
+
+
+@pytest.fixture(scope="module")
+def client(live):
+    with live.client() as c:
+        yield c
+
+
+def _decode(data: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+
+
+@pytest.fixture(scope="module")
+def scene_id(client, live) -> str:
+    a, b = panorama(seed=3), panorama(seed=3, shift=4)
+    r = post_scene(client, a, b)
+    assert r.status_code == 201, r.text
+    sid = r.json()["id"]
+    # scene creation keeps the references, at the model's input size, inside the scene folder
+    path = live.app.state.store.artifact(sid, "references.npz")
+    assert path is not None
+    with np.load(path) as z:
+        assert z["image_a"].dtype == np.uint8 and z["image_a"].shape == _decode(a).shape
+        assert np.array_equal(z["image_b"], _decode(b))
+    return sid
+
+
+def test_scene_without_references_answers_409(client, live):
+    r = post_scene(client, panorama(seed=9), panorama(seed=9, shift=6))
+    sid = r.json()["id"]
+    (live.app.state.store.artifact(sid, "references.npz")).unlink()
+    r = client.post(f"/v1/scenes/{sid}/refine", json={})
+    assert r.status_code == 409 and r.json()["error"]["code"] == "references_missing"
+    store_references(live.app.state.store, sid, _decode(panorama(seed=9)), _decode(panorama(seed=9, shift=6)))
+    assert client.post(f"/v1/scenes/{sid}/refine", json={"iterations": 1, "height": 24}).status_code == 202
+
+
+def can_be_refined_again(client, scene_id) -> bool:
+    """A refined scene carries its parent's references, so it can be refined again."""
+    r = client.post(f"/v1/scenes/{scene_id}/refine", json={"iterations": 0, "height": 24})
+    return r.status_code == 202
+
+
+def _wait(client, location: str, timeout: float = 120.0) -> dict:
+    seen = []
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        r = client.get(location)
+        assert r.status_code == 200, r.text
+        body = r.json()
+        seen.append(body["progress"])
+        assert body["status"] in ("queued", "running", "done", "failed")
+        assert 0.0 <= body["progress"] <= 1.0
+        if body["status"] in ("done", "failed"):
+            assert seen == sorted(seen)  # progress never goes back
+            return body
+        time.sleep(0.05)
+    raise TimeoutError(location)
+
+
+def test_refine_job_flow_and_idempotent_result(client, scene_id):
+    params = {"iterations": 6, "height": 24, "patience": 0}
+    r = client.post(f"/v1/scenes/{scene_id}/refine", json=params)
+    assert r.status_code == 202, r.text
+    location = r.headers["location"]
+    assert location.startswith("/v1/jobs/") and r.json()["status"] in ("queued", "running", "done")
+    body = _wait(client, location)
+    assert body["status"] == "done", body
+    assert body["progress"] == 1.0 and body["error"] is None
+    new_id = body["scene_id"]
+    assert new_id and new_id != scene_id and location == f"/v1/jobs/{new_id}"
+
+    meta = client.get(f"/v1/scenes/{new_id}").json()
+    parent = client.get(f"/v1/scenes/{scene_id}").json()
+    assert meta["parent"] == scene_id and meta["num_gaussians"] == parent["num_gaussians"]
+    assert meta["refine"]["held_loss_best"] <= meta["refine"]["held_loss_start"]
+    assert isinstance(meta["refine"]["cross_view_guard"]["accepted"], bool)
+    assert client.get(f"/v1/scenes/{new_id}").status_code == 200
+    assert can_be_refined_again(client, new_id)
+    assert client.get(f"/v1/scenes/{scene_id}").status_code == 200  # the original stays
+    img = client.get(f"/v1/scenes/{new_id}/render", params={"c2w": ",".join(map(str, np.eye(4).ravel())),
+                                                            "width": 64})
+    assert img.status_code == 200
+
+    # same request (defaults spelled out or not): same job, same result, no recomputation
+    again = client.post(f"/v1/scenes/{scene_id}/refine", json={**params, "sh_degree": 0})
+    assert again.status_code == 202 and again.headers["location"] == location
+    assert again.json()["status"] == "done" and again.json()["scene_id"] == new_id
+    # a different request gives a different result id
+    other = client.post(f"/v1/scenes/{scene_id}/refine", json={**params, "iterations": 3})
+    assert other.status_code == 202 and other.headers["location"] != location
+    assert _wait(client, other.headers["location"])["status"] == "done"
+    # the refined scene keeps its references, so it can be refined again
+    chained = client.post(f"/v1/scenes/{new_id}/refine", json={"iterations": 2, "height": 16})
+    assert chained.status_code == 202
+    assert _wait(client, chained.headers["location"])["status"] == "done"
+
+
+def test_refine_default_body(client, scene_id):
+    r = client.post(f"/v1/scenes/{scene_id}/refine")
+    assert r.status_code == 202, r.text
+    assert r.headers["location"].startswith("/v1/jobs/")
+
+
+@pytest.mark.parametrize("body", [
+    {"iterations": -1}, {"iterations": 10 ** 6}, {"height": 4}, {"sh_degree": 2}, {"colour_reg": -1},
+    {"holdout": 0.9}, {"iterations": "many"}, {"unknown_option": 1},
+])
+def test_refine_rejects_bad_options(client, scene_id, body):
+    r = client.post(f"/v1/scenes/{scene_id}/refine", json=body)
+    assert r.status_code == 422, (body, r.text)
+    assert r.json()["error"]["code"] == "invalid_request"
+
+
+def test_unknown_scene_and_job(client):
+    r = client.post(f"/v1/scenes/{ZERO_ID}/refine", json={"iterations": 1})
+    assert r.status_code == 404 and r.json()["error"]["code"] == "scene_not_found"
+    r = client.get(f"/v1/jobs/{ZERO_ID}")
+    assert r.status_code == 404 and r.json()["error"]["code"] == "job_not_found"
+    assert client.get("/v1/jobs/not-a-job").status_code == 422
+
+
+def test_registry_dedupes_and_retries_failed():
+    reg = JobRegistry()
+    job, created = reg.submit("a" * 32, "b" * 32, {"iterations": 1})
+    assert created
+    same, created2 = reg.submit("a" * 32, "b" * 32, {"iterations": 1})
+    assert same is job and not created2
+    reg.mark_failed(job, ValueError("boom"))
+    assert job.as_json()["error"] == {"code": "ValueError", "message": "boom"}
+    retry, created3 = reg.submit("a" * 32, "b" * 32, {"iterations": 1})
+    assert created3 and retry is not job and retry.status == "queued"
+    report = reg.progress_callback(retry)
+    report(0.5)
+    report(0.2)
+    assert retry.progress == 0.5
+    reg.cancel_all()
+    with pytest.raises(Exception):
+        report(0.6)
+
+
+def test_result_id_depends_on_everything():
+    p = {"iterations": 1}
+    base = result_id_for("a" * 32, p, "sha")
+    assert base == result_id_for("a" * 32, dict(p), "sha")
+    assert base != result_id_for("b" * 32, p, "sha")
+    assert base != result_id_for("a" * 32, {"iterations": 2}, "sha")
+    assert base != result_id_for("a" * 32, p, "sha2")

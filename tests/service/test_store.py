@@ -1,0 +1,178 @@
+"""Scene store: atomic writes, restart survival, LRU bounds, content ids, id validation."""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+
+import numpy as np
+import pytest
+
+from rasterizer.gaussians import Gaussians
+from service.errors import BadInput, translate
+from service.store import InvalidSceneId, SceneNotFound, SceneStore, StoreCorrupt, content_id, json_safe
+
+
+def _gaussians(n: int, seed: int = 0) -> Gaussians:
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    return Gaussians(rng.normal(size=(n, 3)), rng.uniform(0.01, 0.1, (n, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
+                     rng.uniform(0, 1, n), rng.normal(size=(n, 1, 3)))
+
+
+def _same(a: Gaussians, b: Gaussians) -> bool:
+    return all(np.array_equal(getattr(a, f), getattr(b, f)) for f in ("means", "scales", "quats", "opacities", "sh"))
+
+
+def test_content_id_is_stable_and_part_boundaries_matter():
+    assert content_id("a", b"bc") == content_id("a", b"bc")
+    assert content_id("ab", "c") != content_id("a", "bc")
+    assert len(content_id("x")) == 32 and all(c in "0123456789abcdef" for c in content_id("x"))
+
+
+def test_put_get_and_restart(tmp_path):
+    store = SceneStore(tmp_path)
+    g = _gaussians(100)
+    sid = content_id("scene", "1")
+    meta = store.put(sid, g, {"options": {"near": 1.0}, "value": np.float32(2.5)})
+    assert meta["num_gaussians"] == 100 and meta["value"] == 2.5
+    assert store.exists(sid) and store.ids() == [sid]
+    # a fresh store over the same folder (a restart) sees the scene, byte for byte
+    again = SceneStore(tmp_path)
+    assert again.exists(sid)
+    assert _same(again.gaussians(sid), g)
+    assert again.meta(sid)["options"] == {"near": 1.0}
+
+
+def test_put_same_id_twice_keeps_first(tmp_path):
+    store = SceneStore(tmp_path)
+    sid = content_id("dup")
+    store.put(sid, _gaussians(10, 1), {"tag": "first"})
+    meta = store.put(sid, _gaussians(10, 2), {"tag": "second"})
+    assert meta["tag"] == "first"
+    assert _same(SceneStore(tmp_path).gaussians(sid), _gaussians(10, 1))
+
+
+def test_concurrent_writers_of_one_id(tmp_path):
+    store = SceneStore(tmp_path)
+    sid = content_id("race")
+    errors = []
+
+    def write():
+        try:
+            store.put(sid, _gaussians(5000), {"x": 1})
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=write) for _ in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    assert store.ids() == [sid]
+    assert list((tmp_path / "tmp").iterdir()) == []
+
+
+def test_crash_leftovers_are_invisible_and_cleaned(tmp_path):
+    store = SceneStore(tmp_path)
+    sid = content_id("half")
+    # simulate a crash after writing the arrays but before the rename
+    staging = tmp_path / "tmp" / f"{sid}-deadbeef"
+    staging.mkdir()
+    (staging / "gaussians.npz").write_bytes(b"partial")
+    assert not store.exists(sid)
+    SceneStore(tmp_path)  # restart
+    assert not staging.exists()
+    assert not store.exists(sid)
+
+
+def test_delete(tmp_path):
+    store = SceneStore(tmp_path)
+    sid = content_id("del")
+    store.put(sid, _gaussians(3), {})
+    assert store.delete(sid) is True
+    assert not store.exists(sid)
+    assert store.delete(sid) is False
+    with pytest.raises(SceneNotFound):
+        store.gaussians(sid)
+    with pytest.raises(SceneNotFound):
+        store.meta(sid)
+
+
+@pytest.mark.parametrize("bad", ["../../etc", "..", "ABCDEF0123456789ABCDEF0123456789", "x" * 32, "", "a/b",
+                                 "0123456789abcdef0123456789abcde", "0123456789abcdef0123456789abcdef0"])
+def test_malformed_ids_are_refused(tmp_path, bad):
+    store = SceneStore(tmp_path)
+    with pytest.raises(InvalidSceneId):
+        store.exists(bad)
+    with pytest.raises(InvalidSceneId):
+        store.gaussians(bad)
+    assert isinstance(translate(InvalidSceneId(bad)), BadInput)  # 422 over HTTP
+
+
+def test_lru_bounds(tmp_path):
+    g = _gaussians(1000)
+    nbytes = sum(getattr(g, f).nbytes for f in ("means", "scales", "quats", "opacities", "sh"))
+    store = SceneStore(tmp_path, cache_scenes=2, cache_bytes=10 * nbytes)
+    ids = [content_id("lru", str(i)) for i in range(4)]
+    for sid in ids:
+        store.put(sid, g, {})
+    assert len(store.cache) == 2
+    store2 = SceneStore(tmp_path, cache_scenes=10, cache_bytes=int(1.5 * nbytes))
+    for sid in ids:
+        store2.gaussians(sid)
+    assert len(store2.cache) == 1 and store2.cache.nbytes == nbytes
+    store3 = SceneStore(tmp_path, cache_scenes=0)
+    store3.gaussians(ids[0])
+    assert len(store3.cache) == 0
+
+
+def test_max_scenes_evicts_oldest(tmp_path):
+    store = SceneStore(tmp_path, max_scenes=2)
+    ids = [content_id("evict", str(i)) for i in range(3)]
+    for i, sid in enumerate(ids):
+        store.put(sid, _gaussians(5), {})
+        os.utime(tmp_path / "scenes" / sid, (1000 + i, 1000 + i))
+    store.put(content_id("evict", "3"), _gaussians(5), {})
+    assert set(store.ids()) == {ids[2], content_id("evict", "3")}
+
+
+def test_corrupt_file_is_reported(tmp_path):
+    store = SceneStore(tmp_path, cache_scenes=0)
+    sid = content_id("corrupt")
+    store.put(sid, _gaussians(5), {})
+    (tmp_path / "scenes" / sid / "gaussians.npz").write_bytes(b"garbage")
+    with pytest.raises(StoreCorrupt):
+        store.gaussians(sid)
+
+
+def test_artifact_is_atomic_and_scoped(tmp_path):
+    store = SceneStore(tmp_path)
+    sid = content_id("art")
+    store.put(sid, _gaussians(5), {})
+    path = store.put_artifact(sid, "gaussians.ply", b"ply\n")
+    assert path.read_bytes() == b"ply\n" and store.artifact(sid, "gaussians.ply") == path
+    assert [p.name for p in path.parent.iterdir() if p.name.endswith(".tmp")] == []
+    with pytest.raises(SceneNotFound):
+        store.put_artifact(content_id("missing"), "x", b"")
+
+
+def test_json_safe():
+    out = json_safe({"a": np.float32(1.5), "b": np.arange(3), "c": float("nan"), "d": (1, np.int64(2))})
+    assert json.loads(json.dumps(out)) == {"a": 1.5, "b": [0, 1, 2], "c": None, "d": [1, 2]}
+
+
+def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
+    store = SceneStore(tmp_path)
+    sid = content_id("crash")
+
+    def boom(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez", boom)
+    with pytest.raises(OSError):
+        store.put(sid, _gaussians(5), {})
+    assert not store.exists(sid)
+    assert list((tmp_path / "tmp").iterdir()) == [] and list((tmp_path / "scenes").iterdir()) == []
