@@ -24,7 +24,6 @@ by the conjugate-gradient colour solve and for the colour gradient.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 
 from ..composite import ALPHA_MAX, CompositeTerms
 from ..splat import Footprints
@@ -88,6 +87,8 @@ class BlendOperator:
         counts = np.bincount(fp.pixel, minlength=p) if m else np.zeros(p, np.int64)
         indptr = np.zeros(p + 1, np.int64)
         np.cumsum(counts, out=indptr[1:])
+        import scipy.sparse as sp  # only +opt needs it; importing rasterizer stays light
+
         self.matrix = sp.csr_matrix((data, fp.gaussian.astype(np.int32), indptr), shape=(p, n))
         self.normalised = normalise
         self.covered = self.alpha >= floor

@@ -326,7 +326,9 @@ def test_normalize_divides_colour_by_alpha_and_keeps_alpha():
 
 def test_yinyang_render_is_the_same_with_one_or_two_threads_and_matches_footprints():
     """The key-compositing Yin/Yang path gives what footprints + accumulate give, in any thread layout."""
-    from rasterizer import render as render_mod
+    import importlib
+
+    render_mod = importlib.import_module("rasterizer.render")  # the module; rasterizer.render is the function
     from rasterizer.composite import accumulate
     rng = np.random.default_rng(21)
     g = random_scene(rng, 25_000, size=(0.01, 0.08))  # above the two-thread threshold
