@@ -1,4 +1,3 @@
-# syntax=docker/dockerfile:1
 # omnisplat: two ERP panoramas -> 3D Gaussians, served over HTTP on the CPU.
 #
 #   docker build -t omnisplat .
@@ -8,13 +7,23 @@
 # the .onnx file and installs the runtime dependencies: no torch in the final image.
 # On Linux, PyPI's torch wheel pulls CUDA packages; to build faster, pass a CPU-only wheel
 # index:  --build-arg PIP_EXTRA_INDEX_URL=<your PyTorch CPU wheel index>
+# or a folder holding the CPU wheel (mounted into the build, e.g. `podman build -v DIR:DIR:ro`):
+#         --build-arg PIP_FIND_LINKS=DIR
+# Without Docker: `bash scripts/container-test.sh` builds and smoke-tests this file with podman.
+#
+# Only what the service needs goes into the image: rasterizer/, export/ (the export stage;
+# the runtime gets export/__init__.py only) and service/. Measurement code (bench/), tests
+# and docs stay out. Static web assets, if the service gets them, are copied next to
+# service/ in the runtime stage (see the marked line below).
 
 ARG PYTHON_IMAGE=python:3.11-slim
 
 FROM ${PYTHON_IMAGE} AS export
 ARG PIP_EXTRA_INDEX_URL=""
+ARG PIP_FIND_LINKS=""
 ARG MODEL_HEIGHT=512
-ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_EXTRA_INDEX_URL=${PIP_EXTRA_INDEX_URL}
+ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_EXTRA_INDEX_URL=${PIP_EXTRA_INDEX_URL} \
+    PIP_FIND_LINKS=${PIP_FIND_LINKS}
 WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY rasterizer ./rasterizer
@@ -35,9 +44,12 @@ COPY pyproject.toml README.md ./
 COPY rasterizer ./rasterizer
 COPY export/__init__.py ./export/__init__.py
 COPY service ./service
-# Runtime dependencies only (pyproject [project].dependencies): numpy, onnxruntime, fastapi, ...
+# (static viewer assets, when there are any: COPY them here, before `pip install .`)
+# Runtime dependencies only (pyproject [project].dependencies): numpy, onnxruntime, fastapi, scipy, ...
+# The checks: no torch in the image; the app and the refine path import with what was installed.
 RUN pip install . \
-    && python -c "import importlib.util, sys; sys.exit(importlib.util.find_spec('torch') is not None)"
+    && python -c "import importlib.util, sys; sys.exit(importlib.util.find_spec('torch') is not None)" \
+    && python -c "import service.app, service.jobs, rasterizer.refine, scipy.sparse"
 COPY --from=export /models/omnisplat-default.onnx /models/omnisplat-default.onnx
 RUN useradd --create-home --uid 10001 omnisplat && mkdir -p /data/scenes && chown -R omnisplat /data
 USER omnisplat
