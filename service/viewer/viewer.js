@@ -122,7 +122,17 @@ async function main() {
     camera.aspect = rw / rh;
     camera.fov = verticalFov(fovDeg, rw / rh);
     camera.updateProjectionMatrix();
+    viewer.forceRenderNextFrame();
   }).observe(root);
+
+  // with renderMode OnChange, draw once more when a sort lands after the camera stopped
+  let wasSorting = false;
+  const watchSort = () => {
+    if (wasSorting && !viewer.sortRunning) viewer.forceRenderNextFrame();
+    wasSorting = viewer.sortRunning;
+    requestAnimationFrame(watchSort);
+  };
+  requestAnimationFrame(watchSort);
 
   // fly: W/S forward/back, A/D left/right, Q/E down/up (camera and orbit centre move together)
   window.addEventListener('keydown', (event) => {
