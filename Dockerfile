@@ -32,19 +32,30 @@ COPY service ./service
 RUN pip install ".[export]"
 RUN python -m service.cli export /models/omnisplat-default.onnx --height ${MODEL_HEIGHT}
 
+# Stage 2 (viewer): the web viewer's pinned npm packages (package-lock.json), built with Debian's
+# nodejs/npm; the runtime copies only their build folders (no node in the final image).
+FROM ${PYTHON_IMAGE} AS viewer
+ENV NODE_EXTRA_CA_CERTS=/etc/ssl/certs/ca-certificates.crt
+WORKDIR /src
+COPY package.json package-lock.json .npmrc ./
+RUN apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends nodejs npm \
+    && npm ci --omit=dev --no-audit --no-fund --loglevel=error
+
 FROM ${PYTHON_IMAGE} AS runtime
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 \
     PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 \
     OMP_NUM_THREADS=2 OPENBLAS_NUM_THREADS=2 MKL_NUM_THREADS=2 \
     OMNISPLAT_HOST=0.0.0.0 OMNISPLAT_PORT=8000 \
     OMNISPLAT_MODEL_PATH=/models/omnisplat-default.onnx \
-    OMNISPLAT_STORE_DIR=/data/scenes
+    OMNISPLAT_STORE_DIR=/data/scenes \
+    OMNISPLAT_NODE_MODULES=/app/node_modules
 WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY rasterizer ./rasterizer
 COPY export/__init__.py ./export/__init__.py
 COPY service ./service
-# (static viewer assets, when there are any: COPY them here, before `pip install .`)
+COPY --from=viewer /src/node_modules/three/build ./node_modules/three/build
+COPY --from=viewer /src/node_modules/@mkkellogg/gaussian-splats-3d/build ./node_modules/@mkkellogg/gaussian-splats-3d/build
 # Runtime dependencies only (pyproject [project].dependencies): numpy, onnxruntime, fastapi, scipy, ...
 # The checks: no torch in the image; the app and the refine path import with what was installed.
 RUN pip install . \

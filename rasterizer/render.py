@@ -17,8 +17,8 @@ ERP has two methods: ``"direct"`` splats straight into the ERP grid (columns
 wrap across the seam; footprints crossing a pole are mirrored over it);
 ``"yinyang"`` (OmniSplat) renders the Yin and Yang grids (H/2 x 3H/2 each),
 merges premultiplied colour, alpha and range into the ERP with smooth
-weights in their overlap, then divides colour and range by alpha (0 where
-alpha < 1/255).
+weights in their overlap, then divides range (and, with ``normalize``,
+colour) by alpha (0 where alpha < 1/255).
 
 Example::
 
@@ -120,7 +120,7 @@ def render_camera(gaussians: Gaussians, camera: Camera) -> RenderOutput:
 
 
 def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: int, near: float,
-                    threads: int) -> RenderOutput:
+                    threads: int, divide: bool = True) -> RenderOutput:
     h = max(1, int(round(height / 2)))
     w = 3 * h
     cams = [Camera(kind, w, h, c2w, near=near) for kind in ("yin", "yang")]
@@ -150,7 +150,8 @@ def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: i
         merged = yin_yang.yin_yang_to_erp(stacks[0], stacks[1], height, width)
     alpha = np.clip(merged[:, :, 3], 0.0, 1.0)
     inv = _alpha_inverse(merged[:, :, 3])
-    colour = merged[:, :, :3] * inv[:, :, None]
+    # premultiplied colour = the composite over black; divided = V/A
+    colour = merged[:, :, :3] * inv[:, :, None] if divide else merged[:, :, :3]
     rng = merged[:, :, 4] * inv
     return RenderOutput(np.ascontiguousarray(colour), np.ascontiguousarray(alpha), np.ascontiguousarray(rng))
 
@@ -165,7 +166,7 @@ def _alpha_inverse(alpha: np.ndarray) -> np.ndarray:
 
 def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, height: int | None = None,
            fov_deg: float = 90.0, method: str = "yinyang", near: float = DEFAULT_NEAR,
-           threads: int = 2, normalize: bool = False) -> RenderOutput:
+           threads: int = 2, normalize: bool | None = None) -> RenderOutput:
     """Render Gaussians seen from pose ``c2w``.
 
     Parameters
@@ -178,14 +179,16 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
     width, height : image size in pixels. Default height: W/2 (erp), W/3
         (yin, yang), W (perspective).
     fov_deg : horizontal field of view of the perspective camera.
-    method : ERP only. "yinyang" (default; colour = merged colour / alpha) or
-        "direct" (colour over black). Other projections ignore it.
+    method : ERP only. "yinyang" (default; Yin and Yang merged into the ERP) or
+        "direct" (splatted straight into the ERP grid). Other projections ignore it.
     near : Gaussians closer than this range (world units) are culled.
     threads : ERP "yinyang" renders Yin and Yang in two threads when > 1.
-    normalize : also divide the colour of the other renders (perspective, Yin,
-        Yang, direct ERP) by alpha where alpha >= 1/255, as the Yin-Yang ERP
-        path always does; thin coverage then shows the surface colour instead
-        of a darkened or black hole. The alpha output is unchanged.
+    normalize : divide colour by alpha where alpha >= 1/255 (OmniSplat's V/A
+        normalisation; thin coverage then shows the surface colour instead of a
+        darkened or black hole) or, when False, return the plain front-to-back
+        composite over black that every 3DGS viewer shows. None (default) keeps
+        each method's historical behaviour: divided for the "yinyang" ERP, plain
+        for everything else. The alpha and range outputs are the same either way.
 
     Returns
     -------
@@ -207,7 +210,8 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
     _check_gaussians(gaussians)
     if projection == "erp" and method == "yinyang":
         cam = Camera("erp", width, height, c2w, near=near)  # validates pose and sizes
-        return _render_yinyang(gaussians, cam.c2w, width, height, near, int(threads))
+        return _render_yinyang(gaussians, cam.c2w, width, height, near, int(threads),
+                               divide=True if normalize is None else bool(normalize))
     out = render_camera(gaussians, Camera(projection, width, height, c2w, fov_deg=fov_deg, near=near))
     if not normalize:
         return out

@@ -280,7 +280,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:
         raise CliError(f"cannot read {args.ply}: {exc}") from None
     fmt = "jpeg" if Path(args.output).suffix.lower() in (".jpg", ".jpeg") else "png"
-    kwargs = {"projection": args.projection, "width": args.width, "normalize": True}  # as the API renders
+    # as the API renders: plain compositing unless --compositing va
+    kwargs = {"projection": args.projection, "width": args.width, "normalize": args.compositing == "va"}
     if args.projection == "perspective":
         kwargs.update(height=args.height, fov_deg=args.fov_deg)
     _say(f"rendering {len(gaussians)} Gaussians, {args.projection} {args.width} px wide")
@@ -394,6 +395,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--width", type=int, default=1024, help="image width (ERP height = width/2)")
     v.add_argument("--height", type=int, help="perspective only (default = width)")
     v.add_argument("--fov-deg", type=float, default=90.0, help="perspective only: horizontal field of view")
+    v.add_argument("--compositing", default="plain", choices=["plain", "va"],
+                   help="plain (default): front-to-back over black, what 3DGS viewers show of the PLY; "
+                        "va: colour / accumulated alpha, the OmniSplat paper's normalisation")
     v.add_argument("-o", "--output", default="view.png", help="output .png or .jpg (default view.png)")
     v.set_defaults(func=cmd_render)
 

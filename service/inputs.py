@@ -22,6 +22,9 @@ from .pipeline import STEP_OPTION_KEYS, PipelineOptions
 
 Projection = Literal["erp", "perspective", "yin", "yang"]
 ImageFormat = Literal["png", "jpeg"]
+#: plain = front-to-back composite over black (what 3DGS viewers show); va = colour / alpha (the paper's V/A)
+Compositing = Literal["plain", "va"]
+COMPOSITINGS = ("plain", "va")
 
 
 def _reject_constant(name: str) -> Any:
@@ -158,6 +161,7 @@ class RenderQuery:
     height: int | None
     fov_deg: float
     format: str
+    compositing: str = "plain"
 
     def output_size(self) -> tuple[int, int]:
         """(height, width) of the rendered image."""
@@ -169,8 +173,10 @@ class RenderQuery:
 
 
 def check_render_query(c2w: str, projection: str, width: int, height: int | None, fov_deg: float, fmt: str,
-                       *, max_width: int, max_pixels: int) -> RenderQuery:
+                       *, max_width: int, max_pixels: int, compositing: str = "plain") -> RenderQuery:
     pose = parse_c2w_query(c2w)
+    if compositing not in COMPOSITINGS:
+        raise BadInput(f"compositing: expected plain or va, got {compositing!r}", code="invalid_render_query")
     if projection not in ("erp", "perspective", "yin", "yang"):
         raise BadInput(f"projection: expected erp, perspective, yin or yang, got {projection!r}",
                        code="invalid_render_query")
@@ -190,7 +196,8 @@ def check_render_query(c2w: str, projection: str, width: int, height: int | None
         raise BadInput(f"height: must be between 1 and {max_width}, got {height}", code="invalid_render_query")
     if not (math.isfinite(fov_deg) and 1.0 <= fov_deg <= 170.0):
         raise BadInput(f"fov_deg: must be between 1 and 170 degrees, got {fov_deg}", code="invalid_render_query")
-    query = RenderQuery(pose, projection, int(width), None if height is None else int(height), float(fov_deg), fmt)
+    query = RenderQuery(pose, projection, int(width), None if height is None else int(height), float(fov_deg), fmt,
+                        compositing)
     h, w = query.output_size()
     if h * w > max_pixels:
         raise BadInput(f"render size {w}x{h} exceeds the limit of {max_pixels} pixels", code="invalid_render_query")

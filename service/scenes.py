@@ -104,7 +104,8 @@ def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[
     gaussians = store.gaussians(scene_id)
     timings["load"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    kwargs = {"projection": query.projection, "width": query.width, "normalize": True}  # no black holes
+    # plain (default): what every 3DGS viewer shows of the PLY; va: the paper's colour / alpha
+    kwargs = {"projection": query.projection, "width": query.width, "normalize": query.compositing == "va"}
     if query.projection == "perspective":
         kwargs.update(height=query.height, fov_deg=query.fov_deg)
     out = render(gaussians, query.c2w, **kwargs)

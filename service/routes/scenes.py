@@ -14,7 +14,7 @@ from .. import scenes as work
 from ..deps import InferenceGateDep, MetricsDep, ReadyRuntimeDep, RenderGateDep, SceneId, SettingsDep, StoreDep
 from ..errors import NotFound
 from ..images import MEDIA_TYPES
-from ..inputs import ImageFormat, Projection, check_render_query, parse_options, parse_poses
+from ..inputs import Compositing, ImageFormat, Projection, check_render_query, parse_options, parse_poses
 from ..schemas import SceneCreated, SceneMeta, error_responses
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
@@ -24,6 +24,11 @@ _POSES_EXAMPLE = json.dumps({"convention": "opencv", "c2w": [
     [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
     [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]]})
 _IMMUTABLE = "public, max-age=31536000, immutable"
+_COMPOSITING_DOC = ("`plain` (default): front-to-back alpha compositing over a black background, what every "
+                    "3DGS viewer shows of `gaussians.ply`. `va`: colour divided by accumulated alpha (V/A, the "
+                    "OmniSplat paper's normalisation), which fills thinly covered pixels with the surface colour "
+                    "instead of darkening them. Applies to every projection (ERP through the Yin-Yang merge, "
+                    "yin, yang, perspective).")
 
 
 def _require_scene(store, scene_id: str) -> None:
@@ -94,14 +99,16 @@ async def render_scene(
     height: Annotated[int | None, Query(description="perspective only; default = width")] = None,
     fov_deg: Annotated[float, Query(description="perspective only: horizontal field of view")] = 90.0,
     format: Annotated[ImageFormat, Query()] = "png",
+    compositing: Annotated[Compositing, Query(description=_COMPOSITING_DOC)] = "plain",
 ) -> Response:
     query = check_render_query(c2w, projection, width, height, fov_deg, format,
-                               max_width=settings.max_render_width, max_pixels=settings.max_render_pixels)
+                               max_width=settings.max_render_width, max_pixels=settings.max_render_pixels,
+                               compositing=compositing)
     _require_scene(store, scene_id)
     data, timings = await gate.run(work.render_scene, store, scene_id, query)
     metrics.observe_stages({f"render_{k}": v for k, v in timings.items()})
     etag = hashlib.sha256(f"{scene_id}|{query.c2w.round(9).tolist()}|{projection}|{width}|{height}|"
-                          f"{fov_deg}|{format}".encode()).hexdigest()[:32]
+                          f"{fov_deg}|{format}|{compositing}".encode()).hexdigest()[:32]
     return Response(data, media_type=MEDIA_TYPES[format],
                     headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{etag}"',
                              "Server-Timing": ", ".join(f"{k};dur={v * 1000:.1f}" for k, v in timings.items())})

@@ -1,0 +1,119 @@
+"""``/v1/scenes/{id}/viewer``: a web 3DGS viewer page (GaussianSplats3D + three.js) for a scene.
+
+The viewer's JavaScript comes from npm (``package.json`` / ``package-lock.json`` at the repository
+root, installed by ``npm ci``) and is served from ``node_modules`` by this service under
+``/viewer-assets/``: no CDN, works offline. Only the files listed in :data:`NPM_ASSETS` and our own
+page files in ``service/viewer/`` are served. Without them the page answers 503 with our JSON error
+shape saying how to install them; the rest of the API does not depend on them.
+
+The page and its assets are sent with cross-origin isolation headers (COOP/COEP), which the
+viewer's sort worker needs for SharedArrayBuffer.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import os
+from pathlib import Path
+
+import anyio.to_thread
+from fastapi import APIRouter, Response
+from fastapi.responses import FileResponse, HTMLResponse
+
+from ..deps import SceneId, StoreDep
+from ..errors import NotFound, ServiceError
+from ..schemas import error_responses
+
+router = APIRouter(tags=["viewer"])
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+PAGE_DIR = Path(__file__).resolve().parents[1] / "viewer"
+
+#: URL name -> path inside node_modules (the only npm files served).
+NPM_ASSETS = {
+    "three.module.js": "three/build/three.module.js",
+    "three.core.js": "three/build/three.core.js",
+    "gaussian-splats-3d.module.js": "@mkkellogg/gaussian-splats-3d/build/gaussian-splats-3d.module.js",
+}
+#: our own page files (service/viewer/)
+PAGE_ASSETS = {"viewer.js": "viewer.js", "viewer.css": "viewer.css"}
+
+ISOLATION_HEADERS = {
+    "Cross-Origin-Opener-Policy": "same-origin",
+    "Cross-Origin-Embedder-Policy": "require-corp",
+    "Cross-Origin-Resource-Policy": "same-origin",
+}
+_MEDIA = {".js": "text/javascript; charset=utf-8", ".css": "text/css; charset=utf-8"}
+INSTALL_HINT = ("the web viewer's npm packages are not installed: run `npm ci` in the repository root "
+                "(needs Node.js and npm, e.g. `apt-get install nodejs npm`); `bash scripts/serve.sh` does both")
+
+
+def node_modules_dir() -> Path:
+    """Where the viewer's npm packages are: ``$OMNISPLAT_NODE_MODULES`` or ``<repo>/node_modules``."""
+    env = os.environ.get("OMNISPLAT_NODE_MODULES")
+    return Path(env) if env else REPO_ROOT / "node_modules"
+
+
+def missing_assets() -> list[str]:
+    """npm files the page needs that are not installed (empty when the viewer can be served)."""
+    root = node_modules_dir()
+    return [rel for rel in NPM_ASSETS.values() if not (root / rel).is_file()]
+
+
+def _viewer_unavailable() -> ServiceError:
+    missing = missing_assets()
+    return ServiceError(f"{INSTALL_HINT} (missing under {node_modules_dir()}: {', '.join(missing)})",
+                        code="viewer_unavailable", status=503)
+
+
+def _page(scene_id: str, meta: dict) -> str:
+    c2w_a = meta.get("poses", {}).get("c2w", [None])[0]
+    config = {
+        "scene_id": scene_id,
+        "ply": f"/v1/scenes/{scene_id}/gaussians.ply",
+        "c2w": [float(v) for row in c2w_a for v in row] if c2w_a else None,  # reference A, OpenCV, row-major
+        "fov_deg": 90.0,  # horizontal, as the render API's perspective default
+        "num_gaussians": meta.get("num_gaussians"),
+    }
+    template = (PAGE_DIR / "viewer.html").read_text(encoding="utf-8")
+    # "</" cannot close the script element from inside the JSON
+    blob = json.dumps(config).replace("</", "<\\/")
+    return (template.replace("{{CONFIG}}", blob)
+            .replace("{{TITLE}}", html.escape(f"omnisplat viewer - scene {scene_id}"))
+            .replace("{{PLY}}", html.escape(config["ply"]))
+            .replace("{{COUNT}}", html.escape(str(config["num_gaussians"]))))
+
+
+@router.get(
+    "/v1/scenes/{scene_id}/viewer", response_class=HTMLResponse, summary="Web 3DGS viewer page for a scene",
+    description="An HTML page running GaussianSplats3D (three.js, served by this service from its pinned "
+                "npm packages, no CDN) on the scene's `gaussians.ply`, camera at reference A, black "
+                "background (the same as the render API's default plain compositing). Orbit with the mouse, "
+                "fly with W/A/S/D/Q/E. The query may place the camera: `c2w` (16 or 12 numbers, row-major, "
+                "OpenCV), `fov_deg` (horizontal), `width`, `height` (canvas pixels). 503 `viewer_unavailable` "
+                "when the npm packages are not installed (`npm ci`).",
+    responses={200: {"content": {"text/html": {}}, "description": "the viewer page"},
+               **error_responses(404, 422, 503)},
+)
+async def viewer_page(scene_id: SceneId, store: StoreDep) -> HTMLResponse:
+    if not store.exists(scene_id):
+        raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
+    if missing_assets():
+        raise _viewer_unavailable()
+    meta = await anyio.to_thread.run_sync(store.meta, scene_id)
+    return HTMLResponse(_page(scene_id, meta), headers={**ISOLATION_HEADERS, "Cache-Control": "no-cache"})
+
+
+@router.get("/viewer-assets/{name}", include_in_schema=False)
+async def viewer_asset(name: str) -> Response:
+    if name in NPM_ASSETS:
+        path = node_modules_dir() / NPM_ASSETS[name]
+        if not path.is_file():
+            raise _viewer_unavailable()
+    elif name in PAGE_ASSETS:
+        path = PAGE_DIR / PAGE_ASSETS[name]
+    else:
+        raise NotFound(f"no viewer asset {name!r}", code="not_found")
+    return FileResponse(path, media_type=_MEDIA[path.suffix],
+                        headers={**ISOLATION_HEADERS, "Cache-Control": "no-cache"})
