@@ -45,7 +45,9 @@ class SegmentOptions:
     normal_tol: 1 - cos of the normal angle, each worth one unit of edge
     weight. select_level / auto_level: largest edge weight joined by a
     prompt / by the automatic segmentation. min_votes: matched pixels a
-    superpixel needs to take its label from the other view; link_overlap:
+    superpixel needs to take its label from the other view; snap: the carried
+    mask takes whole superpixels of this view (else consistent matches keep their
+    carried value per pixel and superpixels decide only the rest); link_overlap:
     fraction of a region's matched pixels that must land in one region of
     the other view to link them.
     """
@@ -57,9 +59,10 @@ class SegmentOptions:
     colour_tol: float = 0.12
     depth_tol: float = 0.08
     normal_tol: float = 0.4
-    select_level: float = 1.0
+    select_level: float = 1.5
     auto_level: float = 1.0
     min_votes: int = 8
+    snap: bool = False
     link_overlap: float = 0.5
 
     def to_dict(self) -> dict:
@@ -205,6 +208,8 @@ def carry_selection(mask_src: np.ndarray, match: ErpMatches, graph: RegionGraph,
     if sel.any():
         comp = graph.components(level, nodes=sel | ~known)  # grow only into superpixels the other view did not see
         sel |= ~known & np.isin(comp, comp[sel])
+    if not opts.snap:
+        return np.where(valid, values >= 0.5, sel[graph.labels])
     return sel[graph.labels]
 
 
