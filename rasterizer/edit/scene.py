@@ -179,7 +179,8 @@ def select_points(index: SceneIndex, view: int, points, negative=()) -> Selectio
     masks = np.zeros((2,) + graph.labels.shape, dtype=bool)
     masks[view] = chosen[graph.labels]
     other = 1 - view
-    masks[other] = carry_selection(masks[view], index.matches[other], index.graphs[other], level, index.opts)
+    masks[other] = carry_selection(masks[view], index.matches[other], index.graphs[other], level, index.opts,
+                                   index.matches[view])
     return _finish(index, masks, level, view)
 
 

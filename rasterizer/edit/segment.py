@@ -13,9 +13,10 @@
    the encoder's matches (only left-right consistent, unoccluded matches
    vote), snapped to that view's superpixels, and grown from them into the
    superpixels the first view could not see;
-5. :func:`auto_segments`: both views cut at ``auto_level``, regions of the
-   two views linked where their matched pixels mostly land in each other,
-   one label per linked group: the same label in both views.
+5. :func:`auto_segments`: both views cut at ``auto_level``, each region
+   linked to the region of the other view most of its consistently matched
+   pixels land in (when that is at least ``link_overlap`` of them), one label
+   per linked group: the same label in both views.
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ class SegmentOptions:
     depth_tol: float = 0.08
     normal_tol: float = 0.4
     select_level: float = 1.5
-    auto_level: float = 1.0
+    auto_level: float = 0.5
     min_votes: int = 8
     snap: bool = False
     link_overlap: float = 0.5
@@ -193,10 +194,13 @@ def select_regions(graph: RegionGraph, positive: np.ndarray, negative: np.ndarra
 
 
 def carry_selection(mask_src: np.ndarray, match: ErpMatches, graph: RegionGraph, level: float,
-                    opts: SegmentOptions) -> np.ndarray:
+                    opts: SegmentOptions, match_src: ErpMatches | None = None) -> np.ndarray:
     """(H, W) bool mask of this view from the other view's mask (H, W) bool (module docstring, step 4).
 
-    ``match`` maps this view's pixels into the other view; ``graph`` is this view's.
+    ``match`` maps this view's pixels into the other view (pulled: a consistent match takes the
+    mask value it lands on); ``match_src`` (optional) maps the other view's pixels into this one
+    (pushed: a consistent masked pixel marks the pixel it lands on, which keeps thin or small
+    objects whose range this view estimated worse). ``graph`` is this view's.
     """
     values, valid = carry(mask_src.astype(np.float32), match)
     lab = graph.labels.ravel()
@@ -208,9 +212,14 @@ def carry_selection(mask_src: np.ndarray, match: ErpMatches, graph: RegionGraph,
     if sel.any():
         comp = graph.components(level, nodes=sel | ~known)  # grow only into superpixels the other view did not see
         sel |= ~known & np.isin(comp, comp[sel])
-    if not opts.snap:
-        return np.where(valid, values >= 0.5, sel[graph.labels])
-    return sel[graph.labels]
+    out = np.where(valid, values >= 0.5, sel[graph.labels]) if not opts.snap else sel[graph.labels]
+    if match_src is not None:
+        h, w = out.shape
+        src = mask_src & match_src.valid
+        col = np.mod(np.rint(match_src.col[src]).astype(np.int64), w)
+        row = np.clip(np.rint(match_src.row[src]).astype(np.int64), 0, h - 1)
+        out[row, col] = True
+    return out
 
 
 def auto_segments(graphs: tuple[RegionGraph, RegionGraph], matches: tuple[ErpMatches, ErpMatches],
@@ -231,12 +240,15 @@ def auto_segments(graphs: tuple[RegionGraph, RegionGraph], matches: tuple[ErpMat
         dst.append(other[ok] + offset[1 - v])
     total = counts[0] + counts[1]
     s, d = np.concatenate(src), np.concatenate(dst)
-    a, b = np.minimum(s, d), np.maximum(s, d)
-    pair, pair_n = np.unique(a.astype(np.int64) * total + b, return_counts=True)
+    pair, pair_n = np.unique(s.astype(np.int64) * total + d, return_counts=True)  # directed: region -> region
     votes = np.bincount(s, minlength=total)  # matched pixels per region
-    pa, pb = pair // total, pair % total
-    link = (pair_n >= opts.link_overlap * votes[pa]) | (pair_n >= opts.link_overlap * votes[pb])
-    m = coo_matrix((np.ones(int(link.sum()), dtype=np.int8), (pa[link], pb[link])), shape=(total, total))
+    ps, pd = pair // total, pair % total
+    # each region links to the region of the other view most of its matched pixels land in (at most one
+    # partner per region: a region can gather several, but never chains through a second-best overlap)
+    best = np.zeros(total, dtype=np.int64)
+    np.maximum.at(best, ps, pair_n)
+    link = (pair_n == best[ps]) & (pair_n >= opts.link_overlap * votes[ps]) & (votes[ps] >= opts.min_votes)
+    m = coo_matrix((np.ones(int(link.sum()), dtype=np.int8), (ps[link], pd[link])), shape=(total, total))
     group = connected_components(m, directed=False)[1]
     per_view = [group[regions[v] + offset[v]] for v in range(2)]
     size = np.bincount(np.concatenate([p.ravel() for p in per_view]), minlength=int(group.max()) + 1)

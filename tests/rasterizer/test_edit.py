@@ -169,3 +169,24 @@ def test_palette_is_deterministic_and_distinct():
     p = palette(200)
     assert np.array_equal(p[:50], palette(50))
     assert len({tuple(c) for c in p}) == 200
+
+
+def test_auto_segments_share_labels_across_views():
+    """Two views whose matches shift by 2 columns (across the seam): regions of both get the same labels."""
+    from rasterizer.edit.segment import auto_segments
+
+    h, w = 6, 16
+    cols = np.arange(w)
+    labels = [np.repeat(((cols + s) % w // 4)[None], h, 0).astype(np.int32) for s in (0, 2)]
+    graphs = tuple(RegionGraph(lab, np.bincount(lab.ravel()), np.array([0, 1, 2]), np.array([1, 2, 3]),
+                               np.full(3, 9.0, np.float32)) for lab in labels)
+    col, row = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    ok = np.zeros((h, w), np.uint8)
+    # view 0 pixel c sees view 1 pixel c - 2 (and back): region k of view 0 is region k of view 1
+    matches = (corr.ErpMatches(np.mod(col - 2, w), row, np.ones((h, w), np.float32), ok),
+               corr.ErpMatches(np.mod(col + 2, w), row, np.ones((h, w), np.float32), ok))
+    out, sizes = auto_segments(graphs, matches, SegmentOptions(min_votes=1))
+    assert sizes.size == 4 and sizes.sum() == 2 * h * w
+    for k in range(4):  # the same physical columns carry the same label in both views
+        assert np.all(out[0][:, (4 * k - 2) % w] == out[1][:, (4 * k - 4) % w])
+    assert len(np.unique(out[0])) == 4
