@@ -21,6 +21,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import asdict, dataclass, fields
 
 import numpy as np
@@ -96,7 +97,10 @@ def superpixels(colour: np.ndarray, inv_range: np.ndarray, opts: SegmentOptions)
 
     scale = np.float32(np.percentile(inv_range, 99) or 1.0)
     feat = np.concatenate([colour, (inv_range / scale * opts.inv_range_weight)[..., None]], -1).astype(np.float32)
-    labels = felzenszwalb(feat, scale=opts.fz_scale, sigma=opts.fz_sigma, min_size=opts.fz_min_size, channel_axis=-1)
+    with warnings.catch_warnings():  # 4 channels on purpose: colour + inverse range
+        warnings.filterwarnings("ignore", message="Got image with third dimension", category=RuntimeWarning)
+        labels = felzenszwalb(feat, scale=opts.fz_scale, sigma=opts.fz_sigma, min_size=opts.fz_min_size,
+                              channel_axis=-1)
     return labels.astype(np.int32)
 
 

@@ -118,3 +118,26 @@ def test_bad_selection_and_edit_inputs(client, scene, live):
            "correspondences_missing")
     _error(client.post(f"/v1/scenes/{plain}/edits", json={"selection": sel, "op": "remove"}), 409,
            "correspondences_missing")
+
+
+def test_empty_selection_is_a_clear_422(scene, live, monkeypatch):
+    """A prompt whose masks own no Gaussian (forced here) is refused with empty_selection, not stored."""
+    from rasterizer.edit import scene as edit_scene
+    from service import edits
+    from service.errors import ServiceError
+    from service.store import SceneStore, content_id
+
+    store = SceneStore(live.store)
+    real = edit_scene.select_points
+
+    def nothing(index, view, points, negative=()):
+        sel = real(index, view, points, negative)
+        return edit_scene.Selection(np.zeros_like(sel.masks), np.zeros_like(sel.gaussians), sel.level, None)
+
+    monkeypatch.setattr(edit_scene, "select_points", nothing)
+    request = {"view": "b", "points": [[0.3, 0.6]], "negative": []}
+    with pytest.raises(ServiceError) as err:
+        edits.create_selection(store, scene, request)
+    assert err.value.status == 422 and err.value.code == "empty_selection"
+    sel_id = content_id("selection/v1", scene, json.dumps(request, sort_keys=True, separators=(",", ":")))
+    assert store.artifact(scene, f"selection-{sel_id}.npz") is None
