@@ -28,11 +28,13 @@ from .report import readme_markers, update_readme, write_json
 
 DEFAULT_DATA = DEV_DATA / "m3d_bedroom"
 DEFAULT_OUT = Path("docs/bench")
-#: Point prompts (u, v) on reference A (00), picked by eye on the image: one per object.
+#: Point prompts (u, v) on reference A (00), picked by eye on the image: one object each, 1-4 clicks on its parts.
 PROMPTS = {
-    "bed": [(0.07, 0.65)], "picture_left": [(0.12, 0.45)], "painting": [(0.69, 0.43)], "lamp": [(0.70, 0.63)],
-    "table": [(0.72, 0.76)], "chair": [(0.86, 0.64)], "closet_door": [(0.22, 0.50)], "window": [(0.45, 0.35)],
-    "rug": [(0.15, 0.85)], "door": [(0.95, 0.50)],
+    "bed": [(0.03, 0.66), (0.08, 0.64), (0.12, 0.64), (0.05, 0.72)], "picture_left": [(0.12, 0.45)],
+    "painting": [(0.69, 0.43)], "lamp": [(0.685, 0.58), (0.695, 0.66), (0.70, 0.71)],
+    "table": [(0.66, 0.77), (0.72, 0.80), (0.78, 0.78)], "chair": [(0.845, 0.66), (0.87, 0.65)],
+    "closet_door": [(0.22, 0.50)], "window": [(0.45, 0.35)], "rug": [(0.05, 0.84), (0.12, 0.86), (0.17, 0.82)],
+    "door": [(0.95, 0.50)],
 }
 FIGURE_PROMPT = "door"
 VISIBLE_TOL = 0.03
