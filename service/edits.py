@@ -7,6 +7,8 @@ request builds the scene's index (superpixels of both references, kept as the
 artifact ``edit_index.npz`` and in a small in-memory LRU); after that a
 selection is graph work only.
 
+* automatic segments and per-Gaussian segment labels are stored in ``edit_index.npz`` with the
+  superpixels when first computed (an edited scene gets them with its Gaussians);
 * selection id = content hash of scene id + canonical request; stored as the
   artifact ``selection-<id>.npz`` (per-view ERP masks, selected Gaussians);
 * edit result = a new scene with id = content hash of scene id + selection +
@@ -77,20 +79,31 @@ def scene_index(store: SceneStore, scene_id: str):
     data = _edit_data(store, scene_id)
     images, _ = load_references(store, scene_id)
     stored = store.artifact(scene_id, INDEX_ARTIFACT)
-    labels = None
+    saved = None
     if stored is not None:
         with np.load(stored, allow_pickle=False) as z:
-            labels = z["superpixels"]
-    index = build_index(data, images, labels=labels)
-    if stored is None:
-        buf = io.BytesIO()
-        np.savez_compressed(buf, superpixels=index.superpixel_labels())
-        store.put_artifact(scene_id, INDEX_ARTIFACT, buf.getvalue())
+            saved = {k: z[k] for k in z.files}
+    index = build_index(data, images, labels=None if saved is None else saved["superpixels"])
+    if saved is not None and "segments" in saved:
+        index.set_segments(saved["segments"], saved["segment_sizes"])
+    if saved is None or "gaussian_labels" not in saved:
+        store.put_artifact(scene_id, INDEX_ARTIFACT, index_bytes(index))
     with _cache_lock:
         _cache[scene_id] = index
         while len(_cache) > INDEX_CACHE:
             _cache.popitem(last=False)
     return index
+
+
+def index_bytes(index, keep: np.ndarray | None = None) -> bytes:
+    """The ``edit_index.npz`` artifact: superpixels and automatic segments (2, He, We), per-label sizes and the
+    per-Gaussian segment labels (N,), optionally for ``gaussians.subset(keep)`` only."""
+    labels, sizes = index.segments()
+    per_gaussian = index.gaussian_labels()
+    buf = io.BytesIO()
+    np.savez_compressed(buf, superpixels=index.superpixel_labels(), segments=labels, segment_sizes=sizes,
+                        gaussian_labels=per_gaussian if keep is None else per_gaussian[keep])
+    return buf.getvalue()
 
 
 def _canonical(obj) -> str:
@@ -252,6 +265,7 @@ def create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict, 
     timings = {"edit": time.perf_counter() - t0}
     info = {"op": op, "selection": request["selection"], "num_selected": int(selected.sum())}
     data = _edit_data(store, scene_id)
+    keep = None
     if op in ("remove", "keep"):
         keep = ~selected if op == "remove" else selected
         data = data.subset(keep)
@@ -264,5 +278,6 @@ def create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict, 
     meta.update({"parent": scene_id, "edit": {**info, "request": request, "version": EDIT_VERSION},
                  "timings": timings, "created_at": time.time()})
     artifacts = {REFERENCES_ARTIFACT: store.artifact(scene_id, REFERENCES_ARTIFACT).read_bytes(),
-                 EDIT_ARTIFACT: data.to_bytes()}
+                 EDIT_ARTIFACT: data.to_bytes(),
+                 INDEX_ARTIFACT: index_bytes(scene_index(store, scene_id), keep)}  # same references: same segments
     return store.put(new_id, edited, meta, artifacts=artifacts), True

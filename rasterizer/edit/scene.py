@@ -92,6 +92,10 @@ class SceneIndex:
             self._segments = auto_segments(self.graphs, self.matches, self.opts)
         return self._segments
 
+    def set_segments(self, labels: np.ndarray, sizes: np.ndarray) -> None:
+        """Reuse stored automatic segments (what :meth:`segments` returned for this scene)."""
+        self._segments = (np.asarray(labels, dtype=np.int32), np.asarray(sizes, dtype=np.int64))
+
     def gaussian_labels(self) -> np.ndarray:
         """(N,) int32 automatic segment of each Gaussian (that of its source pixel)."""
         return gaussian_values(self.segments()[0], self.gaussian_view, self.gaussian_pixel)

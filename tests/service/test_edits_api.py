@@ -49,7 +49,7 @@ def _error(r, status, code):
     return r.json()["error"]["message"]
 
 
-def test_select_mask_segments_and_edits(client, scene):
+def test_select_mask_segments_and_edits(client, scene, live):
     body = {"view": "a", "points": [[0.95, 0.5]], "negative": []}
     r = client.post(f"/v1/scenes/{scene}/selections", json=body)
     assert r.status_code == 201, r.text
@@ -72,6 +72,11 @@ def test_select_mask_segments_and_edits(client, scene):
     assert client.get(f"/v1/scenes/{scene}/segments?c2w={IDENTITY}&width=128").status_code == 200
     r = client.post(f"/v1/scenes/{scene}/selections", json={"segment": 0})
     assert r.status_code == 201, r.text
+    # per-Gaussian segment labels are stored with the scene, one per Gaussian, every label a real segment
+    with np.load(live.store / "scenes" / scene / "edit_index.npz") as z:
+        n = client.get(f"/v1/scenes/{scene}").json()["num_gaussians"]
+        assert z["gaussian_labels"].shape == (n,) and z["gaussian_labels"].max() < z["segment_sizes"].size
+        assert z["segments"].shape[0] == 2 and z["segment_sizes"].sum() == z["segments"].size
 
     r = client.post(f"/v1/scenes/{scene}/edits", json={"selection": sel["id"], "op": "remove"})
     assert r.status_code == 201, r.text
@@ -81,6 +86,8 @@ def test_select_mask_segments_and_edits(client, scene):
     assert again["id"] == removed["id"] and again["cached"] is True
     meta = client.get(f"/v1/scenes/{removed['id']}").json()
     assert meta["parent"] == scene and 0.0 <= meta["edit"]["uncovered"]["a"] <= 1.0
+    with np.load(live.store / "scenes" / removed["id"] / "edit_index.npz") as z:
+        assert z["gaussian_labels"].shape == (removed["num_gaussians"],)
     for op, extra in (("keep", {}), ("recolor", {"color": [0, 1, 0]}), ("translate", {"offset": [0, 0.1, 0]})):
         r = client.post(f"/v1/scenes/{scene}/edits", json={"selection": sel["id"], "op": op, **extra})
         assert r.status_code == 201, r.text
