@@ -92,7 +92,7 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     t0 = time.perf_counter()
     meta["timings"] = timings
     references = {REFERENCES_ARTIFACT: references_bytes(*(_at_model_size(img, runtime) for img in (erp_a, erp_b)))}
-    references.update(edit_artifacts(build.edit))  # correspondences for selections / edits (~4 MB at 512 x 1024)
+    references.update(edit_artifacts(build.edit))  # correspondences for selections / edits (~8 MB at 512 x 1024)
     stored = store.put(scene_id, gaussians, meta, artifacts=references)
     timings["store"] = time.perf_counter() - t0
     return stored, timings
