@@ -58,6 +58,25 @@ def gt_carry(depth_b: np.ndarray, depth_a: np.ndarray, c2w_b, c2w_a) -> tuple[np
     return r * w + c, visible
 
 
+def gt_matches(edit, depths, c2ws) -> np.ndarray:
+    """``matches`` (2, G, H, W, 5) in the encoder's layout from GT range maps (ERP, metres), all consistent:
+    what the graph would output with exact depth (the oracle column)."""
+    from rasterizer.yin_yang import erp_to_yin_yang
+
+    h, w = edit.height, edit.width
+    out = np.zeros((2, len(edit.grids), h, w, 5), np.float32)
+    for v in range(2):
+        rng = np.stack(erp_to_yin_yang(np.asarray(depths[v])[..., None], height=h, nearest=True))[..., 0]
+        for g, kind in enumerate(edit.grids):
+            d = geo.grid_directions(kind, h, w)
+            p = geo.world_to_camera(d * rng[g][..., None] @ c2ws[v][:3, :3].T + c2ws[v][:3, 3], c2ws[1 - v])
+            yang = ~geo.in_grid_domain("yin", p)
+            (cy, ry), (cg, rg) = geo.project_to_grid("yin", p, h, w), geo.project_to_grid("yang", p, h, w)
+            out[v, g, ..., 0], out[v, g, ..., 1], out[v, g, ..., 2] = yang, np.where(yang, cg, cy), np.where(yang, rg, ry)
+            out[v, g, ..., 3], out[v, g, ..., 4] = 1.0, np.where(rng[g] > 0, 0, 2)
+    return out
+
+
 def weighted_iou(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray) -> float:
     h = pred.shape[0]
     wt = np.cos((np.arange(h) + 0.5) / h * np.pi - np.pi / 2)[:, None] * valid
@@ -150,6 +169,11 @@ def run(model: Path, data: Path, threads: int = 2, out: Path = DEFAULT_OUT) -> d
         raise SystemExit(f"GT depth is {depth_a.shape}, the index works at {he} rows: resample first")
     to_a, visible = gt_carry(depth_b, depth_a, rb.c2w, ra.c2w)
     flow = flow_baseline(index.colour[0], index.colour[1])
+    if build.edit.grids == ("yin", "yang"):  # oracle: the same carry through matches from the GT ranges
+        oracle_b = corr.erp_matches(gt_matches(build.edit, (depth_a, depth_b), (ra.c2w, rb.c2w)), 1,
+                                    build.edit.grids, he)
+    else:
+        oracle_b = None
     rows, seconds, chosen = [], [], None
     for name, pts in PROMPTS.items():
         t0 = time.perf_counter()
@@ -162,6 +186,7 @@ def run(model: Path, data: Path, threads: int = 2, out: Path = DEFAULT_OUT) -> d
                "iou_ours": weighted_iou(sel.masks[1], gt_b, visible),
                "iou_same_pixels": weighted_iou(mask_a, gt_b, visible),
                "iou_flow": weighted_iou(flow(mask_a), gt_b, visible),
+               "iou_oracle_gt_depth": None if oracle_b is None else weighted_iou(corr.carry(mask_a, oracle_b)[0], gt_b, visible),
                "gt_empty": bool(not (gt_b & visible).any())}
         rows.append(row)
         _log(f"{name}: ours {row['iou_ours']:.3f}, same pixels {row['iou_same_pixels']:.3f}, "
@@ -178,7 +203,8 @@ def run(model: Path, data: Path, threads: int = 2, out: Path = DEFAULT_OUT) -> d
     return {
         "machine": machine_line(machine_info()), "model": model.name, "scene": scene.name,
         "references": list(split.references), "target": target, "erp_height": he,
-        "miou": {"ours": mean("iou_ours"), "same_pixels": mean("iou_same_pixels"), "flow_dis": mean("iou_flow")},
+        "miou": {"ours": mean("iou_ours"), "same_pixels": mean("iou_same_pixels"), "flow_dis": mean("iou_flow"),
+                 "oracle_gt_depth": None if oracle_b is None else mean("iou_oracle_gt_depth")},
         "prompts": rows,
         "seconds": {"scene_build": t_build, "pack_matches": t_pack, "pack_matches_compressed": t_pack_z, "index_first": t_index,
                     "index_with_stored_superpixels": t_index_stored, "selection_mean": float(np.mean(seconds)),
@@ -199,13 +225,17 @@ def markdown(res: dict) -> str:
         f"Scene {res['scene']}, references {' / '.join(res['references'])} (A / B), ERP {res['erp_height']} rows; "
         f"model `{res['model']}`. Machine: {res['machine']}.", "",
         "IoU in B against the pseudo GT (A's mask carried through the GT range maps; B pixels A does not see are "
-        "void), cos-latitude weighted. Same A mask for every column.", "",
-        "| prompt | coverage A | coverage B | ours | same pixels | optical flow (DIS) |", "|---|---|---|---|---|---|"]
+        "void), cos-latitude weighted. Same A mask for every column. Oracle (not a method: a check of the "
+        "carrying itself) = our pull through matches built from the GT ranges instead of the encoder's.", "",
+        "| prompt | coverage A | coverage B | ours | same pixels | optical flow (DIS) | oracle: GT-depth matches |",
+        "|---|---|---|---|---|---|---|"]
+    fmt = lambda v: "-" if v is None else f"{v:.3f}"
     for r in res["prompts"]:
         lines.append(f"| {r['prompt']} | {r['coverage_a']:.4f} | {r['coverage_b']:.4f} | {r['iou_ours']:.3f} | "
-                     f"{r['iou_same_pixels']:.3f} | {r['iou_flow']:.3f} |")
+                     f"{r['iou_same_pixels']:.3f} | {r['iou_flow']:.3f} | {fmt(r['iou_oracle_gt_depth'])} |")
     m = res["miou"]
-    lines += [f"| **mIoU** | | | **{m['ours']:.3f}** | {m['same_pixels']:.3f} | {m['flow_dis']:.3f} |", "",
+    lines += [f"| **mIoU** | | | **{m['ours']:.3f}** | {m['same_pixels']:.3f} | {m['flow_dis']:.3f} | "
+              f"{fmt(m['oracle_gt_depth'])} |", "",
               f"Seconds: scene build {s['scene_build']:.2f}, index first use {s['index_first']:.2f} "
               f"({s['index_with_stored_superpixels']:.2f} with stored superpixels), selection mean "
               f"{s['selection_mean']:.3f} / max {s['selection_max']:.3f}, automatic segments {s['segments']:.2f}. "
