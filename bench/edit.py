@@ -244,7 +244,8 @@ def markdown(res: dict) -> str:
               f"{st['edit_artifact_bytes_compressed'] / 1e6:.2f} MB in {s['pack_matches_compressed']:.2f} s), beside "
               f"{st['gaussian_bytes'] / 1e6:.1f} MB of Gaussians; the raw float32 matches are "
               f"{st['matches_raw_bytes'] / 1e6:.1f} MB. "
-              f"Consistent matches: A {res['matched_fraction']['a']:.3f}, B {res['matched_fraction']['b']:.3f}. "
+              "Matches passing the graph's left-right / occlusion check: "
+              f"A {res['matched_fraction']['a']:.3f}, B {res['matched_fraction']['b']:.3f}. "
               f"Automatic segments: {res['segments']['count']}, same label at "
               f"{res['segments']['label_agreement_at_gt_matches']:.3f} of GT-matched B pixels.", "",
               f"![prompt, masks, remove and recolor]({Path(res['figure']).name})"]

@@ -115,6 +115,15 @@ def erp_matches(matches: np.ndarray, view: int, grids: tuple[str, ...], erp_heig
                       np.rint(pick[..., 4]).astype(np.uint8))
 
 
+def photo_checked(match: ErpMatches, colour: np.ndarray, other_colour: np.ndarray, tol: float) -> ErpMatches:
+    """``match`` with the consistent matches whose colours (H, W, 3) differ by more than ``tol`` (RGB
+    distance) from the colour they land on in ``other_colour`` marked :data:`INCONSISTENT`."""
+    seen, _ = carry(other_colour, match)
+    off = np.linalg.norm(seen - colour, axis=-1) > tol
+    status = np.where(off & (match.status == OK), np.uint8(INCONSISTENT), match.status).astype(np.uint8)
+    return ErpMatches(match.col, match.row, match.score, status)
+
+
 def carry(values: np.ndarray, match: ErpMatches) -> tuple[np.ndarray, np.ndarray]:
     """Pull a per-pixel map of the other view (He, We[, C]) to this view through ``match``.
 

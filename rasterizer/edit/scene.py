@@ -76,7 +76,7 @@ class SceneIndex:
     data: EditData
     colour: np.ndarray  # (2, He, We, 3) float32 in [0, 1]
     graphs: tuple[RegionGraph, RegionGraph]
-    matches: tuple[corr.ErpMatches, corr.ErpMatches]  # [v]: view v's pixels -> the other view
+    matches: tuple[corr.ErpMatches, corr.ErpMatches]  # [v]: view v's pixels -> the other view, photo-checked
     gaussian_view: np.ndarray  # (N,)
     gaussian_pixel: np.ndarray  # (N,) flat ERP pixel of its view
     opts: SegmentOptions
@@ -129,6 +129,7 @@ def build_index(data: EditData, images, *, erp_height: int | None = None, opts: 
         lab = superpixels(colour[v], inv, opts) if labels is None else np.asarray(labels[v], dtype=np.int32)
         graphs.append(region_graph(lab, colour[v], inv, normals_from_range(rng), opts))
         matches.append(corr.erp_matches(data.matches, v, data.grids, he))
+    matches = [corr.photo_checked(matches[v], colour[v], colour[1 - v], opts.photo_tol) for v in range(2)]
     view, pixel = source_pixels(data.index, data.block, data.grids, data.height, data.width, he)
     return SceneIndex(data, colour, tuple(graphs), tuple(matches), view, pixel, opts)
 

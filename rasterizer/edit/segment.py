@@ -9,10 +9,11 @@
 3. :func:`select_regions`: the superpixels joined to the positive points'
    ones by edges no heavier than ``level`` (single linkage); negative
    points lower the level until none of them is joined;
-4. :func:`carry_selection`: a mask of one view pulled to the other through
+4. :func:`carry_selection`: a mask of one view carried to the other through
    the encoder's matches (only left-right consistent, unoccluded matches
-   vote), snapped to that view's superpixels, and grown from them into the
-   superpixels the first view could not see;
+   whose two pixels have similar colours count): pulled per pixel, pushed from
+   the prompted view's masked pixels, and decided by superpixels where the
+   prompted view could not see;
 5. :func:`auto_segments`: both views cut at ``auto_level``, each region
    linked to the region of the other view most of its consistently matched
    pixels land in (when that is at least ``link_overlap`` of them), one label
@@ -47,7 +48,10 @@ class SegmentOptions:
     normal_tol: 1 - cos of the normal angle, each worth one unit of edge
     weight. select_level / auto_level: largest edge weight joined by a
     prompt / by the automatic segmentation. min_votes: matched pixels a
-    superpixel needs to take its label from the other view; snap: the carried
+    superpixel needs to take its label from the other view; photo_tol: RGB
+    distance (0..sqrt 3) above which a match's two pixels are too different in
+    colour to be the same point (it then counts as inconsistent; m3d_bedroom
+    bench edit mIoU 0.778 without, 0.81-0.82 at 0.15-0.3); snap: the carried
     mask takes whole superpixels of this view (else consistent matches keep their
     carried value per pixel and superpixels decide only the rest); link_overlap:
     fraction of a region's matched pixels that must land in one region of
@@ -65,6 +69,7 @@ class SegmentOptions:
     auto_level: float = 0.5
     min_votes: int = 8
     snap: bool = False
+    photo_tol: float = 0.2
     link_overlap: float = 0.5
 
     def to_dict(self) -> dict:

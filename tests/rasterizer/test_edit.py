@@ -190,3 +190,21 @@ def test_auto_segments_share_labels_across_views():
     for k in range(4):  # the same physical columns carry the same label in both views
         assert np.all(out[0][:, (4 * k - 2) % w] == out[1][:, (4 * k - 4) % w])
     assert len(np.unique(out[0])) == 4
+
+
+def test_photo_check_marks_only_consistent_matches_that_change_colour():
+    h, w = 2, 4
+    col, row = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    status = np.zeros((h, w), np.uint8)
+    status[1, 3] = corr.OCCLUDED
+    em = corr.ErpMatches(col, row, np.ones((h, w), np.float32), status)
+    here = np.zeros((h, w, 3), np.float32)
+    there = here.copy()
+    there[0, 1] = 0.5  # RGB distance 0.87 > 0.2: not the same point
+    there[0, 2] = 0.1  # 0.17 <= 0.2: kept
+    there[1, 3] = 1.0  # already occluded: stays occluded
+    out = corr.photo_checked(em, here, there, 0.2)
+    expect = np.zeros((h, w), np.uint8)
+    expect[0, 1], expect[1, 3] = corr.INCONSISTENT, corr.OCCLUDED
+    assert np.array_equal(out.status, expect)
+    assert out.col is em.col and np.array_equal(em.status, status)  # the input is not modified
