@@ -208,8 +208,9 @@ def carry_selection(mask_src: np.ndarray, match: ErpMatches, graph: RegionGraph,
 
     ``match`` maps this view's pixels into the other view (pulled: a consistent match takes the
     mask value it lands on); ``match_src`` (optional) maps the other view's pixels into this one
-    (pushed: a consistent masked pixel marks the pixel it lands on, which keeps thin or small
-    objects whose range this view estimated worse). ``graph`` is this view's.
+    (pushed: a consistent masked pixel marks the pixel it lands on, where this view's own match is
+    not consistent: that keeps thin or small objects whose range this view estimated worse).
+    ``graph`` is this view's.
     """
     values, valid = carry(mask_src.astype(np.float32), match)
     lab = graph.labels.ravel()
@@ -221,14 +222,15 @@ def carry_selection(mask_src: np.ndarray, match: ErpMatches, graph: RegionGraph,
     if sel.any():
         comp = graph.components(level, nodes=sel | ~known)  # grow only into superpixels the other view did not see
         sel |= ~known & np.isin(comp, comp[sel])
-    out = np.where(valid, values >= 0.5, sel[graph.labels]) if not opts.snap else sel[graph.labels]
+    pushed = np.zeros(graph.labels.shape, dtype=bool)
     if match_src is not None:
-        h, w = out.shape
+        h, w = pushed.shape
         src = mask_src & match_src.valid
-        col = np.mod(np.rint(match_src.col[src]).astype(np.int64), w)
-        row = np.clip(np.rint(match_src.row[src]).astype(np.int64), 0, h - 1)
-        out[row, col] = True
-    return out
+        pushed[np.clip(np.rint(match_src.row[src]).astype(np.int64), 0, h - 1),
+               np.mod(np.rint(match_src.col[src]).astype(np.int64), w)] = True
+    if opts.snap:
+        return sel[graph.labels] | pushed
+    return np.where(valid, values >= 0.5, sel[graph.labels] | pushed)  # a consistent pull is trusted
 
 
 def auto_segments(graphs: tuple[RegionGraph, RegionGraph], matches: tuple[ErpMatches, ErpMatches],

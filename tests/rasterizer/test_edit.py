@@ -208,3 +208,24 @@ def test_photo_check_marks_only_consistent_matches_that_change_colour():
     expect[0, 1], expect[1, 3] = corr.INCONSISTENT, corr.OCCLUDED
     assert np.array_equal(out.status, expect)
     assert out.col is em.col and np.array_equal(em.status, status)  # the input is not modified
+
+
+def test_push_fills_only_pixels_without_a_consistent_pull():
+    h, w = 4, 8
+    labels = np.repeat(np.array([[0, 0, 1, 1, 2, 2, 3, 3]]), h, 0).astype(np.int32)
+    g = RegionGraph(labels, np.full(4, 8), np.array([0, 1, 2]), np.array([1, 2, 3]), np.full(3, 9.0, np.float32))
+    col, row = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    ok = np.zeros((h, w), np.uint8)
+    here_status = ok.copy()
+    here_status[0, 5] = corr.INCONSISTENT
+    here = corr.ErpMatches(col, row, np.ones((h, w), np.float32), here_status)  # identity pull
+    # the source's pixels (0, 0) and (0, 1) push onto (0, 5) and (0, 6) of this view
+    push_col = col.copy()
+    push_col[0, 0], push_col[0, 1] = 5, 6
+    there = corr.ErpMatches(push_col, row, np.ones((h, w), np.float32), ok)
+    src = np.zeros((h, w), bool)
+    src[0, 0] = src[0, 1] = True
+    out = carry_selection(src, here, g, 1.0, SegmentOptions(min_votes=1), match_src=there)
+    assert out[0, 5]  # its own match failed: the push decides
+    assert not out[0, 6]  # a consistent pull (to an unselected pixel) wins over the push
+    assert out[0, 0] and out[0, 1]  # pulled
