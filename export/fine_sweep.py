@@ -67,6 +67,38 @@ def project_normalised(p: torch.Tensor, kind: str, width: int = 0) -> torch.Tens
     return torch.stack([gx, gy], dim=-1)
 
 
+def sample_other_view(maps: torch.Tensor, pts: torch.Tensor, grids, erp_width: int = 0):
+    """The other view's (2G, 1, h, w) ``maps`` at source-camera points (2, G, J, h, w, 3).
+
+    Returns (samples (2, 1, G J h, w), in_yin (2, G, J, h, w) bool: the point
+    was sampled in the Yin grid (always True for ERP), gx, gy (2, G, J, h, w) its ``grid_sample``
+    coordinates in that grid). Yin/Yang sources: each point is sampled once, in the Yin map if its
+    direction lies in the Yin domain, else in the Yang map (the two cover the sphere), from one
+    image with Yang stacked under Yin (a replicated edge row each, so bilinear taps never mix
+    them). This is the mask blend of eq. 4 with the Yang mask zeroed where Yin is valid: half the
+    GridSample work of sampling both and averaging the overlap.
+    """
+    _, g_count, j_count, h, w, _ = pts.shape
+    views = maps.reshape(2, g_count, 1, h, w)
+    source = torch.stack([views[1], views[0]])  # [d] = view 1 - d, (2, G_s, 1, h, w)
+    if tuple(grids) == ("erp",):
+        coords = project_normalised(pts, "erp", erp_width)
+        grid = coords.reshape(2, g_count * j_count * h, w, 2)
+        gx, gy = coords.unbind(-1)
+        return sample_maps(source[:, 0], grid, True), torch.ones_like(gx, dtype=torch.bool), gx, gy
+    x, y, z = pts.unbind(-1)
+    norm = torch.sqrt(x * x + y * y + z * z)
+    in_yin = (y.abs() <= math.sin(YIN_LAT_MAX) * norm) & (z >= -x.abs())
+    # Yang points in the Yang frame (y, x, -z), where its layout is Yin's
+    q = torch.stack([torch.where(in_yin, x, y), torch.where(in_yin, y, x), torch.where(in_yin, z, -z)], -1)
+    gx, gy = project_normalised(q, "yin").unbind(-1)
+    gs = ((gy + 1.0) * h + torch.where(in_yin, 0.0, float(2 * h + 4))) / (2 * h + 2) - 1.0  # rows + h + 2
+    grid = torch.stack([gx, gs], dim=-1).reshape(2, g_count * j_count * h, w, 2)
+    yin, yang = source[:, 0], source[:, 1]  # (2, 1, h, w)
+    stacked = torch.cat([yin, yin[:, :, -1:], yang[:, :, :1], yang], dim=2)  # (2, 1, 2h + 2, w)
+    return sample_maps(stacked, grid, False), in_yin, gx, gy
+
+
 class FineSweep(nn.Module):
     """inv (2G, 1, h, w) coarse inverse range on the fine grid, grey (2G, 1, h, w),
     rays (G, h, w, 3), rel_rt (2, 3, 4), step (scalar: one fine hypothesis apart)
@@ -101,32 +133,10 @@ class FineSweep(nn.Module):
     def sample(self, maps: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
         """The other view's (2G, 1, h, w) ``maps`` at source-camera points (2, G, J, h, w, 3) -> (2G, 1, J, h, w).
 
-        Yin/Yang sources: each point is sampled once, in the Yin map if its
-        direction lies in the Yin domain, else in the Yang map (the two
-        cover the sphere), from one image with Yang stacked under Yin (a
-        replicated edge row each, so bilinear taps never mix them). This is
-        the mask blend of eq. 4 with the Yang mask zeroed where Yin is valid:
-        half the GridSample work of sampling both and averaging the overlap.
+        See :func:`sample_other_view`.
         """
         _, g_count, j_count, h, w, _ = pts.shape
-        views = maps.reshape(2, g_count, 1, h, w)
-        source = torch.stack([views[1], views[0]])  # [d] = view 1 - d, (2, G_s, 1, h, w)
-        if self.grids == ("erp",):
-            grid = project_normalised(pts, "erp", self.erp_width).reshape(2, g_count * j_count * h, w, 2)
-            sampled = sample_maps(source[:, 0], grid, True)
-        else:
-            x, y, z = pts.unbind(-1)
-            norm = torch.sqrt(x * x + y * y + z * z)
-            in_yin = (y.abs() <= math.sin(YIN_LAT_MAX) * norm) & (z >= -x.abs())
-            # Yang points in the Yang frame (y, x, -z), where its layout is Yin's
-            q = torch.stack([torch.where(in_yin, x, y), torch.where(in_yin, y, x), torch.where(in_yin, z, -z)], -1)
-            gx, gy = project_normalised(q, "yin").unbind(-1)
-            gy = ((gy + 1.0) * h + torch.where(in_yin, 0.0, float(2 * h + 4))) / (2 * h + 2) - 1.0  # rows + h + 2
-            grid = torch.stack([gx, gy], dim=-1).reshape(2, g_count * j_count * h, w, 2)
-            yin, yang = source[:, 0], source[:, 1]  # (2, 1, h, w)
-            stacked = torch.cat([yin, yin[:, :, -1:], yang[:, :, :1], yang], dim=2)  # (2, 1, 2h + 2, w)
-            sampled = sample_maps(stacked, grid, False)
-        return sampled.reshape(2 * g_count, 1, j_count, h, w)
+        return sample_other_view(maps, pts, self.grids, self.erp_width)[0].reshape(2 * g_count, 1, j_count, h, w)
 
     def lr_consistency(self, inv: torch.Tensor, rays: torch.Tensor, rel_rt: torch.Tensor, tol) -> torch.Tensor:
         """1 where the other view's inverse range at a pixel's 3D point matches that point's (within ``tol``)."""

@@ -21,14 +21,17 @@ refinement can replace a stage without touching the geometry):
    > 0): a per-pixel sweep of a few hypotheses around that depth on a grid
    ``fine_downscale`` times smaller than the Gaussians', its own left-right
    check and planar fill (``fine_fill``), then the guided upsampling;
-10. :class:`GaussianHead`.
+10. :class:`GaussianHead`;
+11. :class:`export.matches.Matches`: each pixel's match in the other view at its
+    final range, with score and a full-resolution left-right / occlusion flag.
 
 Graph inputs (see :mod:`rasterizer.sweep` for the pose-dependent ones):
 ``erp_a``, ``erp_b`` (1, 3, H, W) float32 in [0, 1]; ``warp_grids``
 (2, G, G, D, h, w, 2); ``rel_rt`` (2, 3, 4); ``inv_depths`` (D,);
 ``c2w`` (2, 4, 4); ``cam_quats`` (2, 4).
 Outputs: ``means``, ``scales``, ``quats``, ``opacities``, ``sh_dc`` (N, .),
-``range_maps``, ``confidence`` (2, G, Hg, Wg) on the Gaussian grid.
+``range_maps``, ``confidence`` (2, G, Hg, Wg) on the Gaussian grid, ``matches``
+(2, G, Hg, Wg, 5) (:mod:`export.matches`).
 """
 
 from __future__ import annotations
@@ -54,6 +57,7 @@ from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, dom
 from .features import GreyFeatures, TrainingFreeFeatures
 from .fine_sweep import FineSweep
 from .gaussian_head import GaussianHead
+from .matches import Matches
 from .readout import DepthReadout, index_to_inverse
 from .yin_yang_sampling import YinYangSampler
 
@@ -85,6 +89,7 @@ class OmniSplatEncoder(nn.Module):
         self.head = GaussianHead(cfg.grids, self.full_h, self.full_w, cfg.scale_factor,
                                  cfg.ray_scale_ratio, cfg.opacity_min, cfg.opacity_max,
                                  cfg.opacity_gamma)
+        self.matches = Matches(cfg.grids, self.full_w if wrap else 0)
         rays = np.stack([grid_directions(k, self.feat_h, self.feat_w) for k in cfg.grids]).astype(np.float32)
         self.register_buffer("feat_rays", torch.from_numpy(rays), persistent=False)  # (G, h, w, 3)
         self.register_buffer("luma", torch.tensor(_LUMA).view(1, 3, 1, 1), persistent=False)
@@ -249,4 +254,6 @@ class OmniSplatEncoder(nn.Module):
         conf_full = conf_full.reshape(2, g_count, *size)
 
         means, scales, quats, opac, sh_dc = self.head(rng, conf_full, full, c2w, cam_quats)
-        return means, scales, quats, opac, sh_dc, rng, conf_full
+        tol = self.cfg.lr_tol_planes * (inv_depths[d_count - 1] - inv_depths[0]) / (d_count - 1)
+        matches = self.matches(rng, conf_full, self.head.rays, rel_rt, tol)
+        return means, scales, quats, opac, sh_dc, rng, conf_full, matches

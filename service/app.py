@@ -24,7 +24,7 @@ from .errors import install_error_handlers
 from .limits import BodySizeLimit, WorkGate
 from .metrics import RequestMetrics, ServiceMetrics
 from .model_files import ModelUnavailable
-from .routes import health, jobs, scenes, viewer
+from .routes import edits, health, jobs, scenes, viewer
 from .runtime import ModelRuntime
 from .store import SceneStore
 
@@ -82,6 +82,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(scenes.router)
     app.include_router(jobs.router)
     app.include_router(viewer.router)
+    app.include_router(edits.router)
     # Last added = outermost: metrics see every request, including 413s from the body limit.
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes, on_reject=metrics.body_rejected.inc)
     app.add_middleware(RequestMetrics, metrics=metrics)

@@ -47,6 +47,8 @@ class Reconstruction:
     info: near, far, baseline, counts, model name/version/sha256.
     range_maps, confidence: (2, G, Hg, Wg) per view and grid (Yin, Yang or ERP),
     range in scene units along each pixel ray, confidence in [0, 1].
+    matches: (2, G, Hg, Wg, 5) each pixel's match in the other view (``export.matches``;
+    channels named in :mod:`rasterizer.edit.correspondences`), None for models built before it.
     """
 
     gaussians: Gaussians
@@ -54,6 +56,7 @@ class Reconstruction:
     info: dict
     range_maps: np.ndarray
     confidence: np.ndarray = field(repr=False)
+    matches: np.ndarray | None = field(default=None, repr=False)
 
 
 def _sha256(path: Path) -> str:
@@ -111,6 +114,8 @@ class OnnxEncoder:
         self.session = ort.InferenceSession(str(self.path), so, providers=["CPUExecutionProvider"])
         props = dict(self.session.get_modelmeta().custom_metadata_map)
         names = tuple(i.name for i in self.session.get_inputs())
+        have = {o.name for o in self.session.get_outputs()}
+        self.output_names = [n for n in OUTPUT_NAMES if n in have]  # older models lack ``matches``
         if names != INPUT_NAMES:
             raise ValueError(f"{self.path} is not an omnisplat encoder (inputs {names})")
         self._meta = {**props, "sha256": _sha256(self.path), "path": str(self.path), "threads": int(threads)}
@@ -189,7 +194,7 @@ class OnnxEncoder:
         timings["sweep_inputs"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        out = dict(zip(OUTPUT_NAMES, self.session.run(list(OUTPUT_NAMES), {k: feeds[k] for k in INPUT_NAMES})))
+        out = dict(zip(self.output_names, self.session.run(self.output_names, {k: feeds[k] for k in INPUT_NAMES})))
         timings["onnx"] = time.perf_counter() - t
 
         t = time.perf_counter()
@@ -209,4 +214,4 @@ class OnnxEncoder:
             "mean_confidence": float(out["confidence"].mean()),
             "model": {k: self._meta.get(k) for k in ("name", "version", "sha256")},
         }
-        return Reconstruction(gaussians, timings, info, out["range_maps"], out["confidence"])
+        return Reconstruction(gaussians, timings, info, out["range_maps"], out["confidence"], out.get("matches"))

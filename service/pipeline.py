@@ -16,7 +16,8 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from rasterizer.compaction import CompactionOptions, Provenance, compact
+from rasterizer.compaction import CompactionOptions, Provenance, compact_result
+from rasterizer.edit.scene import EditData
 from rasterizer.gaussians import Gaussians
 from rasterizer.ply import finite_rows
 
@@ -63,9 +64,12 @@ class PipelineOptions:
 
 @dataclass(frozen=True)
 class SceneBuild:
+    """edit: correspondences, range maps and each Gaussian's provenance (None for a model without ``matches``)."""
+
     gaussians: Gaussians
     timings: dict[str, float]
     info: dict[str, Any]
+    edit: EditData | None = None
 
 
 def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions) -> SceneBuild:
@@ -76,12 +80,18 @@ def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions) -
     info = dict(rec.info or {})
     t0 = time.perf_counter()
     provenance = Provenance.from_reconstruction(rec, c2w_a, c2w_b)
-    gaussians, stats = compact(rec.gaussians, provenance, options.compaction, confidence=rec.confidence)
+    res = compact_result(rec.gaussians, provenance, options.compaction, confidence=rec.confidence)
+    gaussians, stats = res.gaussians, res.stats
     timings["compaction"] = time.perf_counter() - t0
     info["compaction"] = stats
+    matches = getattr(rec, "matches", None)
+    edit = None if matches is None else EditData(
+        provenance.grids, provenance.height, provenance.width, matches, rec.range_maps,
+        res.provenance.flat_index(len(gaussians)), res.block)
 
     finite = finite_rows(gaussians)
     info["dropped_non_finite"] = int(len(gaussians) - finite.sum())
     if info["dropped_non_finite"]:
         gaussians = gaussians.subset(finite)
-    return SceneBuild(gaussians, timings, info)
+        edit = None if edit is None else edit.subset(finite)
+    return SceneBuild(gaussians, timings, info, edit)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .edits import edit_artifacts
 from .errors import BadInput, ServiceError
 from .images import check_header, decode_rgb, encode, to_uint8_safe
 from .inputs import Poses, RenderQuery
@@ -25,7 +26,8 @@ from .store import SceneStore, content_id
 
 def links(scene_id: str) -> dict[str, str]:
     base = f"/v1/scenes/{scene_id}"
-    return {"self": base, "render": f"{base}/render", "ply": f"{base}/gaussians.ply"}
+    return {"self": base, "render": f"{base}/render", "ply": f"{base}/gaussians.ply",
+            "selections": f"{base}/selections", "segments": f"{base}/segments", "edits": f"{base}/edits"}
 
 
 def scene_id_for(model_sha256: str, image_a: bytes, image_b: bytes, poses: Poses, options: dict) -> str:
@@ -90,6 +92,7 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     t0 = time.perf_counter()
     meta["timings"] = timings
     references = {REFERENCES_ARTIFACT: references_bytes(*(_at_model_size(img, runtime) for img in (erp_a, erp_b)))}
+    references.update(edit_artifacts(build.edit))  # correspondences for selections / edits (~8 MB at 512 x 1024)
     stored = store.put(scene_id, gaussians, meta, artifacts=references)
     timings["store"] = time.perf_counter() - t0
     return stored, timings

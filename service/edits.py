@@ -1,0 +1,283 @@
+"""Selections, automatic segments and edits of stored scenes, independent of HTTP (conventions section 3).
+
+A scene built by a model with the ``matches`` output carries the artifact
+``edit.npz`` (:class:`rasterizer.edit.scene.EditData`: packed matches, float16
+range maps, each Gaussian's provenance). The first selection or segments
+request builds the scene's index (superpixels of both references, kept as the
+artifact ``edit_index.npz`` and in a small in-memory LRU); after that a
+selection is graph work only.
+
+* automatic segments and per-Gaussian segment labels are stored in ``edit_index.npz`` with the
+  superpixels when first computed (an edited scene gets them with its Gaussians);
+* selection id = content hash of scene id + canonical request; stored as the
+  artifact ``selection-<id>.npz`` (per-view ERP masks, selected Gaussians);
+* edit result = a new scene with id = content hash of scene id + selection +
+  canonical edit (idempotent), ``meta["parent"]`` = the scene, its own
+  ``references.npz`` and ``edit.npz`` so it can be selected and edited again.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import threading
+import time
+from collections import OrderedDict
+
+import numpy as np
+
+from .errors import BadInput, NotFound, ServiceError
+from .images import encode
+from .inputs import RenderQuery
+from .jobs import REFERENCES_ARTIFACT, load_references
+from .store import SceneStore, content_id
+
+EDIT_ARTIFACT = "edit.npz"
+INDEX_ARTIFACT = "edit_index.npz"
+EDIT_VERSION = "edit/v1"
+#: Scene indexes kept in memory (each ~30 MB at 512 x 1024).
+INDEX_CACHE = 4
+#: Reference render width for the uncovered fraction of a removal.
+HOLE_RENDER_WIDTH = 512
+
+
+class CorrespondencesMissing(ServiceError):
+    status = 409
+    code = "correspondences_missing"
+
+
+_cache: OrderedDict = OrderedDict()
+_cache_lock = threading.Lock()
+
+
+def edit_artifacts(edit) -> dict[str, bytes]:
+    """Artifacts a new scene stores for editing (empty when the model gave no matches)."""
+    return {} if edit is None else {EDIT_ARTIFACT: edit.to_bytes()}
+
+
+def _edit_data(store: SceneStore, scene_id: str):
+    from rasterizer.edit.scene import EditData
+
+    path = store.artifact(scene_id, EDIT_ARTIFACT)
+    if path is None or store.artifact(scene_id, REFERENCES_ARTIFACT) is None:
+        raise CorrespondencesMissing(f"scene {scene_id} has no stored correspondences ({EDIT_ARTIFACT}); "
+                                     "it was built by a model without the matches output: rebuild it to edit")
+    return EditData.from_bytes(path.read_bytes())
+
+
+def scene_index(store: SceneStore, scene_id: str):
+    """The scene's :class:`rasterizer.edit.scene.SceneIndex` (cached; superpixels stored on first use)."""
+    from rasterizer.edit.scene import build_index
+
+    if not store.exists(scene_id):
+        raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
+    with _cache_lock:
+        hit = _cache.get(scene_id)
+        if hit is not None:
+            _cache.move_to_end(scene_id)
+            return hit
+    data = _edit_data(store, scene_id)
+    images, _ = load_references(store, scene_id)
+    stored = store.artifact(scene_id, INDEX_ARTIFACT)
+    saved = None
+    if stored is not None:
+        with np.load(stored, allow_pickle=False) as z:
+            saved = {k: z[k] for k in z.files}
+    index = build_index(data, images, labels=None if saved is None else saved["superpixels"])
+    if saved is not None and "segments" in saved:
+        index.set_segments(saved["segments"], saved["segment_sizes"])
+    if saved is None or "gaussian_labels" not in saved:
+        store.put_artifact(scene_id, INDEX_ARTIFACT, index_bytes(index))
+    with _cache_lock:
+        _cache[scene_id] = index
+        while len(_cache) > INDEX_CACHE:
+            _cache.popitem(last=False)
+    return index
+
+
+def index_bytes(index, keep: np.ndarray | None = None) -> bytes:
+    """The ``edit_index.npz`` artifact: superpixels and automatic segments (2, He, We), per-label sizes and the
+    per-Gaussian segment labels (N,), optionally for ``gaussians.subset(keep)`` only."""
+    labels, sizes = index.segments()
+    per_gaussian = index.gaussian_labels()
+    buf = io.BytesIO()
+    np.savez_compressed(buf, superpixels=index.superpixel_labels(), segments=labels, segment_sizes=sizes,
+                        gaussian_labels=per_gaussian if keep is None else per_gaussian[keep])
+    return buf.getvalue()
+
+
+def _canonical(obj) -> str:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"))
+
+
+def selection_links(scene_id: str, sel_id: str) -> dict[str, str]:
+    base = f"/v1/scenes/{scene_id}/selections/{sel_id}"
+    return {"self": base, "mask": f"{base}/mask", "edits": f"/v1/scenes/{scene_id}/edits"}
+
+
+def _selection_artifact(sel_id: str) -> str:
+    return f"selection-{sel_id}.npz"
+
+
+def create_selection(store: SceneStore, scene_id: str, request: dict) -> dict:
+    """Select from ``{"view", "points", "negative"}`` or ``{"segment"}``; returns the 201 body."""
+    from rasterizer.edit.scene import select_points, select_segment
+    from rasterizer.edit.segment import SelectionError
+
+    sel_id = content_id("selection/v1", scene_id, _canonical(request))
+    t0 = time.perf_counter()
+    index = scene_index(store, scene_id)
+    t_index = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    try:
+        if request.get("segment") is not None:
+            sel = select_segment(index, int(request["segment"]))
+        else:
+            sel = select_points(index, 0 if request["view"] == "a" else 1, request["points"], request.get("negative") or [])
+    except SelectionError as exc:
+        code = "unknown_segment" if request.get("segment") is not None else "invalid_selection"
+        raise BadInput(str(exc), code=code, status=404 if code == "unknown_segment" else 422) from None
+    count = int(sel.gaussians.sum())
+    if count == 0 or not sel.masks.any():
+        raise BadInput("the selection is empty: no Gaussian comes from the selected pixels; "
+                       "place the points on an object", code="empty_selection")
+    t_select = time.perf_counter() - t0
+    buf = io.BytesIO()
+    np.savez_compressed(buf, masks=np.packbits(sel.masks, axis=-1), shape=np.array(sel.masks.shape),
+                        gaussians=np.packbits(sel.gaussians), count=np.array(len(sel.gaussians)))
+    store.put_artifact(scene_id, _selection_artifact(sel_id), buf.getvalue())
+    cov = sel.coverage()
+    return {"id": sel_id, "num_gaussians": count, "coverage": {"a": cov[0], "b": cov[1]},
+            "consistency": sel.consistency, "level": sel.level, "request": request,
+            "timings": {"index": t_index, "select": t_select},
+            "links": selection_links(scene_id, sel_id)}
+
+
+def load_selection(store: SceneStore, scene_id: str, sel_id: str) -> tuple[np.ndarray, np.ndarray]:
+    """(masks (2, He, We) bool, gaussians (N,) bool) of a stored selection; 404 when unknown."""
+    if not store.exists(scene_id):
+        raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
+    path = store.artifact(scene_id, _selection_artifact(sel_id)) if len(sel_id) == 32 and sel_id.isalnum() else None
+    if path is None:
+        raise NotFound(f"no selection {sel_id!r} on scene {scene_id}", code="selection_not_found")
+    with np.load(path, allow_pickle=False) as z:
+        shape = tuple(int(s) for s in z["shape"])
+        masks = np.unpackbits(z["masks"], axis=-1, count=shape[-1]).astype(bool)
+        gauss = np.unpackbits(z["gaussians"], count=int(z["count"])).astype(bool)
+    return masks, gauss
+
+
+def _view_image(maps: np.ndarray, view: str, width: int) -> np.ndarray:
+    """Nearest-neighbour resize of one view's (He, We[, C]) map to a (width / 2, width) ERP."""
+    m = maps[0 if view == "a" else 1]
+    he, we = m.shape[:2]
+    rows = np.minimum(((np.arange(width // 2) + 0.5) * he / (width // 2)).astype(np.int64), he - 1)
+    cols = np.minimum(((np.arange(width) + 0.5) * we / width).astype(np.int64), we - 1)
+    return m[rows[:, None], cols[None, :]]
+
+
+def _render_values(store: SceneStore, scene_id: str, colours: np.ndarray, query: RenderQuery) -> tuple[np.ndarray, np.ndarray]:
+    """Render the scene with per-Gaussian flat ``colours`` (N, 3) in [0, 1]: (colour (H, W, 3), alpha (H, W))."""
+    from rasterizer.gaussians import SH_C0
+    from rasterizer.render import render
+
+    g = store.gaussians(scene_id)
+    sh = np.zeros((len(g), 1, 3), dtype=np.float32)
+    sh[:, 0] = (colours.astype(np.float32) - 0.5) / np.float32(SH_C0)
+    kwargs = {"projection": query.projection, "width": query.width, "normalize": True}
+    if query.projection == "perspective":
+        kwargs.update(height=query.height, fov_deg=query.fov_deg)
+    out = render(g.with_(sh=sh), query.c2w, **kwargs)
+    return out.colour, out.alpha
+
+
+def mask_png(store: SceneStore, scene_id: str, sel_id: str, view: str | None, width: int,
+             query: RenderQuery | None) -> bytes:
+    """PNG, 255 = selected: the reference's mask (``view``) or the selected Gaussians rendered at ``query``."""
+    masks, gauss = load_selection(store, scene_id, sel_id)
+    if query is None:
+        img = _view_image(masks, view, width)
+    else:
+        colour, alpha = _render_values(store, scene_id, np.repeat(gauss[:, None], 3, 1).astype(np.float32), query)
+        img = (colour[..., 0] >= 0.5) & (alpha >= 0.5)
+    return encode(np.where(img, 255, 0).astype(np.uint8)[..., None].repeat(3, -1), "png")
+
+
+def segments_png(store: SceneStore, scene_id: str, view: str | None, width: int, query: RenderQuery | None) -> bytes:
+    """PNG of the automatic segments: one colour per label (:func:`rasterizer.edit.ops.palette`) in every view;
+    black where nothing is rendered."""
+    from scipy.spatial import cKDTree
+
+    from rasterizer.edit.ops import palette
+
+    index = scene_index(store, scene_id)
+    labels, sizes = index.segments()
+    colours = palette(sizes.size)
+    if query is None:
+        return encode(colours[_view_image(labels, view, width)], "png")
+    per_gauss = index.gaussian_labels()
+    colour, alpha = _render_values(store, scene_id, colours[per_gauss].astype(np.float32) / 255.0, query)
+    present = np.unique(per_gauss)
+    nearest = cKDTree(colours[present].astype(np.float32) / 255.0).query(colour.reshape(-1, 3))[1]
+    img = colours[present][nearest].reshape(colour.shape)
+    img[alpha < 0.5] = 0
+    return encode(img, "png")
+
+
+def edit_id_for(scene_id: str, request: dict) -> str:
+    return content_id(EDIT_VERSION, scene_id, _canonical(request))
+
+
+def _uncovered(gaussians, masks: np.ndarray, c2ws) -> dict[str, float]:
+    """Per reference: fraction of the removed object's pixels no remaining Gaussian covers (alpha < 0.5)."""
+    from rasterizer.render import render
+
+    out = {}
+    for v, name in enumerate(("a", "b")):
+        if len(gaussians) == 0:
+            out[name] = 1.0
+            continue
+        alpha = render(gaussians, c2ws[v], width=HOLE_RENDER_WIDTH).alpha
+        m = _view_image(masks, name, HOLE_RENDER_WIDTH)
+        out[name] = float((alpha[m] < 0.5).mean()) if m.any() else 0.0
+    return out
+
+
+def create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict, bool]:
+    """Apply ``request`` ({"selection", "op", "color", "offset"}) and store the result as a new scene.
+
+    Returns (its metadata, created). Idempotent: the same request on the same scene gives the same id.
+    """
+    from rasterizer.edit.ops import edit_gaussians
+
+    _edit_data(store, scene_id)  # 409 before anything else when the scene cannot be edited
+    masks, selected = load_selection(store, scene_id, request["selection"])
+    new_id = edit_id_for(scene_id, request)
+    if store.exists(new_id):
+        return store.meta(new_id), False
+    t0 = time.perf_counter()
+    parent = store.meta(scene_id)
+    g = store.gaussians(scene_id)
+    if selected.shape != (len(g),):
+        raise ServiceError("stored selection does not match the scene's Gaussians", code="store_corrupt", status=500)
+    op = request["op"]
+    edited = edit_gaussians(g, selected, op, color=request.get("color"), offset=request.get("offset"))
+    timings = {"edit": time.perf_counter() - t0}
+    info = {"op": op, "selection": request["selection"], "num_selected": int(selected.sum())}
+    data = _edit_data(store, scene_id)
+    keep = None
+    if op in ("remove", "keep"):
+        keep = ~selected if op == "remove" else selected
+        data = data.subset(keep)
+    if op == "remove":
+        t0 = time.perf_counter()
+        _, c2ws = load_references(store, scene_id)
+        info["uncovered"] = _uncovered(edited, masks, c2ws)
+        timings["uncovered"] = time.perf_counter() - t0
+    meta = {k: v for k, v in parent.items() if k not in ("id", "num_gaussians", "created_at", "links", "timings")}
+    meta.update({"parent": scene_id, "edit": {**info, "request": request, "version": EDIT_VERSION},
+                 "timings": timings, "created_at": time.time()})
+    artifacts = {REFERENCES_ARTIFACT: store.artifact(scene_id, REFERENCES_ARTIFACT).read_bytes(),
+                 EDIT_ARTIFACT: data.to_bytes(),
+                 INDEX_ARTIFACT: index_bytes(scene_index(store, scene_id), keep)}  # same references: same segments
+    return store.put(new_id, edited, meta, artifacts=artifacts), True

@@ -1,0 +1,157 @@
+"""Selections, segments and edits (conventions section 3):
+``POST /v1/scenes/{id}/selections``, ``GET .../selections/{sel}/mask``, ``GET .../segments``,
+``POST /v1/scenes/{id}/edits``. Work is in :mod:`service.edits`; these routes parse and dispatch."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Body, Path, Query, Response
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from .. import edits as work
+from ..deps import RenderGateDep, SceneId, SettingsDep, StoreDep
+from ..errors import BadInput, NotFound
+from ..inputs import Projection, check_render_query
+from ..schemas import SceneCreated, error_responses
+from ..store import SCENE_ID_PATTERN
+
+router = APIRouter(prefix="/v1/scenes", tags=["edit"])
+
+Point = tuple[float, float]
+
+
+def _check_points(points: list[Point], name: str) -> None:
+    for k, (u, v) in enumerate(points):
+        if not (math.isfinite(u) and math.isfinite(v) and 0.0 <= u <= 1.0 and 0.0 <= v <= 1.0):
+            raise BadInput(f"{name}[{k}] = [{u}, {v}]: u and v must lie in [0, 1] (u = (col + 0.5) / W, "
+                           "v = (row + 0.5) / H on the reference's ERP)", code="invalid_selection")
+
+
+class SelectionRequest(BaseModel):
+    """Points on one reference, or a whole automatic segment."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    view: Literal["a", "b"] | None = Field(None, description="reference the points are on")
+    points: list[Point] | None = Field(None, max_length=64, description="positive (u, v) points in [0, 1]")
+    negative: list[Point] = Field(default_factory=list, max_length=64, description="negative (u, v) points")
+    segment: int | None = Field(None, ge=0, description="label of an automatic segment (GET .../segments)")
+
+    @model_validator(mode="after")
+    def _one_kind(self):
+        if self.segment is not None:
+            if self.points or self.negative or self.view is not None:
+                raise ValueError("give either a segment or view + points, not both")
+            return self
+        if self.view is None or not self.points:
+            raise ValueError('give "view" ("a" or "b") and at least one positive point, or "segment"')
+        return self
+
+    def canonical(self) -> dict:
+        if self.segment is not None:
+            return {"segment": self.segment}
+        return {"view": self.view, "points": [list(p) for p in self.points], "negative": [list(p) for p in self.negative]}
+
+
+class SelectionCreated(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    id: str
+    num_gaussians: int
+    coverage: dict[str, float] = Field(description="fraction of each reference's sphere in the mask")
+    links: dict[str, str]
+
+
+class EditRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    selection: str = Field(pattern=SCENE_ID_PATTERN, description="id from POST .../selections")
+    op: Literal["remove", "keep", "recolor", "translate"]
+    color: tuple[float, float, float] | None = Field(None, description="recolor: RGB in [0, 1]")
+    offset: tuple[float, float, float] | None = Field(None, description="translate: world units")
+
+    @model_validator(mode="after")
+    def _args(self):
+        if self.op == "recolor":
+            if self.color is None or not all(math.isfinite(c) and 0.0 <= c <= 1.0 for c in self.color):
+                raise ValueError("recolor needs color = [r, g, b] with each in [0, 1]")
+        elif self.color is not None:
+            raise ValueError(f"color is only for op recolor, not {self.op}")
+        if self.op == "translate":
+            if self.offset is None or not all(math.isfinite(c) and abs(c) <= 1e6 for c in self.offset):
+                raise ValueError("translate needs offset = [dx, dy, dz], finite")
+        elif self.offset is not None:
+            raise ValueError(f"offset is only for op translate, not {self.op}")
+        return self
+
+
+def _view_or_query(store, settings, view, c2w, width, projection, height, fov_deg):
+    if (view is None) == (c2w is None):
+        raise BadInput("give either view=a|b or c2w= (+ the render query)", code="invalid_render_query")
+    if view is not None:
+        if not (8 <= width <= settings.max_render_width and width % 2 == 0):
+            raise BadInput(f"width: an even number between 8 and {settings.max_render_width}, got {width}",
+                           code="invalid_render_query")
+        return None
+    return check_render_query(c2w, projection, width, height, fov_deg, "png",
+                              max_width=settings.max_render_width, max_pixels=settings.max_render_pixels)
+
+
+def _require(store, scene_id: str) -> None:
+    if not store.exists(scene_id):
+        raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
+
+
+@router.post("/{scene_id}/selections", status_code=201, response_model=SelectionCreated,
+             summary="Select an object from points (or a segment) in both references",
+             responses=error_responses(404, 409, 422))
+async def create_selection(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, response: Response,
+                           body: Annotated[SelectionRequest, Body()]) -> SelectionCreated:
+    _check_points(body.points or [], "points")
+    _check_points(body.negative, "negative")
+    _require(store, scene_id)
+    out = await gate.run(work.create_selection, store, scene_id, body.canonical())
+    response.headers["Location"] = out["links"]["self"]
+    return SelectionCreated(**out)
+
+
+@router.get("/{scene_id}/selections/{sel_id}/mask", response_class=Response, summary="Selection mask (PNG)",
+            responses={200: {"content": {"image/png": {}}}, **error_responses(404, 409, 422)})
+async def selection_mask(scene_id: SceneId, sel_id: Annotated[str, Path(pattern=SCENE_ID_PATTERN)],
+                         store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
+                         view: Literal["a", "b"] | None = None, c2w: str | None = None,
+                         width: Annotated[int, Query()] = 1024, projection: Annotated[Projection, Query()] = "erp",
+                         height: int | None = None, fov_deg: float = 90.0) -> Response:
+    query = _view_or_query(store, settings, view, c2w, width, projection, height, fov_deg)
+    _require(store, scene_id)
+    data = await gate.run(work.mask_png, store, scene_id, sel_id, view, width, query)
+    return Response(data, media_type="image/png")
+
+
+@router.get("/{scene_id}/segments", response_class=Response, summary="Automatic segments (PNG)",
+            responses={200: {"content": {"image/png": {}}}, **error_responses(404, 409, 422)})
+async def segments(scene_id: SceneId, store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
+                   view: Literal["a", "b"] | None = None, c2w: str | None = None,
+                   width: Annotated[int, Query()] = 1024, projection: Annotated[Projection, Query()] = "erp",
+                   height: int | None = None, fov_deg: float = 90.0) -> Response:
+    query = _view_or_query(store, settings, view, c2w, width, projection, height, fov_deg)
+    _require(store, scene_id)
+    data = await gate.run(work.segments_png, store, scene_id, view, width, query)
+    return Response(data, media_type="image/png")
+
+
+@router.post("/{scene_id}/edits", status_code=201, response_model=SceneCreated,
+             summary="Edit the selected Gaussians; the result is a new scene (idempotent id)",
+             responses=error_responses(404, 409, 422))
+async def create_edit(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, response: Response,
+                      body: Annotated[EditRequest, Body()]) -> SceneCreated:
+    _require(store, scene_id)
+    request = body.model_dump(exclude_none=True)
+    meta, created = await gate.run(work.create_edit, store, scene_id, request)
+    response.headers["Location"] = f"/v1/scenes/{meta['id']}"
+    base = f"/v1/scenes/{meta['id']}"
+    links = {"self": base, "render": f"{base}/render", "ply": f"{base}/gaussians.ply", "parent": f"/v1/scenes/{scene_id}"}
+    return SceneCreated(id=meta["id"], num_gaussians=meta["num_gaussians"], timings=meta.get("timings", {}),
+                        links=links, cached=not created)

@@ -1,0 +1,231 @@
+"""rasterizer.edit: packing, ERP look-ups, region graph (seam, poles), prompt selection, Gaussian edits."""
+
+import numpy as np
+import pytest
+
+from rasterizer import geometry as geo
+from rasterizer.edit import correspondences as corr
+from rasterizer.edit.ops import edit_gaussians, gaussian_values, palette, source_pixels
+from rasterizer.edit.scene import points_to_pixels
+from rasterizer.edit.segment import (
+    RegionGraph,
+    SegmentOptions,
+    SelectionError,
+    _neighbour_pairs,
+    carry_selection,
+    region_graph,
+    select_regions,
+)
+from rasterizer.gaussians import SH_C0, Gaussians
+
+
+def _random_matches(h=8, w=24, seed=0):
+    rng = np.random.default_rng(seed)
+    m = np.zeros((2, 2, h, w, 5), np.float32)
+    m[..., 0] = rng.integers(0, 2, m.shape[:-1])
+    m[..., 1] = rng.uniform(-0.5, w - 0.5, m.shape[:-1])
+    m[..., 2] = rng.uniform(-0.5, h - 0.5, m.shape[:-1])
+    m[..., 3] = rng.uniform(0, 1, m.shape[:-1])
+    m[..., 4] = rng.integers(0, 3, m.shape[:-1])
+    return m
+
+
+def test_pack_round_trip_and_size():
+    m = _random_matches()
+    packed = corr.pack(m)
+    assert sum(v.nbytes for v in packed.values()) == 6 * m[..., 0].size
+    back = corr.unpack(packed)
+    assert np.array_equal(back[..., [0, 4]], m[..., [0, 4]])
+    assert np.abs(back[..., 1:3] - m[..., 1:3]).max() <= 0.5 / 32 + 1e-6
+    assert np.abs(back[..., 3] - m[..., 3]).max() <= 0.5 / 255 + 1e-6
+    with pytest.raises(ValueError, match="matches must be"):
+        corr.pack(m[..., :4])
+
+
+@pytest.mark.parametrize("grids", [("yin", "yang"), ("erp",)])
+def test_identity_matches_map_erp_pixels_to_themselves(grids):
+    """Matches that point every grid pixel at its own direction in the other view read back as the identity."""
+    h, w = (16, 48) if grids != ("erp",) else (16, 32)
+    m = np.zeros((2, len(grids), h, w, 5), np.float32)
+    for g, kind in enumerate(grids):
+        col, row = np.meshgrid(np.arange(w), np.arange(h))
+        m[:, g, ..., 0], m[:, g, ..., 1], m[:, g, ..., 2] = g, col, row
+    he = 16
+    em = corr.erp_matches(m, 0, grids, he)
+    col, row = np.meshgrid(np.arange(2 * he), np.arange(he))
+    dc = np.abs(np.mod(em.col - col + he, 2 * he) - he)
+    assert np.percentile(dc, 90) < 1.0 and np.percentile(np.abs(em.row - row), 90) < 1.0  # nearest grid pixel
+    assert em.valid.all()
+    # carrying a map through the identity keeps it where the nearest pixel is the same (seam included)
+    values = np.arange(he * 2 * he).reshape(he, 2 * he)
+    carried, ok = corr.carry(values, em)
+    assert (carried == values).mean() > 0.5 and ok.all()
+
+
+def test_neighbour_pairs_cross_the_seam_and_the_poles():
+    a = np.zeros((4, 8), int)
+    p, q = _neighbour_pairs(a)
+    pairs = set(zip(p.tolist(), q.tolist()))
+    assert (7, 0) in pairs  # row 0: last column next to the first (the seam)
+    assert (0, 4) in pairs  # row 0, across the north pole: column c meets c + W/2
+    assert (24, 28) in pairs  # last row, across the south pole
+    assert (0, 8) in pairs and (0, 1) in pairs
+
+
+def _chain_graph(weights):
+    n = len(weights) + 1
+    return RegionGraph(np.arange(n).reshape(1, n).astype(np.int32), np.ones(n, int), np.arange(n - 1),
+                       np.arange(1, n), np.asarray(weights, np.float32))
+
+
+def test_select_regions_negative_lowers_the_level():
+    g = _chain_graph([0.2, 0.9, 0.5, 0.3])
+    sel, level = select_regions(g, np.array([0]), np.array([], int), 1.0)
+    assert sel.all() and level == 1.0
+    sel, level = select_regions(g, np.array([0]), np.array([3]), 1.0)
+    assert sel.tolist() == [True, True, False, False, False] and level == pytest.approx(0.5)
+    sel, _ = select_regions(g, np.array([0]), np.array([1]), 1.0)
+    assert sel.tolist() == [True, False, False, False, False]
+    with pytest.raises(SelectionError, match="same superpixel"):
+        select_regions(g, np.array([2]), np.array([2]), 1.0)
+
+
+def test_region_graph_depth_edge_outweighs_flat_colour():
+    """Same colour everywhere; a range step between columns 3 and 4 makes that edge heavier than the others."""
+    h, w = 8, 16
+    labels = (np.arange(w)[None, :] // 4).repeat(h, 0).astype(np.int32)
+    colour = np.full((h, w, 3), 0.5, np.float32)
+    inv = np.full((h, w), 0.5, np.float32)
+    inv[:, 4:8] = 1.0
+    normals = np.tile(np.array([0, 0, 1], np.float32), (h, w, 1))
+    g = region_graph(labels, colour, inv, normals, SegmentOptions())
+    weight = {(int(i), int(j)): float(x) for i, j, x in zip(g.i, g.j, g.weight)}
+    assert weight[(0, 1)] > 5 and weight[(2, 3)] < 1e-6 and (0, 3) in weight  # (0, 3): the seam
+
+
+def test_carry_selection_pixelwise_and_fills_occluded_pixels_from_superpixels():
+    h, w = 4, 8
+    labels = np.repeat(np.array([[0, 0, 1, 1, 2, 2, 3, 3]]), h, 0).astype(np.int32)
+    g = RegionGraph(labels, np.full(4, 8), np.array([0, 1, 2]), np.array([1, 2, 3]), np.array([0.1, 5.0, 0.1], np.float32))
+    col, row = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    status = np.zeros((h, w), np.uint8)
+    status[:, 2:4] = corr.OCCLUDED  # superpixel 1 unseen by the source: grows from superpixel 0 (edge 0.1)
+    em = corr.ErpMatches(col, row, np.ones((h, w), np.float32), status)
+    src = np.zeros((h, w), bool)
+    src[:, 0:2] = True
+    src[0, 6] = True  # one pixel of superpixel 3: kept pixel-wise, not spread to the superpixel
+    out = carry_selection(src, em, g, 1.0, SegmentOptions(min_votes=1))
+    assert out[:, 0:4].all() and not out[:, 4:6].any()
+    assert out[0, 6] and not out[1:, 6].any()
+
+
+def test_points_to_pixels_bounds():
+    assert points_to_pixels([[0.0, 0.0], [1.0, 1.0]], 4).tolist() == [0, 4 * 8 - 1]
+    for bad in ([[1.01, 0.5]], [[0.5, -0.1]], [[np.nan, 0.5]]):
+        with pytest.raises(SelectionError, match=r"\[0, 1\]"):
+            points_to_pixels(bad, 4)
+
+
+def test_source_pixels_follow_the_block_centre():
+    h, w, he = 8, 24, 16
+    grids = ("yin", "yang")
+    index = np.array([0, (1 * 2 + 1) * h * w + 3 * w + 5])  # view 0 Yin (0, 0); view 1 Yang (3, 5)
+    view, pix = source_pixels(index, np.array([1, 2]), grids, h, w, he)
+    assert view.tolist() == [0, 1]
+    d = corr.grid_point_directions(np.array([0, 1]), np.array([0.0, 5.5]), np.array([0.0, 3.5]), h, w)
+    col, row = geo.project_to_grid("erp", d, he, 2 * he)
+    expect = np.floor(row + 0.5).astype(int) * 2 * he + np.mod(np.floor(col + 0.5).astype(int), 2 * he)
+    assert pix.tolist() == expect.tolist()
+    maps = np.zeros((2, he, 2 * he), int)
+    maps[1].flat[pix[1]] = 7
+    assert gaussian_values(maps, view, pix).tolist() == [0, 7]
+
+
+def _gaussians(n=5):
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(n, 4)).astype(np.float32)
+    return Gaussians(rng.normal(size=(n, 3)).astype(np.float32), np.full((n, 3), 0.1, np.float32),
+                     q / np.linalg.norm(q, axis=1, keepdims=True), np.full(n, 0.5, np.float32),
+                     rng.normal(size=(n, 4, 3)).astype(np.float32))
+
+
+def test_edits():
+    g = _gaussians()
+    sel = np.array([True, False, True, False, False])
+    assert len(edit_gaussians(g, sel, "remove")) == 3 and len(edit_gaussians(g, sel, "keep")) == 2
+    rec = edit_gaussians(g, sel, "recolor", color=(1.0, 0.0, 0.25))
+    np.testing.assert_allclose(0.5 + SH_C0 * rec.sh[sel, 0], [[1.0, 0.0, 0.25]] * 2, atol=1e-6)
+    assert np.all(rec.sh[sel, 1:] == 0) and np.array_equal(rec.sh[~sel], g.sh[~sel])
+    moved = edit_gaussians(g, sel, "translate", offset=(1, 2, 3))
+    np.testing.assert_allclose(moved.means[sel] - g.means[sel], [[1, 2, 3]] * 2, atol=1e-6)
+    assert np.array_equal(moved.means[~sel], g.means[~sel])
+    with pytest.raises(ValueError, match="unknown edit op"):
+        edit_gaussians(g, sel, "explode")
+    with pytest.raises(ValueError, match="entries"):
+        edit_gaussians(g, sel[:3], "remove")
+
+
+def test_palette_is_deterministic_and_distinct():
+    p = palette(200)
+    assert np.array_equal(p[:50], palette(50))
+    assert len({tuple(c) for c in p}) == 200
+
+
+def test_auto_segments_share_labels_across_views():
+    """Two views whose matches shift by 2 columns (across the seam): regions of both get the same labels."""
+    from rasterizer.edit.segment import auto_segments
+
+    h, w = 6, 16
+    cols = np.arange(w)
+    labels = [np.repeat(((cols + s) % w // 4)[None], h, 0).astype(np.int32) for s in (0, 2)]
+    graphs = tuple(RegionGraph(lab, np.bincount(lab.ravel()), np.array([0, 1, 2]), np.array([1, 2, 3]),
+                               np.full(3, 9.0, np.float32)) for lab in labels)
+    col, row = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    ok = np.zeros((h, w), np.uint8)
+    # view 0 pixel c sees view 1 pixel c - 2 (and back): region k of view 0 is region k of view 1
+    matches = (corr.ErpMatches(np.mod(col - 2, w), row, np.ones((h, w), np.float32), ok),
+               corr.ErpMatches(np.mod(col + 2, w), row, np.ones((h, w), np.float32), ok))
+    out, sizes = auto_segments(graphs, matches, SegmentOptions(min_votes=1))
+    assert sizes.size == 4 and sizes.sum() == 2 * h * w
+    for k in range(4):  # the same physical columns carry the same label in both views
+        assert np.all(out[0][:, (4 * k - 2) % w] == out[1][:, (4 * k - 4) % w])
+    assert len(np.unique(out[0])) == 4
+
+
+def test_photo_check_marks_only_consistent_matches_that_change_colour():
+    h, w = 2, 4
+    col, row = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    status = np.zeros((h, w), np.uint8)
+    status[1, 3] = corr.OCCLUDED
+    em = corr.ErpMatches(col, row, np.ones((h, w), np.float32), status)
+    here = np.zeros((h, w, 3), np.float32)
+    there = here.copy()
+    there[0, 1] = 0.5  # RGB distance 0.87 > 0.2: not the same point
+    there[0, 2] = 0.1  # 0.17 <= 0.2: kept
+    there[1, 3] = 1.0  # already occluded: stays occluded
+    out = corr.photo_checked(em, here, there, 0.2)
+    expect = np.zeros((h, w), np.uint8)
+    expect[0, 1], expect[1, 3] = corr.INCONSISTENT, corr.OCCLUDED
+    assert np.array_equal(out.status, expect)
+    assert out.col is em.col and np.array_equal(em.status, status)  # the input is not modified
+
+
+def test_push_fills_only_pixels_without_a_consistent_pull():
+    h, w = 4, 8
+    labels = np.repeat(np.array([[0, 0, 1, 1, 2, 2, 3, 3]]), h, 0).astype(np.int32)
+    g = RegionGraph(labels, np.full(4, 8), np.array([0, 1, 2]), np.array([1, 2, 3]), np.full(3, 9.0, np.float32))
+    col, row = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    ok = np.zeros((h, w), np.uint8)
+    here_status = ok.copy()
+    here_status[0, 5] = corr.INCONSISTENT
+    here = corr.ErpMatches(col, row, np.ones((h, w), np.float32), here_status)  # identity pull
+    # the source's pixels (0, 0) and (0, 1) push onto (0, 5) and (0, 6) of this view
+    push_col = col.copy()
+    push_col[0, 0], push_col[0, 1] = 5, 6
+    there = corr.ErpMatches(push_col, row, np.ones((h, w), np.float32), ok)
+    src = np.zeros((h, w), bool)
+    src[0, 0] = src[0, 1] = True
+    out = carry_selection(src, here, g, 1.0, SegmentOptions(min_votes=1), match_src=there)
+    assert out[0, 5]  # its own match failed: the push decides
+    assert not out[0, 6]  # a consistent pull (to an unselected pixel) wins over the push
+    assert out[0, 0] and out[0, 1]  # pulled

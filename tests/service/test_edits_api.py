@@ -1,0 +1,166 @@
+"""Selections, segments and edits over HTTP (small model, m3d references resized to 128 x 256)."""
+
+import io
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from rasterizer.scene_folder import load_scene
+from tests.service.test_service_api import LiveServer, make_settings, model_path, post_scene  # noqa: F401
+
+IDENTITY = ",".join(str(float(x)) for x in np.eye(4).ravel())
+
+
+def _png(img) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray((np.asarray(img)[::4, ::4] * 255).astype(np.uint8)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+@pytest.fixture(scope="module")
+def live(model_path, tmp_path_factory):  # noqa: F811  (model_path is the imported fixture)
+    store = tmp_path_factory.mktemp("edit-store")
+    with LiveServer(make_settings(model_path, store, max_render_width=512, max_render_pixels=512 * 256)) as server:
+        server.store = store
+        yield server
+
+
+@pytest.fixture(scope="module")
+def client(live):
+    with live.client() as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def scene(client, m3d_dir):
+    s = load_scene(m3d_dir)
+    fa, fb = s.frames["00"], s.frames["02"]
+    poses = json.dumps({"convention": "opencv", "c2w": [fa.c2w.tolist(), fb.c2w.tolist()]})
+    r = post_scene(client, _png(fa.image()), _png(fb.image()), poses=poses)
+    assert r.status_code == 201, r.text
+    return r.json()["id"]
+
+
+def _error(r, status, code):
+    assert r.status_code == status, r.text
+    assert r.json()["error"]["code"] == code, r.text
+    return r.json()["error"]["message"]
+
+
+def test_select_mask_segments_and_edits(client, scene, live):
+    body = {"view": "a", "points": [[0.95, 0.5]], "negative": []}
+    r = client.post(f"/v1/scenes/{scene}/selections", json=body)
+    assert r.status_code == 201, r.text
+    sel = r.json()
+    assert sel["num_gaussians"] > 0 and 0 < sel["coverage"]["a"] < 0.5 and sel["coverage"]["b"] > 0
+    assert client.post(f"/v1/scenes/{scene}/selections", json=body).json()["id"] == sel["id"]  # idempotent
+    for q in ("view=a&width=256", "view=b&width=128", f"c2w={IDENTITY}&width=128"):
+        m = client.get(f"/v1/scenes/{scene}/selections/{sel['id']}/mask?{q}")
+        assert m.status_code == 200 and m.headers["content-type"] == "image/png", m.text
+        img = np.asarray(Image.open(io.BytesIO(m.content)))
+        assert set(np.unique(img)) <= {0, 255}
+        if q.startswith("view=a"):
+            assert img.shape[:2] == (128, 256) and (img[..., 0] == 255).any()
+    seg = [np.asarray(Image.open(io.BytesIO(client.get(f"/v1/scenes/{scene}/segments?view={v}&width=256").content)))
+           for v in ("a", "b")]
+    assert seg[0].shape == (128, 256, 3)
+    # the same segments carry the same colours in both references: most of A's pixels have a colour B shows too
+    in_b = {tuple(c) for c in seg[1].reshape(-1, 3)}
+    assert np.mean([tuple(c) in in_b for c in seg[0].reshape(-1, 3)]) > 0.5
+    assert client.get(f"/v1/scenes/{scene}/segments?c2w={IDENTITY}&width=128").status_code == 200
+    r = client.post(f"/v1/scenes/{scene}/selections", json={"segment": 0})
+    assert r.status_code == 201, r.text
+    # per-Gaussian segment labels are stored with the scene, one per Gaussian, every label a real segment
+    with np.load(live.store / "scenes" / scene / "edit_index.npz") as z:
+        n = client.get(f"/v1/scenes/{scene}").json()["num_gaussians"]
+        assert z["gaussian_labels"].shape == (n,) and z["gaussian_labels"].max() < z["segment_sizes"].size
+        assert z["segments"].shape[0] == 2 and z["segment_sizes"].sum() == z["segments"].size
+
+    r = client.post(f"/v1/scenes/{scene}/edits", json={"selection": sel["id"], "op": "remove"})
+    assert r.status_code == 201, r.text
+    removed = r.json()
+    assert removed["num_gaussians"] == client.get(f"/v1/scenes/{scene}").json()["num_gaussians"] - sel["num_gaussians"]
+    again = client.post(f"/v1/scenes/{scene}/edits", json={"selection": sel["id"], "op": "remove"}).json()
+    assert again["id"] == removed["id"] and again["cached"] is True
+    meta = client.get(f"/v1/scenes/{removed['id']}").json()
+    assert meta["parent"] == scene and 0.0 <= meta["edit"]["uncovered"]["a"] <= 1.0
+    with np.load(live.store / "scenes" / removed["id"] / "edit_index.npz") as z:
+        assert z["gaussian_labels"].shape == (removed["num_gaussians"],)
+    for op, extra in (("keep", {}), ("recolor", {"color": [0, 1, 0]}), ("translate", {"offset": [0, 0.1, 0]})):
+        r = client.post(f"/v1/scenes/{scene}/edits", json={"selection": sel["id"], "op": op, **extra})
+        assert r.status_code == 201, r.text
+        assert r.json()["id"] != removed["id"]
+    # an edited scene can be selected again (it kept its correspondences)
+    r = client.post(f"/v1/scenes/{removed['id']}/selections", json={"view": "b", "points": [[0.2, 0.5]]})
+    assert r.status_code == 201, r.text
+
+
+def test_bad_selection_and_edit_inputs(client, scene, live):
+    url = f"/v1/scenes/{scene}"
+    msg = _error(client.post(f"{url}/selections", json={"view": "a", "points": [[1.2, 0.5]]}), 422, "invalid_selection")
+    assert "[0, 1]" in msg
+    _error(client.post(f"{url}/selections", json={"view": "a", "points": [[0.5, 0.5]], "negative": [[0.5, -1]]}),
+           422, "invalid_selection")
+    assert client.post(f"{url}/selections", json={"view": "a", "points": []}).status_code == 422
+    assert client.post(f"{url}/selections", json={"view": "c", "points": [[0.5, 0.5]]}).status_code == 422
+    _error(client.post(f"{url}/selections", json={"segment": 10 ** 6}), 404, "unknown_segment")
+    _error(client.post(f"{url}/selections", json={"view": "a", "points": [[0.5, 0.5]], "negative": [[0.5, 0.5]]}),
+           422, "invalid_selection")
+    unknown = "0" * 32
+    _error(client.get(f"{url}/selections/{unknown}/mask?view=a&width=256"), 404, "selection_not_found")
+    _error(client.post(f"{url}/edits", json={"selection": unknown, "op": "remove"}), 404, "selection_not_found")
+    assert client.post(f"{url}/edits", json={"selection": unknown, "op": "recolor", "color": [2, 0, 0]}).status_code == 422
+    assert client.post(f"{url}/edits", json={"selection": unknown, "op": "translate"}).status_code == 422
+    _error(client.post(f"/v1/scenes/{unknown}/selections", json={"segment": 0}), 404, "scene_not_found")
+    assert client.get(f"{url}/segments").status_code == 422  # neither view nor c2w
+    # a scene without correspondences (as built by an older model): 409 for selections and edits
+    sel = client.post(f"{url}/selections", json={"view": "a", "points": [[0.5, 0.3]]}).json()["id"]
+    copy = post_scene(client, _png(np.full((512, 1024, 3), 0.4) + np.random.default_rng(0).random((512, 1024, 3)) * 0.5),
+                      _png(np.random.default_rng(1).random((512, 1024, 3))))
+    plain = copy.json()["id"]
+    (live.store / "scenes" / plain / "edit.npz").unlink()
+    _error(client.post(f"/v1/scenes/{plain}/selections", json={"view": "a", "points": [[0.5, 0.5]]}), 409,
+           "correspondences_missing")
+    _error(client.post(f"/v1/scenes/{plain}/edits", json={"selection": sel, "op": "remove"}), 409,
+           "correspondences_missing")
+
+
+def test_empty_selection_is_a_clear_422(scene, live, monkeypatch):
+    """A prompt whose masks own no Gaussian (forced here) is refused with empty_selection, not stored."""
+    from rasterizer.edit import scene as edit_scene
+    from service import edits
+    from service.errors import ServiceError
+    from service.store import SceneStore, content_id
+
+    store = SceneStore(live.store)
+    real = edit_scene.select_points
+
+    def nothing(index, view, points, negative=()):
+        sel = real(index, view, points, negative)
+        return edit_scene.Selection(np.zeros_like(sel.masks), np.zeros_like(sel.gaussians), sel.level, None)
+
+    monkeypatch.setattr(edit_scene, "select_points", nothing)
+    request = {"view": "b", "points": [[0.3, 0.6]], "negative": []}
+    with pytest.raises(ServiceError) as err:
+        edits.create_selection(store, scene, request)
+    assert err.value.status == 422 and err.value.code == "empty_selection"
+    sel_id = content_id("selection/v1", scene, json.dumps(request, sort_keys=True, separators=(",", ":")))
+    assert store.artifact(scene, f"selection-{sel_id}.npz") is None
+
+
+def test_cli_select_and_edit(scene, live, capsys):
+    from service.cli import main
+
+    assert main(["select", scene, "--store", str(live.store), "--point", "0.95,0.5"]) == 0
+    sel = json.loads(capsys.readouterr().out)
+    assert sel["num_gaussians"] > 0
+    assert main(["edit", scene, "--store", str(live.store), "--selection", sel["id"], "--op", "recolor",
+                 "--color", "0,0.5,1"]) == 0
+    new = json.loads(capsys.readouterr().out)
+    assert new["parent"] == scene and new["edit"]["op"] == "recolor"
+    assert main(["select", scene, "--store", str(live.store), "--point", "1.5,0.5"]) == 2
+    assert "[0, 1]" in capsys.readouterr().err
+    assert main(["edit", scene, "--store", str(live.store), "--selection", "0" * 32, "--op", "remove"]) == 2
+    assert "selection_not_found" in capsys.readouterr().err
