@@ -13,12 +13,11 @@
 Reference images: a scene must carry the artifact ``references.npz`` (uint8 ERP arrays
 ``image_a``, ``image_b``, H x 2H x 3, as fed to the encoder); poses come from
 ``meta["poses"]["c2w"]`` (OpenCV). Scene creation stores it with the scene
-(:func:`references_bytes`); :func:`store_references` adds it to an existing scene.
+(:func:`service.scenes.references_bytes`); :func:`store_references` adds it to an existing scene.
 """
 
 from __future__ import annotations
 
-import io
 import json
 import threading
 import time
@@ -29,12 +28,14 @@ from typing import Any, Callable
 import numpy as np
 
 from .errors import ServiceError
+from .scenes import REFERENCES_ARTIFACT, references_bytes
 from .store import SceneStore, content_id
 
-REFERENCES_ARTIFACT = "references.npz"
 REFINE_VERSION = "refine/v2"  # v2: cross-view guard (same params, different result)
 #: finished jobs kept in memory (oldest dropped first)
 MAX_FINISHED_JOBS = 1000
+#: refinement jobs allowed to wait for the (shared) inference capacity
+REFINE_QUEUE = 4
 
 
 class ReferencesMissing(ServiceError):
@@ -44,17 +45,6 @@ class ReferencesMissing(ServiceError):
 
 class JobCancelled(Exception):
     """Raised inside a job's progress callback when the registry is shutting down."""
-
-
-def references_bytes(erp_a: np.ndarray, erp_b: np.ndarray) -> bytes:
-    """The ``references.npz`` artifact of two ERP images (uint8, or float in [0, 1])."""
-    def u8(img):
-        a = np.asarray(img)
-        return a if a.dtype == np.uint8 else np.rint(np.clip(a, 0, 1) * 255).astype(np.uint8)
-
-    buf = io.BytesIO()
-    np.savez_compressed(buf, image_a=u8(erp_a), image_b=u8(erp_b))
-    return buf.getvalue()
 
 
 def store_references(store: SceneStore, scene_id: str, erp_a: np.ndarray, erp_b: np.ndarray) -> None:
