@@ -348,3 +348,33 @@ def test_decoded_images_resampled_once(guarded, monkeypatch):
         r = post_scene(c, panorama(height=64, seed=91), panorama(height=64, seed=92))
     assert r.status_code == 201, r.text
     assert calls == [(128, 256), (128, 256)]  # once per image, to the model's size
+
+
+def test_post_path_skips_jobs_and_the_adaptive_step(guarded, monkeypatch):
+    import service.jobs as jobs_module
+    import service.pipeline as pipeline_module
+
+    called = []
+    monkeypatch.setattr(pipeline_module, "reconstruct_adaptive", lambda *a, **k: called.append("adaptive"))
+    for name in ("references_bytes", "store_references", "load_references"):
+        if hasattr(jobs_module, name):
+            monkeypatch.setattr(jobs_module, name, lambda *a, _n=name, **k: called.append(_n))
+    with guarded.client() as c:
+        r = post_scene(c, panorama(seed=93), panorama(seed=94))
+        assert r.status_code == 201, r.text
+        assert c.get(f"/v1/scenes/{r.json()['id']}").json()["num_gaussians"] == r.json()["num_gaussians"]
+    assert called == []
+
+
+def test_model_file_hashed_once_at_load(model_path, monkeypatch):  # noqa: F811
+    import service.encoder as encoder_module
+    from service.model_files import sha256_file
+    from service.runtime import ModelRuntime
+
+    calls = []  # this thread's calls only (an abandoned load of an earlier test may still run)
+    me = threading.get_ident()
+    monkeypatch.setattr(encoder_module, "sha256_file",
+                        lambda p: (threading.get_ident() == me and calls.append(p)) or sha256_file(p))
+    runtime = ModelRuntime(model_path)
+    runtime.load(warmup=False)
+    assert runtime.ready and len(calls) == 1 and runtime.sha256 == sha256_file(model_path)
