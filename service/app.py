@@ -62,6 +62,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         state.refine_gate = WorkGate("refine", settings.inference_concurrency, REFINE_QUEUE, settings.retry_after_s,
                                      metrics.rejected.labels(kind="refine").inc,
                                      limiter=state.inference_gate.limiter)
+        state.heavy_render_gate = WorkGate("render_heavy", settings.inference_concurrency, settings.render_queue,
+                                           settings.retry_after_s, metrics.rejected.labels(kind="render_heavy").inc,
+                                           limiter=state.inference_gate.limiter)
         state.jobs = JobRegistry()
         runtime = ModelRuntime(model_path, threads=settings.ort_threads)
         state.runtime = runtime

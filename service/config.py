@@ -67,6 +67,9 @@ class Settings(BaseSettings):
     max_render_pixels: int = Field(4096 * 2048, ge=64)
     max_render_cost: float = Field(2048 * 1024 * 1.0e6, gt=0, description="output pixels x scene Gaussians "
                                    "one render may cost (its memory grows with both); 413 beyond")
+    heavy_render_cost: float = Field(2048 * 1024 * 0.25e6, gt=0, description="renders above this pixel-Gaussian "
+                                     "cost take the reconstruction slot instead of a render slot, so that their "
+                                     "memory peak never adds to a reconstruction's")
     min_free_store_bytes: int = Field(256 * 1024 * 1024, ge=0, description="free disk the store must have "
                                       "before a reconstruction starts (507 below; /readyz 503)")
 

@@ -130,14 +130,15 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     return stored, timings
 
 
-def check_render_cost(store: SceneStore, scene_id: str, query: RenderQuery, max_cost: float) -> None:
-    """413 before rendering when output pixels x scene Gaussians exceed ``max_cost`` (memory grows with both)."""
+def check_render_cost(store: SceneStore, scene_id: str, query: RenderQuery, max_cost: float) -> float:
+    """The render's cost, output pixels x scene Gaussians (memory grows with both); 413 beyond ``max_cost``."""
     h, w = query.output_size()
     n = int(store.meta(scene_id).get("num_gaussians") or 0)
     if h * w * n > max_cost:
         raise PayloadTooLarge(f"a {w}x{h} render of this scene's {n} Gaussians exceeds the render budget "
                               f"({h * w * n:.3g} > {max_cost:.3g} pixel-Gaussians); ask for at most "
                               f"{int(max_cost // max(n, 1))} pixels", code="render_too_large")
+    return float(h * w * n)
 
 
 def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[bytes, dict[str, float]]:

@@ -36,7 +36,8 @@ async def readyz(runtime: RuntimeDep, settings: SettingsDep, store: StoreDep) ->
 @router.get("/metrics", summary="Prometheus metrics (text exposition format)",
             response_class=Response, responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}})
 async def metrics(request: Request, metrics: MetricsDep, store: StoreDep) -> Response:
-    gates = [request.app.state.inference_gate, request.app.state.render_gate]
+    state = request.app.state
+    gates = [state.inference_gate, state.render_gate, state.heavy_render_gate, state.refine_gate]
     data, content_type = metrics.render(store, gates)
     return Response(data, media_type=content_type)
 

@@ -11,7 +11,16 @@ from fastapi import APIRouter, File, Form, Query, Response, UploadFile
 from fastapi.responses import StreamingResponse
 
 from .. import scenes as work
-from ..deps import InferenceGateDep, MetricsDep, ReadyRuntimeDep, RenderGateDep, SceneId, SettingsDep, StoreDep
+from ..deps import (
+    HeavyRenderGateDep,
+    InferenceGateDep,
+    MetricsDep,
+    ReadyRuntimeDep,
+    RenderGateDep,
+    SceneId,
+    SettingsDep,
+    StoreDep,
+)
 from ..errors import NotFound
 from ..images import MEDIA_TYPES
 from ..inputs import ImageFormat, Projection, check_render_query, check_sweep_range, parse_options, parse_poses
@@ -87,6 +96,7 @@ async def render_scene(
     store: StoreDep,
     settings: SettingsDep,
     gate: RenderGateDep,
+    heavy_gate: HeavyRenderGateDep,
     metrics: MetricsDep,
     c2w: Annotated[str, Query(description="camera-to-world, 16 (4x4) or 12 (3x4) comma-separated numbers, "
                                           "row-major, OpenCV (x right, y down, z forward)",
@@ -100,7 +110,9 @@ async def render_scene(
     query = check_render_query(c2w, projection, width, height, fov_deg, format,
                                max_width=settings.max_render_width, max_pixels=settings.max_render_pixels)
     _require_scene(store, scene_id)
-    work.check_render_cost(store, scene_id, query, settings.max_render_cost)
+    cost = work.check_render_cost(store, scene_id, query, settings.max_render_cost)
+    if cost > settings.heavy_render_cost:  # big renders queue with reconstructions: their peaks never add
+        gate = heavy_gate
     data, timings = await gate.run(work.render_scene, store, scene_id, query)
     metrics.observe_stages({f"render_{k}": v for k, v in timings.items()})
     etag = hashlib.sha256(f"{scene_id}|{query.c2w.round(9).tolist()}|{projection}|{width}|{height}|"

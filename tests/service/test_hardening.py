@@ -40,7 +40,7 @@ HUGE = "1" + "0" * 399
 @pytest.fixture(scope="module")
 def guarded(model_path, tmp_path_factory):  # noqa: F811
     settings = make_settings(model_path, tmp_path_factory.mktemp("store"), header_timeout_s=1.0, body_timeout_s=2.0,
-                             max_requests=3, max_render_cost=64 * 32 * 60_000.0)
+                             max_requests=3, max_render_cost=64 * 32 * 60_000.0, heavy_render_cost=1e7)
     with LiveServer(settings) as server:
         yield server
 
@@ -147,6 +147,21 @@ def test_render_cost_limit_is_413_before_rendering(guarded, scene):
         assert r.status_code == 413 and r.json()["error"]["code"] == "render_too_large"
         assert "Gaussians" in r.json()["error"]["message"]
         assert c.get(f"/v1/scenes/{scene}/render", params={"c2w": IDENTITY, "width": 16}).status_code == 200
+
+
+def test_heavy_renders_take_the_reconstruction_slot(guarded, scene, monkeypatch):
+    state = guarded.app.state
+    assert state.heavy_render_gate.limiter is state.inference_gate.limiter
+    used = []
+    for name in ("render_gate", "heavy_render_gate"):
+        gate = getattr(state, name)
+        monkeypatch.setattr(gate, "run", lambda fn, *a, _n=name, _run=gate.run: used.append(_n) or _run(fn, *a))
+    with guarded.client() as c:
+        n = c.get(f"/v1/scenes/{scene}").json()["num_gaussians"]
+        assert 16 * 8 * n < 1e7 < 32 * 16 * n  # light at width 16, heavy at width 32
+        for width in (16, 32):
+            assert c.get(f"/v1/scenes/{scene}/render", params={"c2w": IDENTITY, "width": width}).status_code == 200
+    assert used == ["render_gate", "heavy_render_gate"]
 
 
 def test_full_reconstruction_queue_refused_before_the_body_is_read():
