@@ -1,9 +1,10 @@
 # omnisplat: two ERP panoramas -> 3D Gaussians, served over HTTP on the CPU.
 #
 #   docker build -t omnisplat .
-#   docker run -p 8000:8000 -v omnisplat-scenes:/data omnisplat
+#   docker run -p 8000:8000 -e OMNISPLAT_API_KEY=change-me -v omnisplat-scenes:/data omnisplat
+#   (it binds 0.0.0.0: a key is required unless OMNISPLAT_ALLOW_NO_AUTH=true)
 #
-# Stage 1 (export) installs torch and builds the ONNX model; stage 2 (runtime) copies only
+# Stage 1 (export) installs torch and builds the ONNX model; the runtime stage copies only
 # the .onnx file and installs the runtime dependencies: no torch in the final image.
 # On Linux, PyPI's torch wheel pulls CUDA packages; to build faster, pass a CPU-only wheel
 # index:  --build-arg PIP_EXTRA_INDEX_URL=<your PyTorch CPU wheel index>

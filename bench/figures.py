@@ -8,13 +8,14 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
+from rasterizer.render import to_uint8
+
 
 def _to_uint8(img: np.ndarray) -> np.ndarray:
     img = np.asarray(img, dtype=np.float32)
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=-1)
-    img = np.nan_to_num(img, nan=1.0, posinf=1.0, neginf=0.0)  # NaN shows white
-    return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    return to_uint8(np.nan_to_num(img, nan=1.0))  # NaN shows white
 
 
 def strip(panels: list[tuple[str, np.ndarray | None]], path: Path, caption: str = "", panel_width: int = 224) -> Path:

@@ -22,6 +22,7 @@ import numpy as np
 from PIL import Image
 
 from bench import metrics
+from rasterizer.render import to_uint8
 from rasterizer.scene_folder import SceneFolder, Split, load_scene
 
 from .baselines import copy_nearest
@@ -63,7 +64,7 @@ def resize_erp_box(image: np.ndarray, width: int) -> np.ndarray:
     h, w = image.shape[:2]
     if w == width:
         return image
-    pil = Image.fromarray(np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8))
+    pil = Image.fromarray(to_uint8(image))
     return np.asarray(pil.resize((width, width // 2), Image.Resampling.BOX), dtype=np.float32) / 255.0
 
 

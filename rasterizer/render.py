@@ -220,6 +220,9 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
 
 
 def to_uint8(colour: np.ndarray) -> np.ndarray:
-    """Float colour (any range) to uint8: clip to [0, 1], scale by 255, round; NaN -> 0."""
+    """Float colour (any range) to uint8: clip to [0, 1], scale by 255, round half up; NaN -> 0, +Inf -> 255.
+
+    The one float-to-8-bit conversion (API renders, reference images, CLI, benches).
+    """
     c = np.nan_to_num(np.asarray(colour, dtype=np.float32), nan=0.0, posinf=1.0, neginf=0.0)
-    return np.rint(np.clip(c, 0.0, 1.0) * 255.0).astype(np.uint8)
+    return (np.clip(c, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)

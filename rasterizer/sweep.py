@@ -52,6 +52,44 @@ ERP_PAD = 2
 
 #: Below this baseline (metres, or scene units) depth cannot be triangulated.
 MIN_BASELINE = 1e-4
+#: Largest camera coordinate and sweep range (scene units): float32 positions, scales and
+#: their squares stay finite and resolvable.
+MAX_SCENE_EXTENT = 1e6
+#: float32 positions of the scene must resolve this fraction of the baseline.
+POSITION_RESOLUTION = 1e-3
+#: near/far bounds in units of the baseline (the sweep's inverse depths stay finite in float32).
+MIN_NEAR_PER_BASELINE = 1e-5
+MAX_FAR_PER_BASELINE = 1e7
+
+
+class SweepRangeError(ValueError):
+    """Cameras or a sweep range the encoder cannot resolve (too far, too small, too wide)."""
+
+
+def check_scene_scale(c2w_a: np.ndarray, c2w_b: np.ndarray, near: float | None = None,
+                      far: float | None = None) -> None:
+    """Raise :class:`SweepRangeError` when float32 Gaussians could not represent the scene.
+
+    Checks the camera coordinates and baseline against :data:`MAX_SCENE_EXTENT`, that float32
+    positions near the cameras resolve :data:`POSITION_RESOLUTION` of the baseline, and an
+    explicit near/far against :data:`MIN_NEAR_PER_BASELINE` / :data:`MAX_FAR_PER_BASELINE`.
+    """
+    centres = np.stack([np.asarray(c2w_a, dtype=np.float64)[:3, 3], np.asarray(c2w_b, dtype=np.float64)[:3, 3]])
+    b = baseline(c2w_a, c2w_b)
+    reach = float(np.abs(centres).max())
+    if not (np.isfinite(reach) and reach <= MAX_SCENE_EXTENT and b <= MAX_SCENE_EXTENT):
+        raise SweepRangeError(f"camera positions must lie within {MAX_SCENE_EXTENT:g} of the origin "
+                              f"(got {reach:.3g}, baseline {b:.3g})")
+    step = float(np.spacing(np.float32(reach + FAR_PER_BASELINE * b)))
+    if step > POSITION_RESOLUTION * b:
+        raise SweepRangeError(f"the cameras are {reach:.3g} from the origin but only {b:.3g} apart: float32 "
+                              f"positions there are {step:.3g} apart, coarser than {POSITION_RESOLUTION:g} of the "
+                              "baseline; move the origin near the cameras")
+    if near is not None and not near >= MIN_NEAR_PER_BASELINE * b:
+        raise SweepRangeError(f"near={near:.3g} is below {MIN_NEAR_PER_BASELINE:g} x the baseline ({b:.3g})")
+    if far is not None and not far <= min(MAX_FAR_PER_BASELINE * b, MAX_SCENE_EXTENT):
+        raise SweepRangeError(f"far={far:.3g} is beyond {MAX_FAR_PER_BASELINE:g} x the baseline ({b:.3g}) "
+                              f"or {MAX_SCENE_EXTENT:g}")
 
 
 def grids_for_mode(erp_encoder: bool) -> tuple[str, ...]:

@@ -192,11 +192,15 @@ log "built in ${BUILD_SECONDS} s, image ${SIZE_MB} MB"
 # --- run -----------------------------------------------------------------------------------
 PORT=$(python3 -c "import socket; s = socket.socket(); s.bind(('127.0.0.1', 0)); print(s.getsockname()[1])")
 URL="http://127.0.0.1:$PORT"
+# The image binds 0.0.0.0, so the service requires an API key (or an explicit OMNISPLAT_ALLOW_NO_AUTH):
+# start it with one and send it with every request below.
+API_KEY=$(python3 -c "import secrets; print(secrets.token_hex(16))")
+curl() { command curl -H "Authorization: Bearer $API_KEY" "$@"; }
 podman volume create "$VOL" >/dev/null && MADE_VOL=1
 t0=$(now)
 MADE_CTR=1
 # (podman logs that it cannot reach systemd to schedule the HEALTHCHECK: expected, see below)
-podman run -d --name "$CTR" -p "127.0.0.1:$PORT:8000" -v "$VOL:/data" "$IMAGE" >/dev/null 2>"$WORK/run.log" \
+podman run -d --name "$CTR" -e OMNISPLAT_API_KEY="$API_KEY" -p "127.0.0.1:$PORT:8000" -v "$VOL:/data" "$IMAGE" >/dev/null 2>"$WORK/run.log" \
     || { cat "$WORK/run.log" >&2; fail "podman run failed"; }
 
 ready=0
@@ -221,6 +225,8 @@ podman exec "$CTR" sh -c 'f=/data/.write-test-$$ && echo ok >"$f" && rm "$f"' \
 for d in bench tests docs; do
     podman exec "$CTR" test ! -e "/app/$d" || fail "/app/$d is in the image"
 done
+code=$(command curl -s -o /dev/null -w '%{http_code}' "$URL/v1/info")
+[ "$code" = 401 ] || fail "GET /v1/info without the API key answered $code, expected 401"
 MODEL_SHA=$(curl -sf "$URL/v1/info" | python3 -c "import json, sys; print(json.load(sys.stdin)['model'].get('sha256', '?'))") \
     || fail "GET /v1/info failed"
 log "model sha256 $MODEL_SHA"

@@ -4,8 +4,9 @@
     from service.config import Settings
     app = create_app(Settings(model_path="model.onnx", store_dir="scenes"))
 
-The onnxruntime session is created in the lifespan (in a worker thread, so ``/healthz``
-answers at once) and kept on ``app.state.runtime``; ``/readyz`` turns true after it has
+Everything stateful (store, work gates, job registry, model) is created in the lifespan;
+running refinement jobs are cancelled at shutdown. The onnxruntime session is created in a
+worker thread, so ``/healthz`` answers at once, and kept on ``app.state.runtime``; ``/readyz`` turns true after it has
 loaded and run one warm-up inference. Nothing heavy happens at import time.
 """
 
@@ -17,10 +18,13 @@ from contextlib import asynccontextmanager
 import anyio
 import anyio.to_thread
 from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
 
 from . import __version__
+from .access import AccessGuard
 from .config import Settings, get_settings
 from .errors import install_error_handlers
+from .jobs import REFINE_QUEUE, JobRegistry
 from .limits import BodySizeLimit, WorkGate
 from .metrics import RequestMetrics, ServiceMetrics
 from .model_files import ModelUnavailable
@@ -47,10 +51,23 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if not model_path.is_file():
             raise ModelUnavailable(f"model file {model_path} does not exist (run `omnisplat export` or "
                                    "`omnisplat serve`, which builds it)")
-        app.state.store = SceneStore(settings.store_dir, cache_scenes=settings.cache_scenes,
-                                     cache_bytes=settings.cache_bytes, max_scenes=settings.max_scenes)
+        state = app.state
+        state.store = SceneStore(settings.store_dir, cache_scenes=settings.cache_scenes,
+                                 cache_bytes=settings.cache_bytes, max_scenes=settings.max_scenes)
+        state.inference_gate = WorkGate("inference", settings.inference_concurrency, settings.inference_queue,
+                                        settings.retry_after_s, metrics.rejected.labels(kind="inference").inc)
+        state.render_gate = WorkGate("render", settings.render_concurrency, settings.render_queue,
+                                     settings.retry_after_s, metrics.rejected.labels(kind="render").inc)
+        # refinements wait in their own queue but share the inference capacity (the same cores)
+        state.refine_gate = WorkGate("refine", settings.inference_concurrency, REFINE_QUEUE, settings.retry_after_s,
+                                     metrics.rejected.labels(kind="refine").inc,
+                                     limiter=state.inference_gate.limiter)
+        state.heavy_render_gate = WorkGate("render_heavy", settings.inference_concurrency, settings.render_queue,
+                                           settings.retry_after_s, metrics.rejected.labels(kind="render_heavy").inc,
+                                           limiter=state.inference_gate.limiter)
+        state.jobs = JobRegistry()
         runtime = ModelRuntime(model_path, threads=settings.ort_threads)
-        app.state.runtime = runtime
+        state.runtime = runtime
 
         async def load() -> None:
             # Through the inference limiter: no request inference overlaps the warm-up.
@@ -67,23 +84,25 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             try:
                 yield
             finally:
+                state.jobs.cancel_all()  # running refinements stop at their next progress report
                 tg.cancel_scope.cancel()
-        app.state.runtime.encoder = None
+        state.runtime.encoder = None
 
     app = FastAPI(title="omnisplat", version=__version__, description=DESCRIPTION, lifespan=lifespan)
     app.state.settings = settings
     app.state.metrics = metrics
-    app.state.inference_gate = WorkGate("inference", settings.inference_concurrency, settings.inference_queue,
-                                        settings.retry_after_s, metrics.rejected.labels(kind="inference").inc)
-    app.state.render_gate = WorkGate("render", settings.render_concurrency, settings.render_queue,
-                                     settings.retry_after_s, metrics.rejected.labels(kind="render").inc)
     install_error_handlers(app)
     app.include_router(health.router)
     app.include_router(scenes.router)
     app.include_router(jobs.router)
     app.include_router(viewer.router)
     app.include_router(edits.router)
-    # Last added = outermost: metrics see every request, including 413s from the body limit.
-    app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes, on_reject=metrics.body_rejected.inc)
+    # Last added = outermost: metrics see every request, including refusals by the guard and body limit.
+    if settings.cors_origins:
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["GET", "POST", "DELETE"],
+                           allow_headers=["Authorization", "X-API-Key", "Content-Type"])
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes, on_reject=metrics.body_rejected.inc,
+                       timeout_s=settings.body_timeout_s)
+    app.add_middleware(AccessGuard, settings=settings, state=app.state)
     app.add_middleware(RequestMetrics, metrics=metrics)
     return app

@@ -67,6 +67,11 @@ def _bench_edit():
     return main
 
 
+def _bench_reliability():
+    from bench.reliability import main
+    return main
+
+
 #: Sub-commands handled by another module's ``main(argv)``: name -> (loader, what to install if absent).
 FORWARDED = {
     "export": (_main_of_export, "the export extra: pip install -e '.[export]' (torch)"),
@@ -81,6 +86,8 @@ BENCH = {
     "depth": (_bench_depth, "encoder depth error and ONNX run time on the dev scenes"),
     "service": (_bench_service, "HTTP service timings: ready, POST, render, peak memory"),
     "edit": (_bench_edit, "selection consistency across the references (mIoU vs baselines) and edit timings"),
+    "reliability": (_bench_reliability, "the reliability audit against a live server: bad inputs, fuzzing, "
+                                        "overload, idle clients, kill -9, full/read-only store"),
 }
 
 
@@ -179,21 +186,25 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from .app import create_app
     from .config import Settings
     from .model_files import ModelUnavailable, ensure_model
+    from .server import server_config
 
     overrides = {k: v for k, v in {
         "host": args.host, "port": args.port, "store_dir": args.store, "model_path": args.model,
         "models_dir": args.models_dir, "ort_threads": args.threads,
         "max_upload_bytes": None if args.max_upload_mb is None else int(args.max_upload_mb * 1024 * 1024),
+        "max_requests": args.max_requests,
     }.items() if v is not None}
-    settings = Settings(**overrides)
+    try:
+        settings = Settings(**overrides)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
     try:
         ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build)
     except ModelUnavailable as exc:
         raise CliError(str(exc)) from None
     _say(f"model {settings.resolved_model_path}; scenes in {settings.store_dir}")
     _say(f"serving on http://{settings.host}:{settings.port} (docs at /docs; /readyz turns 200 after warm-up)")
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=args.log_level,
-                timeout_keep_alive=30, limit_concurrency=args.limit_concurrency)
+    uvicorn.Server(server_config(create_app(settings), settings, log_level=args.log_level)).run()
     return 0
 
 
@@ -345,9 +356,9 @@ def _pose_from_args(args: argparse.Namespace):
 def cmd_render(args: argparse.Namespace) -> int:
     c2w = _pose_from_args(args)
     from rasterizer.ply import read_ply
-    from rasterizer.render import render
+    from rasterizer.render import render, to_uint8
 
-    from .images import encode, to_uint8_safe
+    from .images import encode
 
     try:
         gaussians = read_ply(args.ply)
@@ -361,7 +372,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     _say(f"rendering {len(gaussians)} Gaussians, {args.projection} {args.width} px wide")
     t0 = time.perf_counter()
     out = render(gaussians, c2w, **kwargs)
-    data = encode(to_uint8_safe(out.colour), fmt)
+    data = encode(to_uint8(out.colour), fmt)
     Path(args.output).write_bytes(data)
     _say(f"wrote {args.output} in {time.perf_counter() - t0:.2f} s")
     return 0
@@ -426,8 +437,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-build", action="store_true", help="fail instead of building a missing model")
     s.add_argument("--threads", type=int, help="onnxruntime threads (default 2)")
     s.add_argument("--max-upload-mb", type=float, help="request body limit in MiB (default 100)")
-    s.add_argument("--limit-concurrency", type=int, default=64,
-                   help="open connections before uvicorn answers 503 (default 64)")
+    s.add_argument("--max-requests", type=int,
+                   help="requests in progress before 503 + Retry-After (default 256; health exempt)")
     s.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     s.set_defaults(func=cmd_serve)
 

@@ -7,6 +7,7 @@ directly and hand it to :func:`service.app.create_app`.
 
 from __future__ import annotations
 
+import ipaddress
 from functools import lru_cache
 from pathlib import Path
 
@@ -28,6 +29,20 @@ class Settings(BaseSettings):
     # -- network (used by `omnisplat serve`) --------------------------------
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
+    header_timeout_s: float = Field(10.0, gt=0, description="a connection must send complete request headers "
+                                                            "within this many seconds (idle/slow clients closed)")
+    body_timeout_s: float = Field(120.0, gt=0, description="a request body must arrive within this many seconds (408)")
+    max_requests: int = Field(256, ge=1, description="requests in progress at once; more get 503 JSON + "
+                                                     "Retry-After (health and readiness exempt)")
+
+    # -- access ---------------------------------------------------------------
+    api_key: str | None = Field(None, description="if set, every /v1 request needs 'Authorization: Bearer KEY' "
+                                                  "(or X-API-Key); required when host is not a loopback address")
+    allow_no_auth: bool = Field(False, description="serve a non-loopback host without api_key (explicit opt-out)")
+    allowed_hosts: list[str] | None = Field(None, description="accepted Host header names (DNS-rebinding guard); "
+                                                              "unset: loopback names (+ host itself); ['*']: any")
+    cors_origins: list[str] = Field(default_factory=list, description="origins allowed to call the API from a "
+                                                                      "browser (CORS); empty: none")
 
     # -- model ----------------------------------------------------------------
     model_path: Path | None = Field(
@@ -50,6 +65,13 @@ class Settings(BaseSettings):
     min_image_height: int = Field(32, ge=2, description="smallest ERP height accepted")
     max_render_width: int = Field(4096, ge=8)
     max_render_pixels: int = Field(4096 * 2048, ge=64)
+    max_render_cost: float = Field(2048 * 1024 * 1.0e6, gt=0, description="output pixels x scene Gaussians "
+                                   "one render may cost (its memory grows with both); 413 beyond")
+    heavy_render_cost: float = Field(2048 * 1024 * 0.25e6, gt=0, description="renders above this pixel-Gaussian "
+                                     "cost take the reconstruction slot instead of a render slot, so that their "
+                                     "memory peak never adds to a reconstruction's")
+    min_free_store_bytes: int = Field(256 * 1024 * 1024, ge=0, description="free disk the store must have "
+                                      "before a reconstruction starts (507 below; /readyz 503)")
 
     # -- concurrency ----------------------------------------------------------
     inference_concurrency: int = Field(1, ge=1, description="reconstructions running at once")
@@ -62,7 +84,20 @@ class Settings(BaseSettings):
     def _check(self) -> "Settings":
         if self.max_render_width * 1 > self.max_render_pixels:
             raise ValueError("max_render_width must not exceed max_render_pixels")
+        if not self.api_key and not self.allow_no_auth and not is_loopback(self.host):
+            raise ValueError(f"host {self.host!r} is not a loopback address: set api_key (OMNISPLAT_API_KEY) "
+                             "or allow_no_auth=true to serve without authentication")
         return self
+
+    @property
+    def trusted_hosts(self) -> list[str]:
+        """Host header names accepted (see ``allowed_hosts``)."""
+        if self.allowed_hosts is not None:
+            return list(self.allowed_hosts)
+        names = ["127.0.0.1", "localhost", "::1", "[::1]"]
+        if not is_loopback(self.host) and self.host not in ("0.0.0.0", "::"):
+            names.append(self.host)
+        return ["*"] if self.host in ("0.0.0.0", "::") else names
 
     @computed_field  # type: ignore[prop-decorator]
     @property
@@ -71,8 +106,21 @@ class Settings(BaseSettings):
         return self.model_path if self.model_path is not None else self.models_dir / default_model_name()
 
     def public(self) -> dict:
-        """Settings safe to show at /v1/info (paths as strings)."""
-        return self.model_dump(mode="json")
+        """Settings safe to show at /v1/info: no file paths, no secrets."""
+        hidden = {"model_path", "models_dir", "store_dir", "resolved_model_path", "api_key"}
+        out = {k: v for k, v in self.model_dump(mode="json").items() if k not in hidden}
+        out["auth"] = bool(self.api_key)
+        return out
+
+
+def is_loopback(host: str) -> bool:
+    """True for 127.0.0.0/8, ::1 and localhost."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
 
 
 @lru_cache

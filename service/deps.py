@@ -46,6 +46,10 @@ def _render_gate(request: Request) -> WorkGate:
     return request.app.state.render_gate
 
 
+def _heavy_render_gate(request: Request) -> WorkGate:
+    return request.app.state.heavy_render_gate
+
+
 SettingsDep = Annotated[Settings, Depends(_settings)]
 StoreDep = Annotated[SceneStore, Depends(_store)]
 MetricsDep = Annotated[ServiceMetrics, Depends(_metrics)]
@@ -53,5 +57,6 @@ RuntimeDep = Annotated[ModelRuntime, Depends(_runtime)]
 ReadyRuntimeDep = Annotated[ModelRuntime, Depends(_ready_runtime)]
 InferenceGateDep = Annotated[WorkGate, Depends(_inference_gate)]
 RenderGateDep = Annotated[WorkGate, Depends(_render_gate)]
+HeavyRenderGateDep = Annotated[WorkGate, Depends(_heavy_render_gate)]
 SceneId = Annotated[str, Path(pattern=SCENE_ID_PATTERN, description="32 lower-case hex digits",
                               examples=["0123456789abcdef0123456789abcdef"])]

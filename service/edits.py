@@ -29,7 +29,7 @@ import numpy as np
 from .errors import BadInput, NotFound, ServiceError
 from .images import encode
 from .inputs import RenderQuery
-from .jobs import REFERENCES_ARTIFACT, load_references
+from .references import REFERENCES_ARTIFACT, load_references
 from .store import SceneStore, content_id
 
 EDIT_ARTIFACT = "edit.npz"

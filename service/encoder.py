@@ -8,7 +8,6 @@ wraps the outputs in :class:`rasterizer.gaussians.Gaussians`.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from dataclasses import dataclass, field
@@ -25,11 +24,15 @@ from rasterizer.sweep import (
     MIN_BASELINE,
     NEAR_PER_BASELINE,
     OUTPUT_NAMES,
+    SweepRangeError,
     baseline,
+    check_scene_scale,
     default_near_far,
     sweep_inputs,
 )
 from rasterizer.yin_yang import resize_erp
+
+from .model_files import sha256_file
 
 KNOWN_OPTIONS = ("min_opacity",)
 
@@ -59,14 +62,6 @@ class Reconstruction:
     matches: np.ndarray | None = field(default=None, repr=False)
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def _as_image(img, name: str) -> np.ndarray:
     """Validated float32 (H, W, 3) in [0, 1] from uint8 or float input."""
     arr = np.asarray(img)
@@ -89,6 +84,19 @@ def _as_image(img, name: str) -> np.ndarray:
     out = arr.astype(np.float32)  # one copy: the caller's array is never modified
     np.clip(out, 0.0, 1.0, out=out)
     return out
+
+
+#: cameras whose midpoint lies farther than this many baselines from the origin are moved
+#: next to it for the float32 graph (dev scenes, near the origin, are untouched)
+RECENTRE_BEYOND_BASELINES = 10.0
+
+
+def recentring_offset(c2w_a: np.ndarray, c2w_b: np.ndarray) -> np.ndarray:
+    """float64 offset subtracted from both camera centres before the graph (zeros when not needed)."""
+    mid = 0.5 * (c2w_a[:3, 3] + c2w_b[:3, 3])
+    if np.linalg.norm(mid) > RECENTRE_BEYOND_BASELINES * baseline(c2w_a, c2w_b):
+        return mid
+    return np.zeros(3)
 
 
 class OnnxEncoder:
@@ -118,7 +126,7 @@ class OnnxEncoder:
         self.output_names = [n for n in OUTPUT_NAMES if n in have]  # older models lack ``matches``
         if names != INPUT_NAMES:
             raise ValueError(f"{self.path} is not an omnisplat encoder (inputs {names})")
-        self._meta = {**props, "sha256": _sha256(self.path), "path": str(self.path), "threads": int(threads)}
+        self._meta = {**props, "sha256": sha256_file(self.path), "path": str(self.path), "threads": int(threads)}
         self.height = int(props["input_height"])
         self.width = int(props["input_width"])
         self.num_planes = int(props["num_planes"])
@@ -177,6 +185,14 @@ class OnnxEncoder:
         if b < MIN_BASELINE:
             raise EncoderInputError("the two camera centres coincide: depth cannot be triangulated "
                                     f"(baseline {b:.3g})")
+        try:
+            check_scene_scale(pa, pb, near, far)
+        except SweepRangeError as exc:
+            raise EncoderInputError(str(exc)) from None
+        origin = recentring_offset(pa, pb)
+        pa, pb = pa.copy(), pb.copy()
+        pa[:3, 3] -= origin
+        pb[:3, 3] -= origin
         n_def, f_def = default_near_far(pa, pb, near_ratio=self.near_per_baseline, far_ratio=self.far_per_baseline)
         near = n_def if near is None else float(near)
         far = f_def if far is None else float(far)
@@ -204,6 +220,8 @@ class OnnxEncoder:
             keep = out["opacities"] >= min_opacity
         arrays = [out[k] if keep is None else out[k][keep] for k in ("means", "scales", "quats", "opacities", "sh_dc")]
         arrays[4] = arrays[4][:, None, :]
+        if origin.any():  # back to the caller's frame, offset added in float64
+            arrays[0] = (arrays[0].astype(np.float64) + origin).astype(np.float32)
         gaussians = Gaussians(*arrays)
         timings["gaussians"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_start

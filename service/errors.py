@@ -7,6 +7,7 @@ or not ready, 500 only for bugs.
 
 from __future__ import annotations
 
+import errno
 import logging
 
 from fastapi import FastAPI, Request
@@ -15,6 +16,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from rasterizer.geometry import PoseError
+from rasterizer.splat import RenderLimitError
 
 from .encoder import EncoderInputError
 from .store import InvalidSceneId, SceneNotFound, StoreCorrupt
@@ -67,6 +69,19 @@ class Busy(ServiceError):
         super().__init__(message, code=code, headers={"Retry-After": str(int(retry_after))})
 
 
+class StoreUnavailable(ServiceError):
+    """The scene store cannot take writes (disk full, read-only, permissions)."""
+
+    status = 507
+    code = "store_unavailable"
+
+
+#: OSError numbers that mean "the store's disk cannot take this write", not a bug
+STORE_ERRNOS = {errno.ENOSPC: "the scene store's disk is full", errno.EDQUOT: "the scene store's disk quota is used up",
+                errno.EROFS: "the scene store is on a read-only file system",
+                errno.EACCES: "the scene store is not writable", errno.EPERM: "the scene store is not writable"}
+
+
 def error_body(code: str, message: str) -> dict:
     return {"error": {"code": code, "message": message}}
 
@@ -90,8 +105,16 @@ def _domain_error(exc: Exception) -> ServiceError | None:
         return ServiceError(str(exc), code="store_corrupt", status=500)
     if isinstance(exc, EncoderInputError):
         return BadInput(str(exc), code="invalid_input")
+    if isinstance(exc, RenderLimitError):
+        return PayloadTooLarge(f"render too large for this scene: {exc}", code="render_too_large")
+    if isinstance(exc, OSError) and exc.errno in STORE_ERRNOS:
+        log.error("store write failed: %s", exc)
+        return StoreUnavailable(f"{STORE_ERRNOS[exc.errno]}; the request was not stored", code="store_unavailable")
     return None
 
+
+#: errors raised by rasterizer/encoder/store code that :func:`_domain_error` translates
+DOMAIN_ERRORS = (InvalidSceneId, SceneNotFound, StoreCorrupt, EncoderInputError, RenderLimitError, OSError)
 
 _STATUS_CODES = {400: "bad_request", 404: "not_found", 405: "method_not_allowed", 413: "payload_too_large",
                  415: "unsupported_media_type", 422: "invalid_request", 503: "unavailable"}
@@ -100,9 +123,31 @@ _STATUS_CODES = {400: "bad_request", 404: "not_found", 405: "method_not_allowed"
 def _validation_message(exc: RequestValidationError) -> str:
     parts = []
     for err in exc.errors()[:5]:
+        if err.get("type") == "json_invalid":  # loc is ("body", character offset)
+            where = err.get("loc", ("body", "?"))[-1]
+            reason = (err.get("ctx") or {}).get("error", "")
+            parts.append(f"body: not valid JSON at character {where}" + (f" ({reason})" if reason else ""))
+            continue
         loc = ".".join(str(p) for p in err.get("loc", ()) if p not in ("body", "query", "path"))
         parts.append(f"{loc or 'request'}: {err.get('msg', 'invalid')}")
     return "; ".join(parts) or "invalid request"
+
+
+def _allowed_methods(request: Request) -> str | None:
+    """Allow header of a 405: the methods of every route matching the path (not only the first)."""
+    from starlette.routing import Match
+
+    def leaves(routes):
+        for route in routes:
+            sub = getattr(route, "original_router", None)  # FastAPI's included routers
+            yield from leaves(sub.routes) if sub is not None else (route,)
+
+    methods: set[str] = set()
+    for route in leaves(request.app.router.routes):
+        match, _ = route.matches(request.scope)
+        if match is not Match.NONE:
+            methods |= set(getattr(route, "methods", None) or ())
+    return ", ".join(sorted(methods)) or None
 
 
 def install_error_handlers(app: FastAPI) -> None:
@@ -121,9 +166,27 @@ def install_error_handlers(app: FastAPI) -> None:
         return error_response(422, "invalid_request", _validation_message(exc))
 
     @app.exception_handler(StarletteHTTPException)
-    async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         code = _STATUS_CODES.get(exc.status_code, "http_error")
-        return error_response(exc.status_code, code, str(exc.detail), getattr(exc, "headers", None))
+        headers = dict(getattr(exc, "headers", None) or {})
+        if exc.status_code == 405:
+            allow = _allowed_methods(request)
+            if allow:
+                headers["Allow"] = allow
+        if exc.status_code == 400 and "parsing the body" in str(exc.detail):  # one status for a malformed body
+            return error_response(422, "invalid_request", f"the request body could not be parsed ({exc.detail})")
+        return error_response(exc.status_code, code, str(exc.detail), headers or None)
+
+    async def _domain(_: Request, exc: Exception) -> JSONResponse:
+        mapped = _domain_error(exc)
+        if mapped is None:
+            raise exc  # a bug after all (e.g. another OSError): the 500 handler below
+        return error_response(mapped.status, mapped.code, mapped.message, mapped.headers)
+
+    # Handled by class (inside the app), not by the catch-all below: Starlette re-raises what the
+    # catch-all answered, and the server then drops the keep-alive connection.
+    for domain_type in DOMAIN_ERRORS:
+        app.add_exception_handler(domain_type, _domain)
 
     @app.exception_handler(Exception)
     async def _unexpected(_: Request, exc: Exception) -> JSONResponse:

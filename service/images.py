@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from rasterizer.render import to_uint8
+
 from .errors import BadInput, InvalidImage, PayloadTooLarge
 
 ACCEPTED_FORMATS = ("PNG", "JPEG", "WEBP", "TIFF", "BMP")
@@ -30,15 +32,22 @@ class ImageHeader:
         return {"format": self.format, "width": self.width, "height": self.height}
 
 
-def _open(data: bytes, field: str) -> Image.Image:
+def _too_many_pixels(field: str, w: int, h: int, max_pixels: int) -> PayloadTooLarge:
+    return PayloadTooLarge(f"{field}: {w}x{h} = {w * h} pixels exceeds the limit of {max_pixels} pixels",
+                           code="image_too_many_pixels")
+
+
+def _open(data: bytes, field: str, max_pixels: int) -> Image.Image:
     if not data:
         raise InvalidImage(f"{field}: the file is empty")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
             return Image.open(io.BytesIO(data), formats=ACCEPTED_FORMATS)
-    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
-        raise PayloadTooLarge(f"{field}: {exc}", code="image_too_many_pixels") from None
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning):
+        # Pillow's own bomb guard (2x its MAX_IMAGE_PIXELS) fired before ours could: report ours
+        raise PayloadTooLarge(f"{field}: the image has more than the limit of {max_pixels} pixels",
+                              code="image_too_many_pixels") from None
     except UnidentifiedImageError:
         raise InvalidImage(
             f"{field}: not a readable image (accepted formats: {', '.join(ACCEPTED_FORMATS)})"
@@ -49,7 +58,7 @@ def _open(data: bytes, field: str) -> Image.Image:
 
 def check_header(data: bytes, field: str, *, max_pixels: int, min_height: int) -> ImageHeader:
     """Parse only the header and check size and aspect ratio (no pixel decoding)."""
-    im = _open(data, field)
+    im = _open(data, field, max_pixels)
     try:
         w, h = im.size
         fmt = im.format or "unknown"
@@ -58,10 +67,7 @@ def check_header(data: bytes, field: str, *, max_pixels: int, min_height: int) -
     if w <= 0 or h <= 0:
         raise InvalidImage(f"{field}: image has no pixels ({w}x{h})")
     if w * h > max_pixels:
-        raise PayloadTooLarge(
-            f"{field}: {w}x{h} = {w * h} pixels exceeds the limit of {max_pixels} pixels",
-            code="image_too_many_pixels",
-        )
+        raise _too_many_pixels(field, w, h, max_pixels)
     if w != 2 * h:
         raise BadInput(
             f"{field}: an equirectangular panorama must be exactly twice as wide as high; got {w}x{h}",
@@ -76,13 +82,11 @@ def check_header(data: bytes, field: str, *, max_pixels: int, min_height: int) -
 def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> tuple[np.ndarray, ImageHeader]:
     """Fully decode to uint8 RGB (H, W, 3) after :func:`check_header`; corrupt data -> 400."""
     header = check_header(data, field, max_pixels=max_pixels, min_height=min_height)
-    im = _open(data, field)
+    im = _open(data, field, max_pixels)
     try:
         im.load()  # raises on truncated or corrupt data (LOAD_TRUNCATED_IMAGES stays False)
-        if im.mode != "RGB":
-            im = im.convert("RGB")
-        arr = np.asarray(im, dtype=np.uint8)
-    except PayloadTooLarge:
+        arr = _rgb8(im, field)
+    except (PayloadTooLarge, InvalidImage):
         raise
     except Exception as exc:  # noqa: BLE001 - corrupt, truncated, unsupported mode...
         raise InvalidImage(f"{field}: the image data is corrupt or truncated ({exc})") from None
@@ -93,10 +97,27 @@ def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> 
     return np.ascontiguousarray(arr), header
 
 
-def to_uint8_safe(colour: np.ndarray) -> np.ndarray:
-    """Float colour (H, W, 3) -> uint8, NaN/Inf mapped to black/white so no image carries NaN."""
-    c = np.nan_to_num(np.asarray(colour, dtype=np.float32), nan=0.0, posinf=1.0, neginf=0.0)
-    return (np.clip(c, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+def _rgb8(im: Image.Image, field: str) -> np.ndarray:
+    """8-bit RGB of a decoded image; 16-bit and float greyscale are scaled by their full range.
+
+    Pillow's ``convert("RGB")`` clips 16-bit values at 255 (a white image) and truncates
+    floats in [0, 1] to 0 (a black one), so those modes are scaled here first.
+    """
+    if im.mode.startswith("I;16") or im.mode == "I":
+        grey = np.asarray(im).astype(np.float64)
+        if grey.size and (grey.min() < 0 or grey.max() > 65535):
+            raise InvalidImage(f"{field}: 32-bit integer images are not supported (values beyond 16 bits); "
+                               "send 8- or 16-bit PNG/TIFF", code="unsupported_image_mode")
+        grey = to_uint8(grey / 65535.0)
+    elif im.mode == "F":
+        grey = np.asarray(im)
+        if not np.all(np.isfinite(grey)) or (grey.size and (grey.min() < 0 or grey.max() > 1)):
+            raise InvalidImage(f"{field}: float images must hold finite values in [0, 1]",
+                               code="unsupported_image_mode")
+        grey = to_uint8(grey)
+    else:
+        return np.asarray(im if im.mode == "RGB" else im.convert("RGB"), dtype=np.uint8)
+    return np.repeat(grey[:, :, None], 3, axis=2)
 
 
 MEDIA_TYPES = {"png": "image/png", "jpeg": "image/jpeg"}

@@ -6,7 +6,6 @@ field and the problem; nothing here touches the store or the model.
 
 from __future__ import annotations
 
-import inspect
 import json
 import math
 from dataclasses import dataclass
@@ -15,7 +14,7 @@ from typing import Any, Literal
 import numpy as np
 
 from rasterizer.geometry import PoseError, as_c2w
-from rasterizer.sweep import MIN_BASELINE
+from rasterizer.sweep import MIN_BASELINE, SweepRangeError, check_scene_scale
 
 from .errors import BadInput
 from .pipeline import STEP_OPTION_KEYS, PipelineOptions
@@ -31,9 +30,21 @@ def _reject_constant(name: str) -> Any:
     raise ValueError(f"{name} is not allowed")
 
 
+#: JSON integers beyond this magnitude are refused (a float cannot hold them exactly, a huge one at all)
+MAX_JSON_INT = 2**53
+
+
+def _bounded_int(text: str) -> int:
+    value = int(text)
+    if abs(value) > MAX_JSON_INT:
+        raise ValueError(f"integer {text[:20]}{'...' if len(text) > 20 else ''} ({len(text)} digits) is out of "
+                         f"range (at most {MAX_JSON_INT} in magnitude)")
+    return value
+
+
 def _json_object(text: str | bytes, field: str) -> Any:
     try:
-        return json.loads(text, parse_constant=_reject_constant)
+        return json.loads(text, parse_constant=_reject_constant, parse_int=_bounded_int)
     except (ValueError, RecursionError) as exc:
         raise BadInput(f"{field}: not valid JSON ({exc})", code=f"invalid_{field}") from None
 
@@ -71,23 +82,35 @@ def parse_poses(text: str | bytes) -> Poses:
         except PoseError as exc:
             raise BadInput(f"poses.c2w[{name}]: {exc}", code="invalid_pose") from None
     baseline = float(np.linalg.norm(out[0][:3, 3] - out[1][:3, 3]))
-    if not baseline > MIN_BASELINE:
-        raise BadInput(f"poses: the two camera centres are identical (baseline {baseline:.3g}); "
-                       "two views from one point carry no depth", code="identical_camera_centres")
+    if not baseline >= MIN_BASELINE:
+        raise BadInput(f"poses: the two camera centres are identical or too close ({baseline:.3g} apart, "
+                       f"less than the {MIN_BASELINE:g} needed to triangulate depth)", code="identical_camera_centres")
+    try:
+        check_scene_scale(out[0], out[1])
+    except SweepRangeError as exc:
+        raise BadInput(f"poses: {exc}", code="invalid_pose") from None
     return Poses(convention, out[0], out[1])
 
 
-def parse_options(text: str | bytes | None, accepted: set[str] | None) -> dict[str, Any]:
-    """Options JSON object; ``near``/``far`` must be positive with near < far.
+def check_sweep_range(poses: Poses, options: dict) -> None:
+    """422 when ``options`` near/far do not fit the cameras (see :func:`rasterizer.sweep.check_scene_scale`)."""
+    try:
+        check_scene_scale(poses.c2w_a, poses.c2w_b, options.get("near"), options.get("far"))
+    except SweepRangeError as exc:
+        raise BadInput(f"options: {exc}", code="invalid_options") from None
+
+
+def parse_options(text: str | bytes | None, accepted: set[str] | None = None) -> tuple[dict[str, Any], PipelineOptions]:
+    """(options JSON object, its parsed :class:`PipelineOptions`); ``near``/``far`` must be positive, near < far.
 
     ``compaction`` and ``adaptive_range`` hold JSON objects of step options
     (see :class:`service.pipeline.PipelineOptions`); ``{"compaction": false}``
     turns compaction off.
 
-    ``accepted`` lists the keyword options the encoder takes (None: anything goes).
+    ``accepted`` restricts the top-level keys further (None: every pipeline option).
     """
     if text is None or (isinstance(text, (str, bytes)) and not text.strip()):
-        return {}
+        return {}, PipelineOptions.from_dict({})
     obj = _json_object(text, "options")
     if not isinstance(obj, dict):
         raise BadInput("options: expected a JSON object", code="invalid_options")
@@ -114,25 +137,9 @@ def parse_options(text: str | bytes | None, accepted: set[str] | None) -> dict[s
     if obj.get("near") is not None and obj.get("far") is not None and not obj["near"] < obj["far"]:
         raise BadInput("options: near must be smaller than far", code="invalid_options")
     try:
-        PipelineOptions.from_dict(obj)
-    except (TypeError, ValueError) as exc:
+        return obj, PipelineOptions.from_dict(obj)
+    except (TypeError, ValueError, OverflowError) as exc:
         raise BadInput(f"options: {exc}", code="invalid_options") from None
-    return obj
-
-
-def encoder_options(reconstruct) -> set[str] | None:
-    """Keyword options a ``reconstruct`` callable accepts (None when it takes ``**kwargs``)."""
-    try:
-        sig = inspect.signature(reconstruct)
-    except (TypeError, ValueError):
-        return None
-    names = set()
-    for p in list(sig.parameters.values())[4:]:  # skip erp_a, erp_b, c2w_a, c2w_b
-        if p.kind is inspect.Parameter.VAR_KEYWORD:
-            return None
-        if p.kind in (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD):
-            names.add(p.name)
-    return names
 
 
 def parse_c2w_query(text: str) -> np.ndarray:

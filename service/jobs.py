@@ -13,12 +13,11 @@
 Reference images: a scene must carry the artifact ``references.npz`` (uint8 ERP arrays
 ``image_a``, ``image_b``, H x 2H x 3, as fed to the encoder); poses come from
 ``meta["poses"]["c2w"]`` (OpenCV). Scene creation stores it with the scene
-(:func:`references_bytes`); :func:`store_references` adds it to an existing scene.
+(:mod:`service.references`).
 """
 
 from __future__ import annotations
 
-import io
 import json
 import threading
 import time
@@ -26,56 +25,18 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-import numpy as np
-
-from .errors import ServiceError
+from .references import REFERENCES_ARTIFACT, load_references
 from .store import SceneStore, content_id
 
-REFERENCES_ARTIFACT = "references.npz"
 REFINE_VERSION = "refine/v2"  # v2: cross-view guard (same params, different result)
 #: finished jobs kept in memory (oldest dropped first)
 MAX_FINISHED_JOBS = 1000
-
-
-class ReferencesMissing(ServiceError):
-    status = 409
-    code = "references_missing"
+#: refinement jobs allowed to wait for the (shared) inference capacity
+REFINE_QUEUE = 4
 
 
 class JobCancelled(Exception):
     """Raised inside a job's progress callback when the registry is shutting down."""
-
-
-def references_bytes(erp_a: np.ndarray, erp_b: np.ndarray) -> bytes:
-    """The ``references.npz`` artifact of two ERP images (uint8, or float in [0, 1])."""
-    def u8(img):
-        a = np.asarray(img)
-        return a if a.dtype == np.uint8 else np.rint(np.clip(a, 0, 1) * 255).astype(np.uint8)
-
-    buf = io.BytesIO()
-    np.savez_compressed(buf, image_a=u8(erp_a), image_b=u8(erp_b))
-    return buf.getvalue()
-
-
-def store_references(store: SceneStore, scene_id: str, erp_a: np.ndarray, erp_b: np.ndarray) -> None:
-    """Attach the two reference ERP images to an already stored scene (atomic)."""
-    store.put_artifact(scene_id, REFERENCES_ARTIFACT, references_bytes(erp_a, erp_b))
-
-
-def has_references(store: SceneStore, scene_id: str) -> bool:
-    return store.artifact(scene_id, REFERENCES_ARTIFACT) is not None
-
-
-def load_references(store: SceneStore, scene_id: str) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """([erp_a, erp_b] uint8, [c2w_a, c2w_b] 4x4 OpenCV) of a stored scene; 409 when not kept."""
-    path = store.artifact(scene_id, REFERENCES_ARTIFACT)
-    if path is None:
-        raise ReferencesMissing(f"scene {scene_id} has no stored reference images ({REFERENCES_ARTIFACT}); "
-                                "it cannot be refined")
-    with np.load(path, allow_pickle=False) as z:
-        images = [z["image_a"], z["image_b"]]
-    c2w = store.meta(scene_id)["poses"]["c2w"]
-    return images, [np.asarray(m, dtype=np.float64) for m in c2w]
 
 
 def canonical_params(params: dict) -> str:

@@ -29,17 +29,22 @@ DRAIN_SECONDS = 10.0
 DRAIN_LIMITS = 2
 
 
-class _TooLarge(Exception):
-    pass
+class _Refused(Exception):
+    def __init__(self, status: int, code: str, message: str) -> None:
+        super().__init__(message)
+        self.status, self.code, self.message = status, code, message
 
 
 class BodySizeLimit:
-    """ASGI middleware: 413 JSON error for request bodies over ``max_bytes``."""
+    """ASGI middleware: 413 JSON error for request bodies over ``max_bytes``, 408 for bodies
+    that take longer than ``timeout_s`` to arrive (a client trickling its upload)."""
 
-    def __init__(self, app, max_bytes: int, on_reject: Callable[[], None] | None = None) -> None:
+    def __init__(self, app, max_bytes: int, on_reject: Callable[[], None] | None = None,
+                 timeout_s: float = 120.0) -> None:
         self.app = app
         self.max_bytes = max_bytes
         self.on_reject = on_reject
+        self.timeout_s = timeout_s
 
     async def _drain(self, receive) -> None:
         """Read and discard what the client is still sending, at most ``DRAIN_LIMITS`` limits' worth
@@ -55,15 +60,17 @@ class BodySizeLimit:
                 if not message.get("more_body", False):
                     return
 
-    async def _reject(self, send) -> None:
-        if self.on_reject is not None:
+    async def _reject(self, send, refused: _Refused) -> None:
+        if self.on_reject is not None and refused.status == 413:
             self.on_reject()
-        body = json.dumps(error_body(
-            "payload_too_large", f"request body exceeds the limit of {self.max_bytes} bytes")).encode()
-        await send({"type": "http.response.start", "status": 413,
+        body = json.dumps(error_body(refused.code, refused.message)).encode()
+        await send({"type": "http.response.start", "status": refused.status,
                     "headers": [(b"content-type", b"application/json"),
                                 (b"content-length", str(len(body)).encode()), (b"connection", b"close")]})
         await send({"type": "http.response.body", "body": body})
+
+    def _too_large(self) -> _Refused:
+        return _Refused(413, "payload_too_large", f"request body exceeds the limit of {self.max_bytes} bytes")
 
     async def __call__(self, scope, receive, send) -> None:
         if scope["type"] != "http":
@@ -77,25 +84,35 @@ class BodySizeLimit:
                     declared = -1
                 if declared > self.max_bytes:
                     await self._drain(receive)
-                    await self._reject(send)
+                    await self._reject(send, self._too_large())
                     return
         received = 0
-        exceeded = False
+        refused: _Refused | None = None
         started = False
+        body_done = False
+        deadline = anyio.current_time() + self.timeout_s
 
         async def counting_receive():
-            nonlocal received, exceeded
-            message = await receive()
+            nonlocal received, refused, body_done
+            if body_done:  # after the body: disconnect polling, no deadline
+                return await receive()
+            try:
+                with anyio.fail_after(max(0.0, deadline - anyio.current_time())):
+                    message = await receive()
+            except TimeoutError:
+                refused = _Refused(408, "request_timeout", f"the request body did not arrive within {self.timeout_s:g} s")
+                raise refused from None
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
+                body_done = not message.get("more_body", False)
                 if received > self.max_bytes:
-                    exceeded = True
-                    raise _TooLarge()
+                    refused = self._too_large()
+                    raise refused
             return message
 
         async def guarded_send(message):
             nonlocal started
-            if exceeded:  # the app reacted to _TooLarge in its own way: answer 413 instead
+            if refused is not None:  # the app reacted to the refusal in its own way: answer it instead
                 return
             if message["type"] == "http.response.start":
                 started = True
@@ -103,27 +120,28 @@ class BodySizeLimit:
 
         try:
             await self.app(scope, counting_receive, guarded_send)
-        except _TooLarge:
+        except _Refused:
             pass
         except Exception:
-            if not exceeded:
+            if refused is None:
                 raise
-        if exceeded and not started:
-            await self._drain(receive)
-            await self._reject(send)
+        if refused is not None and not started:
+            if refused.status == 413:
+                await self._drain(receive)
+            await self._reject(send, refused)
 
 
 class WorkGate:
     """Bounded thread-pool access for one kind of heavy work (inference, rendering)."""
 
     def __init__(self, name: str, concurrency: int, queue: int, retry_after: int,
-                 on_reject: Callable[[], None] | None = None) -> None:
+                 on_reject: Callable[[], None] | None = None, limiter: anyio.CapacityLimiter | None = None) -> None:
         self.name = name
         self.on_reject = on_reject
         self.concurrency = concurrency
         self.queue = queue
         self.retry_after = retry_after
-        self.limiter = anyio.CapacityLimiter(concurrency)
+        self.limiter = limiter or anyio.CapacityLimiter(concurrency)
         self.admitted = 0  # running + waiting; only touched on the event loop thread
         self.rejected = 0
 
@@ -135,12 +153,21 @@ class WorkGate:
     def waiting(self) -> int:
         return max(0, self.admitted - self.running)
 
+    @property
+    def full(self) -> bool:
+        """True when one more job would be refused."""
+        return self.admitted >= self.concurrency + self.queue
+
+    def reject(self) -> None:
+        """Count a refusal (also for one refused before its request body was read)."""
+        self.rejected += 1
+        if self.on_reject is not None:
+            self.on_reject()
+
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
         """Run ``fn(*args)`` in a worker thread, or raise :class:`Busy` if the queue is full."""
-        if self.admitted >= self.concurrency + self.queue:
-            self.rejected += 1
-            if self.on_reject is not None:
-                self.on_reject()
+        if self.full:
+            self.reject()
             raise Busy(f"{self.name} queue is full ({self.concurrency} running, {self.queue} waiting); "
                        f"retry in {self.retry_after} s", retry_after=self.retry_after, code="busy")
         self.admitted += 1

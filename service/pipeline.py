@@ -74,8 +74,11 @@ class SceneBuild:
 
 def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions) -> SceneBuild:
     """Reconstruct and compact; ``info`` says what each step did (incl. ``compaction`` stats)."""
-    rec = reconstruct_adaptive(encoder, erp_a, erp_b, c2w_a, c2w_b, options=options.adaptive_range,
-                               near=options.near, far=options.far)
+    if options.adaptive_range.enabled:  # off by default: then straight to the encoder
+        rec = reconstruct_adaptive(encoder, erp_a, erp_b, c2w_a, c2w_b, options=options.adaptive_range,
+                                   near=options.near, far=options.far)
+    else:
+        rec = encoder.reconstruct(erp_a, erp_b, c2w_a, c2w_b, near=options.near, far=options.far)
     timings = {str(k): float(v) for k, v in (rec.timings or {}).items()}
     info = dict(rec.info or {})
     t0 = time.perf_counter()

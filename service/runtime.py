@@ -10,8 +10,6 @@ from typing import Any
 
 import numpy as np
 
-from .model_files import sha256_file
-
 log = logging.getLogger("omnisplat.service")
 
 
@@ -35,8 +33,7 @@ class ModelRuntime:
             from .encoder import OnnxEncoder
 
             self.encoder = OnnxEncoder(self.model_path, threads=self.threads)
-            meta = dict(getattr(self.encoder, "metadata", {}) or {})
-            meta.setdefault("sha256", sha256_file(self.model_path))
+            meta = dict(self.encoder.metadata)
             meta.setdefault("name", self.model_path.stem)
             meta.setdefault("version", "unknown")
             meta["path"] = str(self.model_path)
@@ -65,19 +62,6 @@ class ModelRuntime:
         b = np.eye(4)
         b[0, 3] = 0.25
         self.encoder.reconstruct(img, np.roll(img, 3, axis=1), a, b)
-
-    @property
-    def accepted_options(self) -> set[str] | None:
-        """Option names ``reconstruct`` takes (None: not known, accept any)."""
-        from .inputs import encoder_options
-
-        names = encoder_options(self.encoder.reconstruct)
-        if names is None:
-            from . import encoder as encoder_module
-
-            known = getattr(encoder_module, "KNOWN_OPTIONS", None)
-            return None if known is None else {"near", "far", *known}
-        return names
 
     @property
     def version(self) -> str:

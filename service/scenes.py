@@ -8,20 +8,28 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import shutil
 import time
 from dataclasses import dataclass
-from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
+from rasterizer.camera import DEFAULT_NEAR
+from rasterizer.render import to_uint8
+
 from .edits import edit_artifacts
-from .errors import BadInput, ServiceError
-from .images import check_header, decode_rgb, encode, to_uint8_safe
+from .errors import BadInput, PayloadTooLarge, ServiceError, StoreUnavailable
+from .images import check_header, decode_rgb, encode
 from .inputs import Poses, RenderQuery
-from .jobs import REFERENCES_ARTIFACT, references_bytes
 from .pipeline import PipelineOptions, build_scene
+from .references import REFERENCES_ARTIFACT, references_bytes
 from .runtime import ModelRuntime
-from .store import SceneStore, content_id
+from .store import SceneNotFound, SceneStore, content_id
+
+#: render near cull as a fraction of the scene's sweep near (scenes smaller than a room)
+NEAR_CULL_PER_SWEEP_NEAR = 0.1
 
 
 def links(scene_id: str) -> dict[str, str]:
@@ -49,34 +57,47 @@ def precheck_uploads(image_a: bytes, image_b: bytes, limits: UploadLimits) -> No
         check_header(data, field, max_pixels=limits.max_pixels, min_height=limits.min_height)
 
 
-def _at_model_size(erp: np.ndarray, runtime: ModelRuntime) -> np.ndarray:
-    """The panorama at the encoder's input size (what refinement compares renders against)."""
+def _at_model_size(erp: np.ndarray, height: int) -> np.ndarray:
+    """The panorama at the encoder's input size: fed to the encoder and kept for refinement."""
     from rasterizer.yin_yang import resize_erp
 
-    height = int(runtime.metadata.get("input_height") or erp.shape[0])
     if erp.shape[0] == height:
         return erp
-    return resize_erp(np.asarray(erp, dtype=np.float32) / 255.0, height, 2 * height)
+    return resize_erp(np.asarray(erp, dtype=np.float32) / np.float32(255.0), height, 2 * height)
+
+
+def check_free_space(store: SceneStore, need_bytes: int) -> None:
+    """507 before any work when the store's disk has less than ``need_bytes`` free."""
+    try:
+        free = shutil.disk_usage(store.root).free
+    except OSError as exc:
+        raise StoreUnavailable(f"the scene store cannot be read ({exc.strerror})") from None
+    if free < need_bytes:
+        raise StoreUnavailable(f"the scene store's disk has {free} bytes free, less than the {need_bytes} "
+                               "a new scene may need; no work was done")
 
 
 def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_a: bytes, image_b: bytes,
-                 poses: Poses, options: dict, limits: UploadLimits) -> tuple[dict, dict[str, float]]:
+                 poses: Poses, options: dict, pipeline_options: PipelineOptions,
+                 limits: UploadLimits) -> tuple[dict, dict[str, float]]:
     """Decode, reconstruct and store; returns (scene metadata, this run's stage timings)."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     erp_a, head_a = decode_rgb(image_a, "image_a", max_pixels=limits.max_pixels, min_height=limits.min_height)
     erp_b, head_b = decode_rgb(image_b, "image_b", max_pixels=limits.max_pixels, min_height=limits.min_height)
+    height = runtime.encoder.height
+    erp_a, erp_b = _at_model_size(erp_a, height), _at_model_size(erp_b, height)  # resampled once, here
     timings["decode"] = time.perf_counter() - t0
 
-    try:
-        pipeline_options = PipelineOptions.from_dict(options)
-    except ValueError as exc:
-        raise BadInput(f"options: {exc}", code="invalid_options") from None
     t0 = time.perf_counter()
     build = build_scene(runtime.encoder, erp_a, erp_b, poses.c2w_a, poses.c2w_b, pipeline_options)
     timings.update(build.timings)
     timings.setdefault("reconstruct", time.perf_counter() - t0)
     gaussians = build.gaussians
+    if len(gaussians) == 0:
+        raise BadInput("the reconstruction is empty: no Gaussian survived (near/far, poses or images "
+                       f"leave nothing to triangulate; sweep range {build.info.get('near')}..{build.info.get('far')})",
+                       code="empty_scene")
 
     meta = {
         "model": {k: runtime.metadata.get(k) for k in ("name", "version", "sha256")},
@@ -91,11 +112,22 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     }
     t0 = time.perf_counter()
     meta["timings"] = timings
-    references = {REFERENCES_ARTIFACT: references_bytes(*(_at_model_size(img, runtime) for img in (erp_a, erp_b)))}
+    references = {REFERENCES_ARTIFACT: references_bytes(erp_a, erp_b)}
     references.update(edit_artifacts(build.edit))  # correspondences for selections / edits (~8 MB at 512 x 1024)
     stored = store.put(scene_id, gaussians, meta, artifacts=references)
     timings["store"] = time.perf_counter() - t0
     return stored, timings
+
+
+def check_render_cost(store: SceneStore, scene_id: str, query: RenderQuery, max_cost: float) -> float:
+    """The render's cost, output pixels x scene Gaussians (memory grows with both); 413 beyond ``max_cost``."""
+    h, w = query.output_size()
+    n = int(store.meta(scene_id).get("num_gaussians") or 0)
+    if h * w * n > max_cost:
+        raise PayloadTooLarge(f"a {w}x{h} render of this scene's {n} Gaussians exceeds the render budget "
+                              f"({h * w * n:.3g} > {max_cost:.3g} pixel-Gaussians); ask for at most "
+                              f"{int(max_cost // max(n, 1))} pixels", code="render_too_large")
+    return float(h * w * n)
 
 
 def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[bytes, dict[str, float]]:
@@ -105,16 +137,19 @@ def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     gaussians = store.gaussians(scene_id)
+    sweep_near = (store.meta(scene_id).get("info") or {}).get("near")
     timings["load"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     # plain (default): what every 3DGS viewer shows of the PLY; va: the paper's colour / alpha
     kwargs = {"projection": query.projection, "width": query.width, "normalize": query.compositing == "va"}
+    if isinstance(sweep_near, (int, float)) and sweep_near > 0:  # cull scaled to the scene (mm baselines)
+        kwargs["near"] = min(DEFAULT_NEAR, NEAR_CULL_PER_SWEEP_NEAR * float(sweep_near))
     if query.projection == "perspective":
         kwargs.update(height=query.height, fov_deg=query.fov_deg)
     out = render(gaussians, query.c2w, **kwargs)
     timings["render"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    rgb = to_uint8_safe(out.colour)
+    rgb = to_uint8(out.colour)
     h, w = query.output_size()
     if rgb.shape[:2] != (h, w):
         raise ServiceError(f"renderer returned {rgb.shape[:2]}, expected {(h, w)}", code="render_failed",
@@ -124,11 +159,21 @@ def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[
     return data, timings
 
 
-def ply_path(store: SceneStore, scene_id: str) -> Path:
-    """The scene's PLY on disk, written (atomically) on first request."""
-    existing = store.artifact(scene_id, "gaussians.ply")
-    if existing is not None:
-        return existing
+def open_ply(store: SceneStore, scene_id: str) -> tuple[BinaryIO, int]:
+    """(open file, size) of the scene's PLY, written (atomically) on first request.
+
+    The caller streams from the open file: a scene deleted (or evicted) meanwhile still
+    sends the complete file, and one deleted before it opened is a 404.
+    """
     from rasterizer.ply import ply_bytes
 
-    return store.put_artifact(scene_id, "gaussians.ply", ply_bytes(store.gaussians(scene_id)))
+    for _ in range(2):
+        path = store.artifact(scene_id, "gaussians.ply")
+        if path is None:
+            path = store.put_artifact(scene_id, "gaussians.ply", ply_bytes(store.gaussians(scene_id)))
+        try:
+            fh = open(path, "rb")
+        except FileNotFoundError:  # deleted between the write and the open: look again
+            continue
+        return fh, os.fstat(fh.fileno()).st_size
+    raise SceneNotFound(scene_id)

@@ -65,6 +65,7 @@ class Info(BaseModel):
 
 def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     """``responses=`` entries declaring the JSON error body for the given statuses."""
-    text = {400: "Malformed input", 404: "Unknown scene", 413: "Upload or image too large",
-            422: "Invalid input", 503: "Busy or not ready (see Retry-After)"}
+    text = {400: "Malformed input", 404: "Unknown scene", 408: "Request body too slow", 413: "Upload, image or render "
+            "too large", 422: "Invalid input", 503: "Busy or not ready (see Retry-After)",
+            507: "The scene store cannot take writes (disk full or read-only)"}
     return {c: {"model": ErrorResponse, "description": text.get(c, "Error")} for c in codes}

@@ -19,6 +19,7 @@ with ``meta["parent"] = parent_id``.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -199,6 +200,21 @@ class SceneStore:
     def count(self) -> int:
         return len(self.ids())
 
+    def write_problem(self, min_free: int = 0) -> str | None:
+        """Why the store cannot take a new scene now (not writable, under ``min_free`` bytes free), or None."""
+        probe = self.tmp_dir / f".probe-{uuid.uuid4().hex}"
+        try:
+            _write_file(probe, lambda f: f.write(b"ok"))
+            probe.unlink()
+            free = shutil.disk_usage(self.root).free
+        except OSError as exc:
+            with contextlib.suppress(OSError):
+                probe.unlink(missing_ok=True)
+            return f"the scene store is not writable ({exc.strerror or exc})"
+        if free < min_free:
+            return f"the scene store's disk has {free} bytes free (less than {min_free})"
+        return None
+
     # -- write --------------------------------------------------------------------
     def put(self, scene_id: str, gaussians: Gaussians, meta: dict, artifacts: dict[str, bytes] | None = None) -> dict:
         """Store a scene atomically and return its metadata (the existing one if the id is taken).
@@ -248,6 +264,8 @@ class SceneStore:
         try:
             _write_file(tmp, lambda f: f.write(data))
             os.replace(tmp, target)
+        except FileNotFoundError:  # the scene was deleted meanwhile
+            raise SceneNotFound(scene_id) from None
         finally:
             tmp.unlink(missing_ok=True)
         return target

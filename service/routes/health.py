@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import anyio.to_thread
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
 
@@ -22,9 +23,12 @@ async def healthz() -> Health:
 @router.get("/readyz", response_model=Ready, summary="Readiness: model loaded and warmed up",
             responses={503: {"model": Ready, "description": "not ready yet (or the model failed to load)"}})
 @router.get("/v2/health/ready", response_model=Ready, include_in_schema=False)
-async def readyz(runtime: RuntimeDep, settings: SettingsDep) -> Response:
-    body = Ready(ready=runtime.ready, error=runtime.error)
-    if runtime.ready:
+async def readyz(runtime: RuntimeDep, settings: SettingsDep, store: StoreDep) -> Response:
+    problem = None
+    if runtime.ready:  # and the store can take a new scene
+        problem = await anyio.to_thread.run_sync(store.write_problem, settings.min_free_store_bytes)
+    body = Ready(ready=runtime.ready and problem is None, error=runtime.error or problem)
+    if body.ready:
         return JSONResponse(body.model_dump())
     return JSONResponse(body.model_dump(), status_code=503, headers={"Retry-After": str(settings.retry_after_s)})
 
@@ -32,15 +36,15 @@ async def readyz(runtime: RuntimeDep, settings: SettingsDep) -> Response:
 @router.get("/metrics", summary="Prometheus metrics (text exposition format)",
             response_class=Response, responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}})
 async def metrics(request: Request, metrics: MetricsDep, store: StoreDep) -> Response:
-    gates = [request.app.state.inference_gate, request.app.state.render_gate]
+    state = request.app.state
+    gates = [state.inference_gate, state.render_gate, state.heavy_render_gate, state.refine_gate]
     data, content_type = metrics.render(store, gates)
     return Response(data, media_type=content_type)
 
 
 @router.get("/v1/info", response_model=Info, summary="Model name, version, sha256 and the service settings")
 async def info(runtime: RuntimeDep, settings: SettingsDep) -> Info:
-    model = json_safe(runtime.metadata)
-    model.setdefault("path", str(runtime.model_path))
+    model = {k: v for k, v in json_safe(runtime.metadata).items() if k != "path"}  # no server paths
     model["load_seconds"] = runtime.load_seconds
     model["warmup_seconds"] = runtime.warmup_seconds
     return Info(service="omnisplat", service_version=__version__, model=model, ready=runtime.ready,

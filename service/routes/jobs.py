@@ -22,14 +22,11 @@ from .. import jobs as work
 from ..deps import SceneId, StoreDep
 from ..errors import Busy, NotFound
 from ..limits import WorkGate
+from ..references import ReferencesMissing, has_references
 from ..schemas import error_responses
 from ..store import SCENE_ID_PATTERN
 
 router = APIRouter(tags=["jobs"])
-
-#: refinement jobs allowed to wait for the (shared) inference capacity
-REFINE_QUEUE = 4
-
 
 class RefineRequest(BaseModel):
     """Options of the +opt refinement (colour/opacity on the reference views, geometry fixed)."""
@@ -63,22 +60,11 @@ class JobStatus(BaseModel):
 
 
 def _registry(request: Request) -> work.JobRegistry:
-    state = request.app.state
-    reg = getattr(state, "jobs", None)
-    if reg is None:
-        reg = state.jobs = work.JobRegistry()
-    return reg
+    return request.app.state.jobs
 
 
 def _gate(request: Request) -> WorkGate:
-    state = request.app.state
-    gate = getattr(state, "refine_gate", None)
-    if gate is None:
-        s = state.settings
-        gate = WorkGate("refine", s.inference_concurrency, REFINE_QUEUE, s.retry_after_s)
-        gate.limiter = state.inference_gate.limiter  # share the CPU budget with inference
-        state.refine_gate = gate
-    return gate
+    return request.app.state.refine_gate
 
 
 @router.post("/v1/scenes/{scene_id}/refine", status_code=202, response_model=JobStatus,
@@ -89,8 +75,8 @@ async def refine_scene(scene_id: SceneId, request: Request, response: Response, 
     params = (body or RefineRequest()).model_dump()
     if not store.exists(scene_id):
         raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
-    if not work.has_references(store, scene_id):
-        raise work.ReferencesMissing(f"scene {scene_id} has no stored reference images; it cannot be refined")
+    if not has_references(store, scene_id):
+        raise ReferencesMissing(f"scene {scene_id} has no stored reference images; it cannot be refined")
     model_sha = str((store.meta(scene_id).get("model") or {}).get("sha256") or "")
     job_id = work.result_id_for(scene_id, params, model_sha)
     registry = _registry(request)
@@ -101,7 +87,8 @@ async def refine_scene(scene_id: SceneId, request: Request, response: Response, 
     existing = registry.get(job_id)
     if existing is None or existing.status == "failed":
         gate = _gate(request)
-        if gate.admitted >= gate.concurrency + gate.queue:
+        if gate.full:
+            gate.reject()
             raise Busy(f"refine queue is full; retry in {gate.retry_after} s", retry_after=gate.retry_after)
     job, created = registry.submit(job_id, scene_id, params)
     if created:

@@ -8,13 +8,22 @@ from typing import Annotated
 
 import anyio.to_thread
 from fastapi import APIRouter, File, Form, Query, Response, UploadFile
-from fastapi.responses import FileResponse
+from fastapi.responses import StreamingResponse
 
 from .. import scenes as work
-from ..deps import InferenceGateDep, MetricsDep, ReadyRuntimeDep, RenderGateDep, SceneId, SettingsDep, StoreDep
+from ..deps import (
+    HeavyRenderGateDep,
+    InferenceGateDep,
+    MetricsDep,
+    ReadyRuntimeDep,
+    RenderGateDep,
+    SceneId,
+    SettingsDep,
+    StoreDep,
+)
 from ..errors import NotFound
 from ..images import MEDIA_TYPES
-from ..inputs import Compositing, ImageFormat, Projection, check_render_query, parse_options, parse_poses
+from ..inputs import Compositing, ImageFormat, Projection, check_render_query, check_sweep_range, parse_options, parse_poses
 from ..schemas import SceneCreated, SceneMeta, error_responses
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
@@ -38,7 +47,7 @@ def _require_scene(store, scene_id: str) -> None:
 
 @router.post(
     "", status_code=201, response_model=SceneCreated, summary="Reconstruct a scene from two ERP panoramas",
-    responses=error_responses(400, 413, 422, 503),
+    responses=error_responses(400, 408, 413, 422, 503, 507),
 )
 async def create_scene(
     response: Response,
@@ -58,7 +67,8 @@ async def create_scene(
                                                           'every Gaussian')] = None,
 ) -> SceneCreated:
     parsed_poses = parse_poses(poses)
-    parsed_options = parse_options(options, runtime.accepted_options)
+    parsed_options, pipeline_options = parse_options(options)
+    check_sweep_range(parsed_poses, parsed_options)
     data_a, data_b = await image_a.read(), await image_b.read()
     limits = work.UploadLimits(settings.max_image_pixels, settings.min_image_height)
     await anyio.to_thread.run_sync(work.precheck_uploads, data_a, data_b, limits)
@@ -69,8 +79,9 @@ async def create_scene(
         meta = store.meta(scene_id)
         return SceneCreated(id=scene_id, num_gaussians=meta["num_gaussians"], timings=meta.get("timings", {}),
                             links=work.links(scene_id), cached=True)
+    await anyio.to_thread.run_sync(work.check_free_space, store, settings.min_free_store_bytes)
     meta, timings = await gate.run(work.create_scene, runtime, store, scene_id, data_a, data_b,
-                                   parsed_poses, parsed_options, limits)
+                                   parsed_poses, parsed_options, pipeline_options, limits)
     metrics.observe_stages(timings)
     metrics.scenes_created.inc()
     return SceneCreated(id=scene_id, num_gaussians=meta["num_gaussians"], timings=timings,
@@ -83,13 +94,14 @@ _IMAGE_CONTENT = {t: {"schema": {"type": "string", "format": "binary"}} for t in
 @router.get(
     "/{scene_id}/render", response_class=Response, summary="Render a novel view",
     responses={200: {"content": _IMAGE_CONTENT, "description": "the rendered image"},
-               **error_responses(404, 422, 503)},
+               **error_responses(404, 413, 422, 503)},
 )
 async def render_scene(
     scene_id: SceneId,
     store: StoreDep,
     settings: SettingsDep,
     gate: RenderGateDep,
+    heavy_gate: HeavyRenderGateDep,
     metrics: MetricsDep,
     c2w: Annotated[str, Query(description="camera-to-world, 16 (4x4) or 12 (3x4) comma-separated numbers, "
                                           "row-major, OpenCV (x right, y down, z forward)",
@@ -105,6 +117,9 @@ async def render_scene(
                                max_width=settings.max_render_width, max_pixels=settings.max_render_pixels,
                                compositing=compositing)
     _require_scene(store, scene_id)
+    cost = work.check_render_cost(store, scene_id, query, settings.max_render_cost)
+    if cost > settings.heavy_render_cost:  # big renders queue with reconstructions: their peaks never add
+        gate = heavy_gate
     data, timings = await gate.run(work.render_scene, store, scene_id, query)
     metrics.observe_stages({f"render_{k}": v for k, v in timings.items()})
     etag = hashlib.sha256(f"{scene_id}|{query.c2w.round(9).tolist()}|{projection}|{width}|{height}|"
@@ -114,17 +129,30 @@ async def render_scene(
                              "Server-Timing": ", ".join(f"{k};dur={v * 1000:.1f}" for k, v in timings.items())})
 
 
+_PLY_CHUNK = 1 << 20
+
+
 @router.get(
-    "/{scene_id}/gaussians.ply", response_class=FileResponse, summary="The Gaussians as a 3DGS PLY",
+    "/{scene_id}/gaussians.ply", response_class=StreamingResponse, summary="The Gaussians as a 3DGS PLY",
     responses={200: {"content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
                      "description": "binary little-endian INRIA 3DGS PLY in the input world frame"},
-               **error_responses(404, 422, 503)},
+               **error_responses(404, 422, 503, 507)},
 )
-async def scene_ply(scene_id: SceneId, store: StoreDep, gate: RenderGateDep) -> FileResponse:
+async def scene_ply(scene_id: SceneId, store: StoreDep, gate: RenderGateDep) -> StreamingResponse:
     _require_scene(store, scene_id)
-    path = await gate.run(work.ply_path, store, scene_id)
-    return FileResponse(path, media_type="application/octet-stream", filename=f"{scene_id}.ply",
-                        headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{scene_id}-ply"'})
+    fh, size = await gate.run(work.open_ply, store, scene_id)
+
+    async def chunks():
+        try:  # from the open file: a deletion meanwhile does not cut the download short
+            while block := await anyio.to_thread.run_sync(fh.read, _PLY_CHUNK):
+                yield block
+        finally:
+            fh.close()
+
+    return StreamingResponse(chunks(), media_type="application/octet-stream",
+                             headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{scene_id}-ply"',
+                                      "Content-Length": str(size),
+                                      "Content-Disposition": f'attachment; filename="{scene_id}.ply"'})
 
 
 @router.get("/{scene_id}", response_model=SceneMeta, summary="Scene metadata",
@@ -136,7 +164,7 @@ async def scene_meta(scene_id: SceneId, store: StoreDep) -> SceneMeta:
 
 
 @router.delete("/{scene_id}", status_code=204, response_class=Response, summary="Delete a scene",
-               responses=error_responses(404, 422))
+               responses=error_responses(404, 422, 507))
 async def delete_scene(scene_id: SceneId, store: StoreDep) -> Response:
     if not await anyio.to_thread.run_sync(store.delete, scene_id):
         raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")

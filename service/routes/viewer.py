@@ -16,12 +16,14 @@ import html
 import json
 import os
 from pathlib import Path
+from typing import Annotated
 
 import anyio.to_thread
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Query, Response
 from fastapi.responses import FileResponse, HTMLResponse
 
-from ..deps import SceneId, StoreDep
+from ..access import KEY_COOKIE
+from ..deps import SceneId, SettingsDep, StoreDep
 from ..errors import NotFound, ServiceError
 from ..schemas import error_responses
 
@@ -96,13 +98,20 @@ def _page(scene_id: str, meta: dict) -> str:
     responses={200: {"content": {"text/html": {}}, "description": "the viewer page"},
                **error_responses(404, 422, 503)},
 )
-async def viewer_page(scene_id: SceneId, store: StoreDep) -> HTMLResponse:
+async def viewer_page(scene_id: SceneId, store: StoreDep, settings: SettingsDep,
+                      key: Annotated[str | None, Query(description="the API key, when the service has one: a "
+                                                                     "browser cannot send a header, so the page "
+                                                                     "keeps it in a same-site cookie")] = None,
+                      ) -> HTMLResponse:
     if not store.exists(scene_id):
         raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
     if missing_assets():
         raise _viewer_unavailable()
     meta = await anyio.to_thread.run_sync(store.meta, scene_id)
-    return HTMLResponse(_page(scene_id, meta), headers={**ISOLATION_HEADERS, "Cache-Control": "no-cache"})
+    page = HTMLResponse(_page(scene_id, meta), headers={**ISOLATION_HEADERS, "Cache-Control": "no-cache"})
+    if key and settings.api_key:  # the guard already checked it
+        page.set_cookie(KEY_COOKIE, key, httponly=True, samesite="strict", path="/")
+    return page
 
 
 @router.get("/viewer-assets/{name}", include_in_schema=False)

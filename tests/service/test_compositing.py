@@ -10,9 +10,8 @@ import pytest
 from PIL import Image
 
 from rasterizer.ply import read_ply
-from rasterizer.render import render
+from rasterizer.render import render, to_uint8
 from service import cli
-from service.images import to_uint8_safe as to_uint8
 
 from ._support import IDENTITY, LiveServer, make_settings, panorama, post_scene, small_model
 

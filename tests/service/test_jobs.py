@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from service.jobs import JobRegistry, result_id_for, store_references
+from service.jobs import JobRegistry, result_id_for
+from service.references import store_references
 from tests.service.test_service_api import LiveServer, make_settings, model_path, panorama, post_scene  # noqa: F401
 
 ZERO_ID = "0" * 32

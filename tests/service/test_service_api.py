@@ -64,6 +64,7 @@ class LiveServer:
         import uvicorn
 
         from service.app import create_app
+        from service.server import server_config
 
         self.settings = settings
         self.app = create_app(settings)
@@ -71,7 +72,7 @@ class LiveServer:
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self.sock.bind(("127.0.0.1", 0))
         self.url = f"http://127.0.0.1:{self.sock.getsockname()[1]}"
-        self.server = uvicorn.Server(uvicorn.Config(self.app, log_level="warning", timeout_keep_alive=5))
+        self.server = uvicorn.Server(server_config(self.app, settings, log_level="warning", timeout_keep_alive=5))
         self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
 
     def __enter__(self) -> "LiveServer":
@@ -446,12 +447,14 @@ def test_not_ready_answers_503(model_path, tmp_path):
     import anyio
 
     from service.app import create_app
+    from service.limits import WorkGate
 
     app = create_app(make_settings(model_path, tmp_path / "store"))
 
     async def main():
         transport = httpx.ASGITransport(app=app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+        async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1") as c:
+            app.state.inference_gate = WorkGate("inference", 1, 1, 5)  # the lifespan did not run
             app.state.runtime = type("R", (), {"ready": False, "error": None})()
             app.state.store = None
             r = await c.post("/v1/scenes", files={"image_a": ("a", GOOD), "image_b": ("b", GOOD_B)},

@@ -9,15 +9,18 @@ import anyio
 import httpx
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from PIL import Image
 from starlette.applications import Starlette
 from starlette.requests import Request
 from starlette.responses import JSONResponse
 from starlette.routing import Route
 
+from rasterizer.render import to_uint8
 from service.errors import BadInput, Busy, InvalidImage, PayloadTooLarge
-from service.images import check_header, decode_rgb, encode, to_uint8_safe
-from service.inputs import check_render_query, encoder_options, parse_c2w_query, parse_options, parse_poses
+from service.images import check_header, decode_rgb, encode
+from service.inputs import check_render_query, parse_c2w_query, parse_options, parse_poses
 from service.limits import BodySizeLimit, WorkGate
 
 LIMITS = {"max_pixels": 4096 * 2048, "min_height": 32}
@@ -79,7 +82,7 @@ def test_truncated_png():
 def test_nan_never_reaches_pixels():
     colour = np.full((4, 8, 3), np.nan, np.float32)
     colour[0, 0] = [np.inf, -np.inf, 2.0]
-    out = to_uint8_safe(colour)
+    out = to_uint8(colour)
     assert out.dtype == np.uint8 and out[1, 1].tolist() == [0, 0, 0] and out[0, 0].tolist() == [255, 0, 255]
     assert Image.open(io.BytesIO(encode(out, "png"))).size == (8, 4)
     assert Image.open(io.BytesIO(encode(out, "jpeg"))).format == "JPEG"
@@ -131,8 +134,9 @@ def test_nan_pose_in_matrix():
 
 
 def test_options():
-    assert parse_options(None, None) == {}
-    assert parse_options('{"near": 0.2, "far": 9}', {"near", "far"}) == {"near": 0.2, "far": 9}
+    assert parse_options(None, None)[0] == {}
+    raw, parsed = parse_options('{"near": 0.2, "far": 9}', {"near", "far"})
+    assert raw == {"near": 0.2, "far": 9} and (parsed.near, parsed.far) == (0.2, 9)
     for bad in ['{"near": -1}', '{"near": 5, "far": 1}', '[1]', '{"x": [1]}', '{"near": "a"}',
                 '{"min_opacity": "abc"}', '{"min_opacity": 1.5}', '{"near": true}']:
         with pytest.raises(BadInput):
@@ -140,17 +144,6 @@ def test_options():
     with pytest.raises(BadInput) as info:
         parse_options('{"planes": 3}', {"near", "far"})
     assert "planes" in info.value.message
-
-
-def test_encoder_options_from_signature():
-    def rec(erp_a, erp_b, c2w_a, c2w_b, *, near=None, far=None):
-        pass
-
-    def rec_kw(erp_a, erp_b, c2w_a, c2w_b, *, near=None, **kw):
-        pass
-
-    assert encoder_options(rec) == {"near", "far"}
-    assert encoder_options(rec_kw) is None
 
 
 def test_c2w_query():
@@ -244,3 +237,108 @@ def test_work_gate_rejects_past_queue():
         assert gate.admitted == 0 and gate.rejected == 1
 
     anyio.run(main)
+
+
+# -- hardening regressions (issue 14) --------------------------------------------------------------
+
+HUGE = "1" + "0" * 399
+
+
+@pytest.mark.parametrize("options", [f'{{"near": {HUGE}}}', f'{{"far": {HUGE}}}', f'{{"min_opacity": {HUGE}}}',
+                                     f'{{"adaptive_range": {{"margin": {HUGE}}}}}',
+                                     f'{{"compaction": {{"max_count": {HUGE}}}}}'])
+def test_huge_json_integers_are_422_before_any_work(options):
+    with pytest.raises(BadInput) as info:
+        parse_options(options, None)
+    assert info.value.status == 422 and "digits" in info.value.message
+
+
+def test_huge_integer_in_a_pose_is_422():
+    a = np.eye(4).tolist()
+    text = json.dumps({"c2w": [a, a]}).replace("0.0", HUGE, 1)
+    with pytest.raises(BadInput) as info:
+        parse_poses(text)
+    assert "digits" in info.value.message
+
+
+@pytest.mark.parametrize("t0, base", [(0.0, 1e20), (1e7, 0.5), (1e308, 1.0), (0.0, 1e-5), (1e5, 0.5)])
+def test_poses_float32_cannot_resolve_are_422(t0, base):
+    a, b = np.eye(4), np.eye(4)
+    a[0, 3], b[0, 3] = t0, t0 + base
+    with pytest.raises(BadInput) as info:
+        parse_poses(json.dumps({"c2w": [a.tolist(), b.tolist()]}))
+    assert "inf" not in info.value.message.lower()
+
+
+def test_min_baseline_is_the_encoders():
+    from rasterizer.sweep import MIN_BASELINE
+
+    a, b = np.eye(4), np.eye(4)
+    b[0, 3] = MIN_BASELINE
+    parse_poses(json.dumps({"c2w": [a.tolist(), b.tolist()]}))  # the encoder accepts it too
+    b[0, 3] = MIN_BASELINE * 0.99
+    with pytest.raises(BadInput):
+        parse_poses(json.dumps({"c2w": [a.tolist(), b.tolist()]}))
+
+
+@pytest.mark.parametrize("options", ['{"near": 1e-300}', '{"far": 1e300}', '{"near": 1e-300, "far": 1e300}'])
+def test_sweep_range_out_of_scale_is_422(options):
+    from service.inputs import check_sweep_range
+
+    poses = parse_poses(_poses(I4, _moved(0.5)))
+    raw, _ = parse_options(options, None)
+    with pytest.raises(BadInput) as info:
+        check_sweep_range(poses, raw)
+    assert "baseline" in info.value.message
+
+
+@given(st.floats(min_value=-1e4, max_value=1e4), st.floats(min_value=1e-3, max_value=1e3))
+@settings(max_examples=60, deadline=None)
+def test_accepted_poses_keep_float32_precision(t0, base):
+    """Any pose pair the API accepts has float32 positions resolving 1/1000 of the baseline."""
+    a, b = np.eye(4), np.eye(4)
+    a[0, 3], b[0, 3] = t0, t0 + base
+    try:
+        parse_poses(json.dumps({"c2w": [a.tolist(), b.tolist()]}))
+    except BadInput:
+        return
+    reach = max(abs(t0), abs(t0 + base)) + 20 * base
+    assert np.spacing(np.float32(reach)) <= 1e-3 * base
+
+
+def _encoded(arr, fmt):
+    buf = io.BytesIO()
+    Image.fromarray(arr).save(buf, format=fmt)
+    return buf.getvalue()
+
+
+def test_16bit_greyscale_png_is_scaled_by_its_range():
+    grey = (np.linspace(0, 65535, 64 * 128).reshape(64, 128)).astype(np.uint16)
+    rgb, _ = decode_rgb(_encoded(grey, "PNG"), "image_a", **LIMITS)
+    assert rgb.shape == (64, 128, 3)
+    expected = np.rint(grey / 65535.0 * 255).astype(np.uint8)
+    assert np.abs(rgb[..., 0].astype(int) - expected).max() <= 1
+    assert 100 < rgb.mean() < 155  # not the 99.8 % white of a clipping conversion
+
+
+def test_float_tiff_in_unit_range_is_scaled_and_out_of_range_refused():
+    f = np.linspace(0, 1, 64 * 128, dtype=np.float32).reshape(64, 128)
+    rgb, _ = decode_rgb(_encoded(f, "TIFF"), "image_a", **LIMITS)
+    assert np.abs(rgb[..., 1].astype(int) - np.rint(f * 255)).max() <= 1 and rgb.max() == 255
+    with pytest.raises(InvalidImage) as info:
+        decode_rgb(_encoded(f * 300, "TIFF"), "image_a", **LIMITS)
+    assert "[0, 1]" in info.value.message
+
+
+def test_bomb_message_quotes_our_limit():
+    from PIL import Image as PILImage
+
+    big = _encoded(np.zeros((64, 128), np.uint8), "PNG")
+    old = PILImage.MAX_IMAGE_PIXELS
+    PILImage.MAX_IMAGE_PIXELS = 100  # Pillow's own guard fires first (2x its limit)
+    try:
+        with pytest.raises(PayloadTooLarge) as info:
+            check_header(big, "image_a", max_pixels=5000, min_height=2)
+    finally:
+        PILImage.MAX_IMAGE_PIXELS = old
+    assert "5000" in info.value.message and "100" not in info.value.message.replace("5000", "")

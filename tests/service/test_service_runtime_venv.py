@@ -4,6 +4,7 @@ install step (``pip install .``: runtime dependencies, no torch) serves a prebui
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import shutil
@@ -14,6 +15,7 @@ import time
 from pathlib import Path
 
 import httpx
+import plyfile
 import pytest
 
 from tests.service.test_service_api import IDENTITY, POSES, panorama, small_model
@@ -68,13 +70,33 @@ def test_runtime_only_venv_serves_prebuilt_model(tmp_path_factory, tmp_path):
             assert time.monotonic() < deadline and server.poll() is None
             time.sleep(0.2)
         with httpx.Client(base_url=url, timeout=120) as c:
+            # every endpoint the runtime serves, +opt refinement (scipy) included
             r = c.post("/v1/scenes", files={"image_a": ("a.png", panorama(seed=1)),
                                             "image_b": ("b.png", panorama(seed=2))}, data={"poses": POSES})
             assert r.status_code == 201, r.text
-            sid = r.json()["id"]
-            assert c.get(f"/v1/scenes/{sid}/render", params={"c2w": IDENTITY, "width": 64}).status_code == 200
-            info = c.get("/v1/info").json()
-            assert info["model"]["path"] == str(model)
+            sid, n = r.json()["id"], r.json()["num_gaussians"]
+            render = c.get(f"/v1/scenes/{sid}/render", params={"c2w": IDENTITY, "width": 64})
+            assert render.status_code == 200 and render.headers["content-type"] == "image/png"
+            ply = c.get(f"/v1/scenes/{sid}/gaussians.ply")
+            assert ply.status_code == 200 and plyfile.PlyData.read(io.BytesIO(ply.content))["vertex"].count == n
+            assert c.get(f"/v1/scenes/{sid}").json()["num_gaussians"] == n
+            job = c.post(f"/v1/scenes/{sid}/refine", json={"iterations": 3, "height": 32})
+            assert job.status_code == 202, job.text
+            while (status := c.get(job.headers["location"]).json())["status"] in ("queued", "running"):
+                assert time.monotonic() < deadline + 300
+                time.sleep(0.2)
+            assert status["status"] == "done", status
+            refined = status["scene_id"]
+            assert c.get(f"/v1/scenes/{refined}").json()["parent"] == sid
+            assert c.get(f"/v1/scenes/{refined}/render", params={"c2w": IDENTITY, "width": 64}).status_code == 200
+            for gone in (refined, sid):
+                assert c.delete(f"/v1/scenes/{gone}").status_code == 204
+                assert c.get(f"/v1/scenes/{gone}").status_code == 404
+            assert c.get("/readyz").json()["ready"] is True
+            assert "omnisplat_scenes_created_total" in c.get("/metrics").text
+            info = c.get("/v1/info")
+            assert info.json()["model"]["sha256"] and "path" not in info.json()["model"]
+            assert str(tmp_path) not in info.text  # no server paths
             modules = subprocess.run([str(py), "-c", "import json, sys, service.app, service.cli; "
                                       "print(json.dumps([service.app.__file__, 'torch' in sys.modules]))"],
                                      cwd=tmp_path, capture_output=True, text=True, env=env, timeout=60)

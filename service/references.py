@@ -1,0 +1,57 @@
+"""The reference images a scene keeps: what +opt refines on and what edits re-select in.
+
+Artifact ``references.npz``: uint8 ERP arrays ``image_a``, ``image_b`` (H x 2H x 3, at the
+encoder's input size, what it was fed); the poses are the scene metadata's ``poses.c2w`` (OpenCV).
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+
+from rasterizer.render import to_uint8
+
+from .errors import ServiceError
+from .store import SceneStore
+
+#: the reference images a scene keeps for refinement: uint8 ERP arrays ``image_a``, ``image_b``
+#: at the encoder's input size (what it was fed)
+REFERENCES_ARTIFACT = "references.npz"
+
+
+class ReferencesMissing(ServiceError):
+    status = 409
+    code = "references_missing"
+
+
+def references_bytes(erp_a: np.ndarray, erp_b: np.ndarray) -> bytes:
+    """The ``references.npz`` artifact of two ERP images (uint8, or float in [0, 1])."""
+    def u8(img):
+        a = np.asarray(img)
+        return a if a.dtype == np.uint8 else to_uint8(a)
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, image_a=u8(erp_a), image_b=u8(erp_b))
+    return buf.getvalue()
+
+
+def store_references(store: SceneStore, scene_id: str, erp_a: np.ndarray, erp_b: np.ndarray) -> None:
+    """Attach the two reference ERP images to an already stored scene (atomic)."""
+    store.put_artifact(scene_id, REFERENCES_ARTIFACT, references_bytes(erp_a, erp_b))
+
+
+def has_references(store: SceneStore, scene_id: str) -> bool:
+    return store.artifact(scene_id, REFERENCES_ARTIFACT) is not None
+
+
+def load_references(store: SceneStore, scene_id: str) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """([erp_a, erp_b] uint8, [c2w_a, c2w_b] 4x4 OpenCV) of a stored scene; 409 when not kept."""
+    path = store.artifact(scene_id, REFERENCES_ARTIFACT)
+    if path is None:
+        raise ReferencesMissing(f"scene {scene_id} has no stored reference images ({REFERENCES_ARTIFACT}); "
+                                "it cannot be refined")
+    with np.load(path, allow_pickle=False) as z:
+        images = [z["image_a"], z["image_b"]]
+    c2w = store.meta(scene_id)["poses"]["c2w"]
+    return images, [np.asarray(m, dtype=np.float64) for m in c2w]
