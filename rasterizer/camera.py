@@ -110,14 +110,6 @@ class Camera:
                 out[:, i, k] = j0 * rcw[0, k] + j1 * rcw[1, k] + j2 * rcw[2, k]
         return out
 
-    def visible_depth(self, p_cam: np.ndarray) -> np.ndarray:
-        """(N,) bool: not culled by the near limit (range, and z for pinhole)."""
-        r = np.sqrt(np.einsum("ij,ij->i", p_cam, p_cam))
-        ok = r >= self.near
-        if self.kind == "perspective":
-            ok &= p_cam[:, 2] >= self.near
-        return ok
-
     # -- column wrap ----------------------------------------------------------
     @property
     def column_period(self) -> int | None:

@@ -447,7 +447,7 @@ def _project_cols(pose: SharedPose, camera: Camera) -> _Cols:
     if camera.kind in ("yin", "yang"):
         return _project_grid(pose, camera)
     ranges = pose.ranges
-    keep = ranges >= camera.near  # = camera.visible_depth(p_cam), without recomputing the ranges
+    keep = ranges >= camera.near  # the near cull on range (and z below for pinhole cameras)
     if camera.kind == "perspective":
         keep &= pose.z >= camera.near
     idx = np.flatnonzero(keep)
