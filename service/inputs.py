@@ -19,6 +19,7 @@ from rasterizer.sweep import MIN_BASELINE
 
 from .errors import BadInput
 from .pipeline import STEP_OPTION_KEYS, PipelineOptions
+from .poses import POSE_OPTION_KEYS, PoseOptions
 
 Projection = Literal["erp", "perspective", "yin", "yang"]
 ImageFormat = Literal["png", "jpeg"]
@@ -46,11 +47,18 @@ class Poses:
                 "c2w": [self.c2w_a.tolist(), self.c2w_b.tolist()]}
 
 
-def parse_poses(text: str | bytes) -> Poses:
-    """``{"convention": "opencv"|"opengl", "c2w": [A, B]}`` with 4x4 or 3x4 rigid matrices."""
+def parse_poses(text: str | bytes | None) -> Poses | None:
+    """``{"convention": "opencv"|"opengl", "c2w": [A, B]}`` with 4x4 or 3x4 rigid matrices.
+
+    None for no poses (absent, empty, or ``"c2w": null``): the service estimates them.
+    """
+    if text is None or not text.strip():
+        return None
     obj = _json_object(text, "poses")
     if not isinstance(obj, dict):
         raise BadInput('poses: expected a JSON object {"convention": ..., "c2w": [A, B]}', code="invalid_poses")
+    if "c2w" in obj and obj["c2w"] is None:
+        return None
     convention = obj.get("convention", "opencv")
     if convention not in ("opencv", "opengl"):
         raise BadInput(f"poses.convention: expected 'opencv' or 'opengl', got {str(convention)[:40]!r}",
@@ -91,13 +99,13 @@ def parse_options(text: str | bytes | None, accepted: set[str] | None) -> dict[s
     if len(obj) > 32:
         raise BadInput("options: too many keys", code="invalid_options")
     for key, value in obj.items():
-        if key in STEP_OPTION_KEYS:
+        if key in STEP_OPTION_KEYS or key in POSE_OPTION_KEYS:
             continue
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
                                   or not math.isfinite(value)):
             raise BadInput(f"options.{key}: expected a finite number or null", code="invalid_options")
     if accepted is not None:
-        unknown = sorted(set(obj) - accepted - set(STEP_OPTION_KEYS))
+        unknown = sorted(set(obj) - accepted - set(STEP_OPTION_KEYS) - set(POSE_OPTION_KEYS))
         if unknown:
             raise BadInput(f"options: unknown option(s) {unknown}; accepted: {sorted(accepted)}",
                            code="invalid_options")
@@ -110,8 +118,10 @@ def parse_options(text: str | bytes | None, accepted: set[str] | None) -> dict[s
         raise BadInput("options.min_opacity: expected a number in [0, 1)", code="invalid_options")
     if obj.get("near") is not None and obj.get("far") is not None and not obj["near"] < obj["far"]:
         raise BadInput("options: near must be smaller than far", code="invalid_options")
+    rest = dict(obj)
+    PoseOptions.pop_from(rest)
     try:
-        PipelineOptions.from_dict(obj)
+        PipelineOptions.from_dict(rest)
     except (TypeError, ValueError) as exc:
         raise BadInput(f"options: {exc}", code="invalid_options") from None
     return obj

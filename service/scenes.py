@@ -19,6 +19,7 @@ from .images import check_header, decode_rgb, encode, to_uint8_safe
 from .inputs import Poses, RenderQuery
 from .jobs import REFERENCES_ARTIFACT, references_bytes
 from .pipeline import PipelineOptions, build_scene
+from .poses import PoseOptions, poses_for_scene
 from .runtime import ModelRuntime
 from .store import SceneStore, content_id
 
@@ -28,9 +29,10 @@ def links(scene_id: str) -> dict[str, str]:
     return {"self": base, "render": f"{base}/render", "ply": f"{base}/gaussians.ply"}
 
 
-def scene_id_for(model_sha256: str, image_a: bytes, image_b: bytes, poses: Poses, options: dict) -> str:
-    """Content hash: same image bytes + poses + options + model file give the same id."""
-    pose_key = json.dumps([np.round(poses.c2w_a, 9).tolist(), np.round(poses.c2w_b, 9).tolist()])
+def scene_id_for(model_sha256: str, image_a: bytes, image_b: bytes, poses: Poses | None, options: dict) -> str:
+    """Content hash: same image bytes + poses (or "estimated") + options + model file give the same id."""
+    pose_key = "estimated" if poses is None else \
+        json.dumps([np.round(poses.c2w_a, 9).tolist(), np.round(poses.c2w_b, 9).tolist()])
     return content_id("scene/v1", model_sha256, hashlib.sha256(image_a).hexdigest(),
                       hashlib.sha256(image_b).hexdigest(), pose_key, json.dumps(options, sort_keys=True))
 
@@ -58,7 +60,7 @@ def _at_model_size(erp: np.ndarray, runtime: ModelRuntime) -> np.ndarray:
 
 
 def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_a: bytes, image_b: bytes,
-                 poses: Poses, options: dict, limits: UploadLimits) -> tuple[dict, dict[str, float]]:
+                 poses: Poses | None, options: dict, limits: UploadLimits) -> tuple[dict, dict[str, float]]:
     """Decode, reconstruct and store; returns (scene metadata, this run's stage timings)."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -66,12 +68,17 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     erp_b, head_b = decode_rgb(image_b, "image_b", max_pixels=limits.max_pixels, min_height=limits.min_height)
     timings["decode"] = time.perf_counter() - t0
 
+    rest = dict(options)
+    pose_options = PoseOptions.pop_from(rest)
     try:
-        pipeline_options = PipelineOptions.from_dict(options)
+        pipeline_options = PipelineOptions.from_dict(rest)
     except ValueError as exc:
         raise BadInput(f"options: {exc}", code="invalid_options") from None
     t0 = time.perf_counter()
-    build = build_scene(runtime.encoder, erp_a, erp_b, poses.c2w_a, poses.c2w_b, pipeline_options)
+    c2w_a, c2w_b, poses_json = poses_for_scene(erp_a, erp_b, poses, pose_options)
+    timings["poses"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    build = build_scene(runtime.encoder, erp_a, erp_b, c2w_a, c2w_b, pipeline_options)
     timings.update(build.timings)
     timings.setdefault("reconstruct", time.perf_counter() - t0)
     gaussians = build.gaussians
@@ -80,7 +87,7 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
         "model": {k: runtime.metadata.get(k) for k in ("name", "version", "sha256")},
         "inputs": {"image_a": {**head_a.describe(), "sha256": hashlib.sha256(image_a).hexdigest()},
                    "image_b": {**head_b.describe(), "sha256": hashlib.sha256(image_b).hexdigest()}},
-        "poses": poses.as_json(),
+        "poses": poses_json,
         "options": options,
         "info": build.info,
         "compaction": build.info["compaction"],

@@ -39,8 +39,6 @@ async def create_scene(
     response: Response,
     image_a: Annotated[UploadFile, File(description="first ERP panorama (PNG/JPEG/WebP/TIFF/BMP, width = 2 x height)")],
     image_b: Annotated[UploadFile, File(description="second ERP panorama (any 2:1 size)")],
-    poses: Annotated[str, Form(description='JSON {"convention": "opencv"|"opengl", "c2w": [A, B]}, '
-                                           "each camera-to-world 4x4 or 3x4", examples=[_POSES_EXAMPLE])],
     settings: SettingsDep,
     store: StoreDep,
     runtime: ReadyRuntimeDep,
@@ -50,7 +48,13 @@ async def create_scene(
                                                           '"min_opacity": 0.05, "compaction": {"resolve_overlap": "split", '
                                                           '"merge_duplicates": true, "max_count": null}, '
                                                           '"adaptive_range": false}; "compaction": false keeps '
-                                                          'every Gaussian')] = None,
+                                                          'every Gaussian; without poses: "camera_height" or '
+                                                          '"baseline" (metres) sets the scale; "refine_poses": true '
+                                                          'refines given poses against the images')] = None,
+    poses: Annotated[str | None, Form(description='JSON {"convention": "opencv"|"opengl", "c2w": [A, B]}, '
+                                                  "each camera-to-world 4x4 or 3x4; leave out (or c2w null) to "
+                                                  "estimate them from the images (world = camera A)",
+                                      examples=[_POSES_EXAMPLE])] = None,
 ) -> SceneCreated:
     parsed_poses = parse_poses(poses)
     parsed_options = parse_options(options, runtime.accepted_options)
