@@ -25,7 +25,8 @@ import numpy as np
 from bench import metrics
 from bench.baselines import copy_nearest
 from bench.quality import resize_erp_box
-from rasterizer.geometry import erp_lat_lon
+from rasterizer.geometry import grid_directions
+from rasterizer.relative_pose import floor_scale
 from rasterizer.render import render
 from rasterizer.scene_folder import Frame, SceneFolder, load_scene
 
@@ -37,14 +38,13 @@ def _log(msg: str) -> None:
 
 
 def camera_height(scene: SceneFolder, frame: Frame) -> float:
-    """Metres of ``frame``'s camera above the floor: from its depth map's nadir when it has one
-    (median range straight down, below -80 deg), else its world z (z-up scenes with the floor at z = 0)."""
+    """Metres of ``frame``'s camera above the floor: from its depth map when it has one (the floor
+    rule of :func:`rasterizer.relative_pose.floor_scale` on every 4th pixel), else its world z
+    (z-up scenes with the floor at z = 0, as zind)."""
     depth = frame.depth()
     if depth is not None:
-        lat, _ = erp_lat_lon(*depth.shape)
-        rows = np.broadcast_to(lat < np.radians(-80), depth.shape)
-        vals = depth[rows] * np.sin(-np.broadcast_to(lat, depth.shape)[rows])
-        return float(np.median(vals[vals > 0]))
+        pts = (grid_directions("erp", *depth.shape) * depth[..., None])[::4, ::4].reshape(-1, 3)
+        return 1.0 / floor_scale(pts[depth[::4, ::4].reshape(-1) > 0], 1.0)[0]
     return float(frame.c2w[2, 3])
 
 
@@ -80,8 +80,10 @@ def run(data: list[Path], out: Path, width: int, threads: int) -> dict:
     def psnrs(g, targets, to_frame):
         res = {}
         for name, frame in targets:
-            pred = render(g, to_frame(frame.c2w), projection="erp", width=width, method="direct").colour
-            res[name] = metrics.psnr(np.clip(pred, 0, 1), resize_erp_box(frame.image(), width))
+            target = resize_erp_box(frame.image(), width)
+            for method in ("direct", "yinyang"):
+                pred = render(g, to_frame(frame.c2w), projection="erp", width=width, method=method).colour
+                res.setdefault(method, {})[name] = metrics.psnr(np.clip(pred, 0, 1), target)
         return res
 
     for root in data:
@@ -129,11 +131,15 @@ def run(data: list[Path], out: Path, width: int, threads: int) -> dict:
     return {"rows": rows}
 
 
-def _mean(d: dict | None) -> str:
+def _mean(d: dict | None, method: str | None = "direct") -> str:
+    if d and method:
+        return f"{np.mean(list(d[method].values())):.2f} / {np.mean(list(d['yinyang'].values())):.2f}"
     return f"{np.mean(list(d.values())):.2f}" if d else "-"
 
 
 def markdown(rows: list[dict]) -> str:
+    """Per split: pose errors of the estimate, then mean PSNR (dB, "plain / normalised") per pose source;
+    then PSNR per target."""
     lines = ["| scene split (refs, baseline) | rot err deg | dir err deg | scale err % | inliers | s | "
              "copy nearest | given | given + refine_poses | estimated |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -144,8 +150,15 @@ def markdown(rows: list[dict]) -> str:
         else:
             pose = (f"| {e['rotation_deg']:.2f} | {e['direction_deg']:.2f} | {e['scale_pct']:+.1f} | {e['inliers']} "
                     f"| {e['seconds']:.1f} ")
-        lines.append(head + pose + f"| {_mean(r['copy_nearest'])} | {_mean(r['given'])} | {_mean(r['refined'])} "
+        lines.append(head + pose + f"| {_mean(r['copy_nearest'], None)} | {_mean(r['given'])} | {_mean(r['refined'])} "
                      f"| {_mean(r.get('estimated'))} |")
+    lines += ["", "| target (split) | copy nearest | given plain / norm. | refined plain / norm. | estimated plain / norm. |",
+              "|---|---|---|---|---|"]
+    for r in rows:
+        for t in r["targets"]:
+            cells = [f"{r[k]['direct'][t]:.2f} / {r[k]['yinyang'][t]:.2f}" if k in r else "-"
+                     for k in ("given", "refined", "estimated")]
+            lines.append(f"| {r['scene']} {t} ({r['split']}) | {r['copy_nearest'][t]:.2f} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -191,12 +191,13 @@ def refine_upright(fa: np.ndarray, fb: np.ndarray, yaw: float, t: np.ndarray, *,
 
 
 def floor_scale(points: np.ndarray, camera_height: float, parallax: np.ndarray | None = None, *,
-                min_parallax_deg: float = 3.0) -> tuple[float, dict]:
+                min_parallax_deg: float = 3.0, min_share: float = 0.7) -> tuple[float, dict]:
     """Metres per unit from triangulated points (N, 3) in A's frame (y down) and A's height above the floor.
 
     Points seen with less than ``min_parallax_deg`` of ``parallax`` (N,) rad (near the epipoles, badly
-    triangulated) are ignored; the floor is the densest cluster (0.02-wide bins of log height, smoothed
-    over +-0.04) among the points more than 20 deg below the horizon.
+    triangulated) are ignored. Heights of the points more than 20 deg below the horizon are binned
+    (0.02 in log height, smoothed over +-0.04); the floor is the lowest peak holding at least
+    ``min_share`` of the largest peak (a bed or a table top can be the largest).
     """
     p = np.asarray(points, dtype=np.float64)
     rng_ = np.linalg.norm(p, axis=-1)
@@ -210,7 +211,9 @@ def floor_scale(points: np.ndarray, camera_height: float, parallax: np.ndarray |
     edges = np.arange(logy.min() - 0.05, logy.max() + 0.07, 0.02)
     hist = np.histogram(logy, edges)[0].astype(float)
     smooth = np.convolve(hist, [1, 2, 3, 2, 1], mode="same")
-    k = int(np.argmax(smooth))
+    padded = np.r_[-1.0, smooth, -1.0]
+    peaks = np.nonzero((smooth >= padded[:-2]) & (smooth > padded[2:]) & (smooth >= min_share * smooth.max()))[0]
+    k = int(peaks[-1])
     near = np.abs(logy - 0.5 * (edges[k] + edges[k + 1])) < 0.05
     floor_y = float(np.exp(np.median(logy[near])))
     return camera_height / floor_y, {"floor_points": int(near.sum()), "floor_depth_units": floor_y}

@@ -5,7 +5,8 @@ Features: SIFT (OpenCV, ``contrastThreshold=0.02``) on 16 perspective crops per 
 keypoint kept only by the crop whose axis is nearest (no duplicates), the tripod cap below
 -65 deg latitude dropped. Matching: ratio 0.8 + mutual check, then upright 3-point RANSAC
 (:mod:`rasterizer.relative_pose`), then matching guided by the pose (within 3 then 1.5 deg of
-the epipolar plane, in front of both cameras) and robust refinement.
+the epipolar plane, in front of both cameras) and robust refinement. When a second pose mode (e.g. a
+180-deg flip) keeps half the inliers, :func:`photometric_score` of both decides, or the answer is 422.
 
 World frame of an estimate: A's camera frame (OpenCV, ``c2w_A = I``). Scale: ``baseline``
 (metres), else ``camera_height`` (metres above the floor, from the densest floor-height cluster
@@ -20,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from rasterizer.geometry import lat_lon_from_direction, pinhole_directions
+from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction, pinhole_directions
 from rasterizer.relative_pose import (
     INLIER_DEG,
     epipolar_error,
@@ -42,8 +43,12 @@ CROP_SIZE = 640
 MAX_ERP_WIDTH = 2048
 TRIPOD_LAT_DEG = -65.0
 MIN_INLIERS = 20
+#: Fewer putative matches than this agreeing with the RANSAC pose: the views share too little.
+MIN_RANSAC_INLIERS = 12
 #: Rival pose with at least this share of the winner's inliers -> ambiguous.
 RIVAL_SHARE = 0.8
+#: Photometric scores this many times apart decide between two pose modes.
+PHOTOMETRIC_MARGIN = 1.15
 #: At least this share of matches explained by a rotation alone -> no parallax.
 NO_PARALLAX_SHARE = 0.8
 
@@ -234,25 +239,36 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions) -> t
     yaw, t, inl, err = _guided_refine(fa, fb, da, db, ransac.best.yaw, ransac.best.t)
     info.update(_support(inl, err, "sift16-rootsift+upright3pt-ransac+guided"))
     info["ransac_inliers"] = ransac.best.num_inliers
+    if ransac.best.num_inliers < MIN_RANSAC_INLIERS:
+        raise PoseEstimationFailed(f"poses: only {ransac.best.num_inliers} of {len(pairs)} feature matches agree on a "
+                                   f"relative pose (need {MIN_RANSAC_INLIERS}): the views share too little; give poses")
     if ransac.rival is not None and ransac.rival.num_inliers >= 0.5 * ransac.best.num_inliers:
-        ryaw, rt, rinl, _ = _guided_refine(fa, fb, da, db, ransac.rival.yaw, ransac.rival.t)
-        info["rival"] = {"inliers": int(len(rinl)), "yaw_deg": float(np.degrees(ryaw)),
-                         "yaw_gap_deg": float(np.degrees(abs(np.angle(np.exp(1j * (ryaw - yaw)))))),
-                         "t_gap_deg": float(np.degrees(np.arccos(np.clip(rt @ t, -1, 1))))}
-        if len(rinl) > len(inl):
-            yaw, t, inl, err = ryaw, rt, rinl, _
-            info.update(_support(inl, err, "sift16-rootsift+upright3pt-ransac+guided"))
+        ryaw, rt, rinl, rerr = _guided_refine(fa, fb, da, db, ransac.rival.yaw, ransac.rival.t)
+        rival = {"inliers": int(len(rinl)), "yaw_deg": float(np.degrees(ryaw)),
+                 "yaw_gap_deg": float(np.degrees(abs(np.angle(np.exp(1j * (ryaw - yaw)))))),
+                 "t_gap_deg": float(np.degrees(np.arccos(np.clip(rt @ t, -1, 1))))}
+        if rival["yaw_gap_deg"] > 15 or rival["t_gap_deg"] > 25:
+            score = photometric_score(erp_a, erp_b, yaw_rotation(yaw), t)
+            rival_score = photometric_score(erp_a, erp_b, yaw_rotation(ryaw), rt)
+            rival["photometric"], info["photometric"] = rival_score, score
+            info["rival"] = rival
+            decisive = max(score, rival_score) >= PHOTOMETRIC_MARGIN * min(score, rival_score)
+            if (decisive and rival_score > score) or (not decisive and len(rinl) > len(inl)):
+                rival.update(inliers=int(len(inl)), photometric=score, yaw_deg=float(np.degrees(yaw)))
+                yaw, t, inl, err, score, rival_score = ryaw, rt, rinl, rerr, rival_score, score
+                info.update(_support(inl, err, "sift16-rootsift+upright3pt-ransac+guided"))
+                info["photometric"] = score
+            if not decisive and rival["inliers"] >= RIVAL_SHARE * len(inl):
+                raise PoseEstimationFailed(
+                    f"poses: ambiguous - two relative poses {rival['yaw_gap_deg']:.0f} deg apart in yaw "
+                    f"({rival['t_gap_deg']:.0f} deg in travel direction) fit the matches about equally well "
+                    f"({len(inl)} vs {rival['inliers']} inliers) and the images agree about as well under both "
+                    f"(photometric {max(score, rival_score):.2f} vs {min(score, rival_score):.2f}), as in a "
+                    "symmetric room or when the views share little; give poses", code="ambiguous_pose")
     info["timings"] = {"features": t_feat, "total": time.perf_counter() - t0}
     if len(inl) < MIN_INLIERS:
         raise PoseEstimationFailed(f"poses: only {len(inl)} matches agree on a relative pose (need {MIN_INLIERS}); "
                                    "give poses")
-    rival = info.get("rival")
-    if rival and rival["inliers"] >= RIVAL_SHARE * len(inl) and (rival["yaw_gap_deg"] > 15 or rival["t_gap_deg"] > 25):
-        raise PoseEstimationFailed(
-            f"poses: ambiguous - two relative poses {rival['yaw_gap_deg']:.0f} deg apart in yaw "
-            f"({rival['t_gap_deg']:.0f} deg in travel direction) fit the matches about equally well "
-            f"({len(inl)} vs {rival['inliers']} inliers), as in a symmetric room; give poses",
-            code="ambiguous_pose")
     R = yaw_rotation(yaw)
     scale, info["scale"] = _scale(fa[inl[:, 0]], fb[inl[:, 1]], R, t, opts)
     info["yaw_deg"] = float(np.degrees(yaw))
@@ -307,3 +323,46 @@ def poses_for_scene(erp_a: np.ndarray, erp_b: np.ndarray, poses, opts: PoseOptio
     if poses is not None:
         out["input_convention"] = poses.convention
     return c2w_a, c2w_b, out
+
+
+def photometric_score(erp_a: np.ndarray, erp_b: np.ndarray, R: np.ndarray, t: np.ndarray, *, height: int = 256,
+                      samples: int = 1500, planes: int = 48, radius: int = 3, seed: int = 0) -> float:
+    """How well B's image agrees with A's under pose ``[R | t]``: mean over textured pixels of A
+    (away from the epipoles) of the best 5x5 ZNCC along the pixel's epipolar curve in B (48 ranges,
+    0.3-30 baselines, fronto-parallel patches); about 1 for the true pose, lower for a wrong one."""
+    import cv2
+
+    ga, gb = (cv2.resize(_gray(e), (2 * height, height), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+              for e in (erp_a, erp_b))
+    t = np.asarray(t, np.float64) / np.linalg.norm(t)
+    gy, gx = np.gradient(ga)
+    mag = np.hypot(gx, gy)
+    rows, cols = np.mgrid[radius:height - radius, 0:2 * height]
+    lat = np.pi / 2 - (rows + 0.5) / height * np.pi
+    lon = (cols + 0.5) / (2 * height) * 2 * np.pi - np.pi
+    d = direction_from_lat_lon(lat, lon)
+    ok = (np.abs(lat) < np.radians(60)) & (np.abs(d @ t) < np.cos(np.radians(15)))
+    band = mag[radius:height - radius]
+    ok &= band > np.percentile(band[ok], 70)
+    idx = np.random.default_rng(seed).choice(np.count_nonzero(ok), size=min(samples, np.count_nonzero(ok)), replace=False)
+    r0, c0 = rows[ok][idx], cols[ok][idx]
+    dr, dc = np.mgrid[-radius:radius + 1, -radius:radius + 1]
+    pr, pc = r0[:, None] + dr.ravel(), (c0[:, None] + dc.ravel()) % (2 * height)  # (N, P)
+    patch_a = ga[pr, pc]
+    dirs = direction_from_lat_lon(np.pi / 2 - (pr + 0.5) / height * np.pi, (pc + 0.5) / height * np.pi - np.pi)
+    inv = np.linspace(1 / 0.3, 1 / 30.0, planes)
+    # fronto-parallel patch: each offset ray meets the plane through the centre point, normal to the centre ray
+    centre = dirs[:, dr.size // 2:dr.size // 2 + 1]
+    lam = (1 / inv)[None, None, :] / np.maximum(np.sum(dirs * centre, -1), 1e-3)[..., None]  # (N, 25, K)
+    pts = dirs[..., None, :] * lam[..., None] - t
+    lat_b, lon_b = lat_lon_from_direction(pts @ R)  # R^T (X - t), row vectors
+    mx = ((lon_b + np.pi) / (2 * np.pi) * 2 * height - 0.5).astype(np.float32)
+    my = ((np.pi / 2 - lat_b) / np.pi * height - 0.5).astype(np.float32)
+    patch_b = cv2.remap(gb, mx.reshape(len(r0), -1), my.reshape(len(r0), -1), cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_WRAP).reshape(mx.shape)  # (N, 25, K)
+    za = patch_a - patch_a.mean(1, keepdims=True)
+    za /= np.maximum(np.linalg.norm(za, axis=1, keepdims=True), 1e-6)
+    zb = patch_b - patch_b.mean(1, keepdims=True)
+    zb /= np.maximum(np.linalg.norm(zb, axis=1, keepdims=True), 1e-6)
+    best = np.max(np.einsum("np,npk->nk", za, zb), axis=1)
+    return float(np.mean(best > 0.8))

@@ -173,3 +173,15 @@ def test_post_without_poses_bad_cases_are_422(api, room_a, options, code):
     r = _post(api, a, a, {"options": json.dumps(options)})
     assert r.status_code == 422, r.text
     assert r.json()["error"]["code"] == code and r.json()["error"]["message"]
+
+
+def test_photometric_score_prefers_the_true_pose_over_a_flip_and_a_turn(room_a):
+    from service.poses import PHOTOMETRIC_MARGIN, photometric_score
+
+    true = _pose(40.0, [1.0, 0.0, -0.6])
+    img_b = room_erp(true)
+    R, t = true[:3, :3], true[:3, 3]
+    right = photometric_score(room_a, img_b, R, t)
+    flipped = photometric_score(room_a, img_b, R @ yaw_rotation(np.pi), -t)
+    turned = photometric_score(room_a, img_b, R @ yaw_rotation(0.35), yaw_rotation(0.35) @ t)
+    assert right > PHOTOMETRIC_MARGIN * max(flipped, turned)
