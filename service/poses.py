@@ -140,19 +140,25 @@ def features(erp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def putative_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8) -> np.ndarray:
-    """(M, 2) index pairs: nearest neighbours both ways passing Lowe's ratio test."""
-    if len(desc_a) < 2 or len(desc_b) < 2:
+    """(M, 2) index pairs: nearest neighbours both ways passing Lowe's ratio test (rows in chunks of 1024)."""
+    na, nb = len(desc_a), len(desc_b)
+    if na < 2 or nb < 2:
         return np.zeros((0, 2), int)
-    sim = desc_a @ desc_b.T
-    d2 = np.maximum(2.0 - 2.0 * sim, 0.0)
-    nn = np.argpartition(d2, 1, axis=1)[:, :2]
-    first = np.take_along_axis(d2, nn, 1)
-    order = np.argsort(first, axis=1)
-    nn, first = np.take_along_axis(nn, order, 1), np.take_along_axis(first, order, 1)
-    best_b = nn[:, 0]
-    ok = first[:, 0] < ratio * ratio * first[:, 1]
-    ok &= np.argmin(d2, axis=0)[best_b] == np.arange(len(desc_a))
-    return np.stack([np.nonzero(ok)[0], best_b[ok]], 1)
+    best_j = np.zeros(na, int)
+    first, second = np.zeros(na), np.zeros(na)
+    col_best, col_arg = np.full(nb, np.inf), np.zeros(nb, int)
+    for s in range(0, na, 1024):
+        sl = slice(s, min(s + 1024, na))
+        d2 = np.maximum(2.0 - 2.0 * (desc_a[sl] @ desc_b.T), 0.0)
+        part = np.partition(d2, 1, axis=1)
+        first[sl], second[sl] = part[:, 0], part[:, 1]
+        best_j[sl] = np.argmin(d2, axis=1)
+        cm = np.argmin(d2, axis=0)
+        cv = d2[cm, np.arange(nb)]
+        upd = cv < col_best
+        col_best[upd], col_arg[upd] = cv[upd], cm[upd] + s
+    ok = (first < ratio * ratio * second) & (col_arg[best_j] == np.arange(na))
+    return np.stack([np.nonzero(ok)[0], best_j[ok]], 1)
 
 
 def guided_matches(fa, fb, desc_a, desc_b, R, t, *, max_deg: float, ratio: float = 0.9) -> np.ndarray:
@@ -235,7 +241,10 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions) -> t
         raise PoseEstimationFailed(f"poses: {static:.0%} of the matches move by a rotation alone: the two panoramas "
                                    "were taken from (nearly) the same point, which carries no depth",
                                    code="no_parallax")
-    ransac = upright_ransac(ma, mb)
+    try:
+        ransac = upright_ransac(ma, mb)
+    except ValueError as exc:  # degenerate matches: no hypothesis
+        raise PoseEstimationFailed(f"poses: no relative pose fits the matches ({exc}); give poses") from None
     yaw, t, inl, err = _guided_refine(fa, fb, da, db, ransac.best.yaw, ransac.best.t)
     info.update(_support(inl, err, "sift16-rootsift+upright3pt-ransac+guided"))
     info["ransac_inliers"] = ransac.best.num_inliers
@@ -343,7 +352,11 @@ def photometric_score(erp_a: np.ndarray, erp_b: np.ndarray, R: np.ndarray, t: np
     d = direction_from_lat_lon(lat, lon)
     ok = (np.abs(lat) < np.radians(60)) & (np.abs(d @ t) < np.cos(np.radians(15)))
     band = mag[radius:height - radius]
+    if np.count_nonzero(ok) < 50:
+        return 0.0
     ok &= band > np.percentile(band[ok], 70)
+    if np.count_nonzero(ok) < 20:  # flat image: nothing to compare
+        return 0.0
     idx = np.random.default_rng(seed).choice(np.count_nonzero(ok), size=min(samples, np.count_nonzero(ok)), replace=False)
     r0, c0 = rows[ok][idx], cols[ok][idx]
     dr, dc = np.mgrid[-radius:radius + 1, -radius:radius + 1]

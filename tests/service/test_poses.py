@@ -89,10 +89,16 @@ def test_identical_images_and_zero_baseline_are_refused(room_a):
         estimate_poses(room_a, turned, PoseOptions())
 
 
-def test_unrelated_images_are_refused():
+def test_unrelated_and_flat_images_are_refused():
+    from service.poses import photometric_score
+
     noise = np.random.default_rng(0).integers(0, 255, (256, 512, 3), dtype=np.uint8)
     with pytest.raises(PoseEstimationFailed):
         estimate_poses(noise, np.roll(noise[::-1], 77, axis=1), PoseOptions())
+    flat = np.full((64, 128, 3), 128, np.uint8)
+    with pytest.raises(PoseEstimationFailed, match="feature matches"):
+        estimate_poses(flat, flat, PoseOptions())
+    assert photometric_score(flat, flat, np.eye(3), np.array([1.0, 0, 0])) == 0.0
 
 
 def test_default_scale_is_one_and_says_so(room_a):
