@@ -72,6 +72,11 @@ def _bench_reliability():
     return main
 
 
+def _bench_poses():
+    from bench.poses import main
+    return main
+
+
 #: Sub-commands handled by another module's ``main(argv)``: name -> (loader, what to install if absent).
 FORWARDED = {
     "export": (_main_of_export, "the export extra: pip install -e '.[export]' (torch)"),
@@ -88,6 +93,7 @@ BENCH = {
     "edit": (_bench_edit, "selection consistency across the references (mIoU vs baselines) and edit timings"),
     "reliability": (_bench_reliability, "the reliability audit against a live server: bad inputs, fuzzing, "
                                         "overload, idle clients, kill -9, full/read-only store"),
+    "poses": (_bench_poses, "poses optional: estimated vs scene poses (errors) and PSNR with given/refined/estimated"),
 }
 
 
@@ -211,7 +217,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
 # -- reconstruct -------------------------------------------------------------------
 
 def _load_pair(args: argparse.Namespace):
-    """(erp_a, erp_b, c2w_a, c2w_b, description) from a scene folder or two images + poses JSON."""
+    """(erp_a, erp_b, c2w_a, c2w_b, description) from a scene folder or two images (+ poses JSON).
+
+    Two images without ``--poses`` give ``c2w_a = c2w_b = None``: the poses are estimated.
+    """
     from rasterizer.geometry import PoseError
     from rasterizer.scene_folder import load_image, load_scene
 
@@ -236,12 +245,10 @@ def _load_pair(args: argparse.Namespace):
         fa, fb = scene.frames[refs[0]], scene.frames[refs[1]]
         return fa.image(), fb.image(), fa.c2w, fb.c2w, {"scene": str(inputs[0]), "references": list(refs)}
     if len(inputs) == 2:
-        if args.poses is None:
-            raise CliError("two images need --poses FILE.json: {\"convention\": \"opencv\", \"c2w\": [A, B]}")
         from .errors import ServiceError
 
         try:
-            poses = parse_poses(Path(args.poses).read_bytes())
+            poses = parse_poses(Path(args.poses).read_bytes()) if args.poses is not None else None
         except ServiceError as exc:
             raise CliError(f"{args.poses}: {exc.message}") from None
         except OSError as exc:
@@ -250,8 +257,10 @@ def _load_pair(args: argparse.Namespace):
             a, b = load_image(inputs[0]), load_image(inputs[1])
         except OSError as exc:
             raise CliError(f"cannot read image: {exc}") from None
+        if poses is None:
+            return a, b, None, None, {"images": [str(p) for p in inputs]}
         return a, b, poses.c2w_a, poses.c2w_b, {"images": [str(p) for p in inputs]}
-    raise CliError("reconstruct takes a scene folder, or two images with --poses")
+    raise CliError("reconstruct takes a scene folder, or two images (with --poses, or poses are estimated)")
 
 
 def _pipeline_options(args: argparse.Namespace):
@@ -288,9 +297,27 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
     erp_a, erp_b, c2w_a, c2w_b, source = _load_pair(args)  # bad inputs fail before any model build
     options = _pipeline_options(args)
+    from .errors import ServiceError
+    from .inputs import Poses
+    from .poses import PoseOptions, poses_for_scene
+
+    try:
+        pose_options = PoseOptions.pop_from({"camera_height": args.camera_height, "baseline": args.baseline,
+                                             "refine_poses": args.refine_poses})
+    except ServiceError as exc:
+        raise CliError(exc.message) from None
     for name, img in (("image A", erp_a), ("image B", erp_b)):
         if img.shape[1] != 2 * img.shape[0]:
             raise CliError(f"{name} is {img.shape[1]}x{img.shape[0]}; an ERP panorama must be exactly 2:1")
+    t0 = time.perf_counter()
+    given = None if c2w_a is None else Poses("opencv", c2w_a, c2w_b)
+    if given is None:
+        _say("estimating the relative pose from the images")
+    try:
+        c2w_a, c2w_b, poses_json = poses_for_scene(erp_a, erp_b, given, pose_options)
+    except ServiceError as exc:
+        raise CliError(exc.message) from None
+    poses_s = time.perf_counter() - t0
     settings = Settings(**({"model_path": args.model} if args.model else {}))
     try:
         model = ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build)
@@ -317,7 +344,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     summary = json_safe({
         "ply": str(out), "num_gaussians": len(rec.gaussians), "source": source,
         "model": {k: encoder.metadata.get(k) for k in ("name", "version", "sha256")},
-        "timings": {**rec.timings, "model_load": load_s, "total": total}, "info": rec.info,
+        "timings": {**rec.timings, "poses": poses_s, "model_load": load_s, "total": total}, "info": rec.info,
+        "poses": poses_json,
     })
     text = json.dumps(summary, indent=2)
     if args.json:
@@ -445,7 +473,11 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("reconstruct", help="scene folder or two images + poses -> Gaussian PLY and a JSON summary",
                        description="Reconstruct 3D Gaussians from two ERP panoramas, without the HTTP service.")
     r.add_argument("inputs", nargs="+", help="a scene folder (scene.json), or two image files")
-    r.add_argument("--poses", help='with two images: JSON file {"convention": "opencv"|"opengl", "c2w": [A, B]}')
+    r.add_argument("--poses", help='with two images: JSON file {"convention": "opencv"|"opengl", "c2w": [A, B]}; '
+                                   "without it the poses are estimated from the images (world = camera A)")
+    r.add_argument("--camera-height", type=float, help="estimated poses: metres of camera A above the floor (sets the scale)")
+    r.add_argument("--baseline", type=float, help="estimated poses: metres between the cameras (sets the scale)")
+    r.add_argument("--refine-poses", action="store_true", help="refine given poses against the images (upright model)")
     r.add_argument("--split", type=int, default=0, help="scene folder: which split's references (default 0)")
     r.add_argument("--refs", help="scene folder: two frame names, e.g. 00,02 (overrides --split)")
     r.add_argument("-o", "--output", default="scene.ply", help="output PLY (default scene.ply)")

@@ -18,6 +18,7 @@ from rasterizer.sweep import MIN_BASELINE, SweepRangeError, check_scene_scale
 
 from .errors import BadInput
 from .pipeline import STEP_OPTION_KEYS, PipelineOptions
+from .poses import POSE_OPTION_KEYS, PoseOptions
 
 Projection = Literal["erp", "perspective", "yin", "yang"]
 ImageFormat = Literal["png", "jpeg"]
@@ -60,11 +61,18 @@ class Poses:
                 "c2w": [self.c2w_a.tolist(), self.c2w_b.tolist()]}
 
 
-def parse_poses(text: str | bytes) -> Poses:
-    """``{"convention": "opencv"|"opengl", "c2w": [A, B]}`` with 4x4 or 3x4 rigid matrices."""
+def parse_poses(text: str | bytes | None) -> Poses | None:
+    """``{"convention": "opencv"|"opengl", "c2w": [A, B]}`` with 4x4 or 3x4 rigid matrices.
+
+    None for no poses (absent, empty, or ``"c2w": null``): the service estimates them.
+    """
+    if text is None or not text.strip():
+        return None
     obj = _json_object(text, "poses")
     if not isinstance(obj, dict):
         raise BadInput('poses: expected a JSON object {"convention": ..., "c2w": [A, B]}', code="invalid_poses")
+    if "c2w" in obj and obj["c2w"] is None:
+        return None
     convention = obj.get("convention", "opencv")
     if convention not in ("opencv", "opengl"):
         raise BadInput(f"poses.convention: expected 'opencv' or 'opengl', got {str(convention)[:40]!r}",
@@ -92,16 +100,19 @@ def parse_poses(text: str | bytes) -> Poses:
     return Poses(convention, out[0], out[1])
 
 
-def check_sweep_range(poses: Poses, options: dict) -> None:
+def check_sweep_range(c2w_a: np.ndarray, c2w_b: np.ndarray, options: dict) -> None:
     """422 when ``options`` near/far do not fit the cameras (see :func:`rasterizer.sweep.check_scene_scale`)."""
     try:
-        check_scene_scale(poses.c2w_a, poses.c2w_b, options.get("near"), options.get("far"))
+        check_scene_scale(c2w_a, c2w_b, options.get("near"), options.get("far"))
     except SweepRangeError as exc:
         raise BadInput(f"options: {exc}", code="invalid_options") from None
 
 
-def parse_options(text: str | bytes | None, accepted: set[str] | None = None) -> tuple[dict[str, Any], PipelineOptions]:
-    """(options JSON object, its parsed :class:`PipelineOptions`); ``near``/``far`` must be positive, near < far.
+def parse_options(text: str | bytes | None, accepted: set[str] | None = None,
+                  ) -> tuple[dict[str, Any], PipelineOptions, PoseOptions]:
+    """(options JSON object, its :class:`PipelineOptions`, its :class:`~service.poses.PoseOptions`), parsed once.
+
+    ``near``/``far`` must be positive, near < far.
 
     ``compaction`` and ``adaptive_range`` hold JSON objects of step options
     (see :class:`service.pipeline.PipelineOptions`); ``{"compaction": false}``
@@ -110,20 +121,20 @@ def parse_options(text: str | bytes | None, accepted: set[str] | None = None) ->
     ``accepted`` restricts the top-level keys further (None: every pipeline option).
     """
     if text is None or (isinstance(text, (str, bytes)) and not text.strip()):
-        return {}, PipelineOptions.from_dict({})
+        return {}, PipelineOptions.from_dict({}), PoseOptions.pop_from({})
     obj = _json_object(text, "options")
     if not isinstance(obj, dict):
         raise BadInput("options: expected a JSON object", code="invalid_options")
     if len(obj) > 32:
         raise BadInput("options: too many keys", code="invalid_options")
     for key, value in obj.items():
-        if key in STEP_OPTION_KEYS:
+        if key in STEP_OPTION_KEYS or key in POSE_OPTION_KEYS:
             continue
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
                                   or not math.isfinite(value)):
             raise BadInput(f"options.{key}: expected a finite number or null", code="invalid_options")
     if accepted is not None:
-        unknown = sorted(set(obj) - accepted - set(STEP_OPTION_KEYS))
+        unknown = sorted(set(obj) - accepted - set(STEP_OPTION_KEYS) - set(POSE_OPTION_KEYS))
         if unknown:
             raise BadInput(f"options: unknown option(s) {unknown}; accepted: {sorted(accepted)}",
                            code="invalid_options")
@@ -136,8 +147,10 @@ def parse_options(text: str | bytes | None, accepted: set[str] | None = None) ->
         raise BadInput("options.min_opacity: expected a number in [0, 1)", code="invalid_options")
     if obj.get("near") is not None and obj.get("far") is not None and not obj["near"] < obj["far"]:
         raise BadInput("options: near must be smaller than far", code="invalid_options")
+    rest = dict(obj)
+    pose_options = PoseOptions.pop_from(rest)
     try:
-        return obj, PipelineOptions.from_dict(obj)
+        return obj, PipelineOptions.from_dict(rest), pose_options
     except (TypeError, ValueError, OverflowError) as exc:
         raise BadInput(f"options: {exc}", code="invalid_options") from None
 

@@ -22,8 +22,9 @@ from rasterizer.render import to_uint8
 from .edits import edit_artifacts
 from .errors import BadInput, PayloadTooLarge, ServiceError, StoreUnavailable
 from .images import check_header, decode_rgb, encode
-from .inputs import Poses, RenderQuery
+from .inputs import Poses, RenderQuery, check_sweep_range
 from .pipeline import PipelineOptions, build_scene
+from .poses import PoseOptions, poses_for_scene
 from .references import REFERENCES_ARTIFACT, references_bytes
 from .runtime import ModelRuntime
 from .store import SceneNotFound, SceneStore, content_id
@@ -38,9 +39,10 @@ def links(scene_id: str) -> dict[str, str]:
             "selections": f"{base}/selections", "segments": f"{base}/segments", "edits": f"{base}/edits"}
 
 
-def scene_id_for(model_sha256: str, image_a: bytes, image_b: bytes, poses: Poses, options: dict) -> str:
-    """Content hash: same image bytes + poses + options + model file give the same id."""
-    pose_key = json.dumps([np.round(poses.c2w_a, 9).tolist(), np.round(poses.c2w_b, 9).tolist()])
+def scene_id_for(model_sha256: str, image_a: bytes, image_b: bytes, poses: Poses | None, options: dict) -> str:
+    """Content hash: same image bytes + poses (or "estimated") + options + model file give the same id."""
+    pose_key = "estimated" if poses is None else \
+        json.dumps([np.round(poses.c2w_a, 9).tolist(), np.round(poses.c2w_b, 9).tolist()])
     return content_id("scene/v1", model_sha256, hashlib.sha256(image_a).hexdigest(),
                       hashlib.sha256(image_b).hexdigest(), pose_key, json.dumps(options, sort_keys=True))
 
@@ -78,19 +80,25 @@ def check_free_space(store: SceneStore, need_bytes: int) -> None:
 
 
 def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_a: bytes, image_b: bytes,
-                 poses: Poses, options: dict, pipeline_options: PipelineOptions,
-                 limits: UploadLimits) -> tuple[dict, dict[str, float]]:
+                 poses: Poses | None, options: dict, pipeline_options: PipelineOptions,
+                 pose_options: PoseOptions, limits: UploadLimits) -> tuple[dict, dict[str, float]]:
     """Decode, reconstruct and store; returns (scene metadata, this run's stage timings)."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     erp_a, head_a = decode_rgb(image_a, "image_a", max_pixels=limits.max_pixels, min_height=limits.min_height)
     erp_b, head_b = decode_rgb(image_b, "image_b", max_pixels=limits.max_pixels, min_height=limits.min_height)
+    timings["decode"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    c2w_a, c2w_b, poses_json = poses_for_scene(erp_a, erp_b, poses, pose_options)  # features at full resolution
+    timings["poses"] = time.perf_counter() - t0
+    if poses is None:
+        check_sweep_range(c2w_a, c2w_b, options)
+    t0 = time.perf_counter()
     height = runtime.encoder.height
     erp_a, erp_b = _at_model_size(erp_a, height), _at_model_size(erp_b, height)  # resampled once, here
-    timings["decode"] = time.perf_counter() - t0
-
+    timings["resample"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    build = build_scene(runtime.encoder, erp_a, erp_b, poses.c2w_a, poses.c2w_b, pipeline_options)
+    build = build_scene(runtime.encoder, erp_a, erp_b, c2w_a, c2w_b, pipeline_options)
     timings.update(build.timings)
     timings.setdefault("reconstruct", time.perf_counter() - t0)
     gaussians = build.gaussians
@@ -103,7 +111,7 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
         "model": {k: runtime.metadata.get(k) for k in ("name", "version", "sha256")},
         "inputs": {"image_a": {**head_a.describe(), "sha256": hashlib.sha256(image_a).hexdigest()},
                    "image_b": {**head_b.describe(), "sha256": hashlib.sha256(image_b).hexdigest()}},
-        "poses": poses.as_json(),
+        "poses": poses_json,
         "options": options,
         "info": build.info,
         "compaction": build.info["compaction"],

@@ -53,8 +53,6 @@ async def create_scene(
     response: Response,
     image_a: Annotated[UploadFile, File(description="first ERP panorama (PNG/JPEG/WebP/TIFF/BMP, width = 2 x height)")],
     image_b: Annotated[UploadFile, File(description="second ERP panorama (any 2:1 size)")],
-    poses: Annotated[str, Form(description='JSON {"convention": "opencv"|"opengl", "c2w": [A, B]}, '
-                                           "each camera-to-world 4x4 or 3x4", examples=[_POSES_EXAMPLE])],
     settings: SettingsDep,
     store: StoreDep,
     runtime: ReadyRuntimeDep,
@@ -64,11 +62,18 @@ async def create_scene(
                                                           '"min_opacity": 0.05, "compaction": {"resolve_overlap": "split", '
                                                           '"merge_duplicates": true, "max_count": null}, '
                                                           '"adaptive_range": false}; "compaction": false keeps '
-                                                          'every Gaussian')] = None,
+                                                          'every Gaussian; without poses: "camera_height" or '
+                                                          '"baseline" (metres) sets the scale; "refine_poses": true '
+                                                          'refines given poses against the images')] = None,
+    poses: Annotated[str | None, Form(description='JSON {"convention": "opencv"|"opengl", "c2w": [A, B]}, '
+                                                  "each camera-to-world 4x4 or 3x4; leave out (or c2w null) to "
+                                                  "estimate them from the images (world = camera A)",
+                                      examples=[_POSES_EXAMPLE])] = None,
 ) -> SceneCreated:
     parsed_poses = parse_poses(poses)
-    parsed_options, pipeline_options = parse_options(options)
-    check_sweep_range(parsed_poses, parsed_options)
+    parsed_options, pipeline_options, pose_options = parse_options(options)
+    if parsed_poses is not None:  # estimated poses are checked once estimated
+        check_sweep_range(parsed_poses.c2w_a, parsed_poses.c2w_b, parsed_options)
     data_a, data_b = await image_a.read(), await image_b.read()
     limits = work.UploadLimits(settings.max_image_pixels, settings.min_image_height)
     await anyio.to_thread.run_sync(work.precheck_uploads, data_a, data_b, limits)
@@ -81,7 +86,7 @@ async def create_scene(
                             links=work.links(scene_id), cached=True)
     await anyio.to_thread.run_sync(work.check_free_space, store, settings.min_free_store_bytes)
     meta, timings = await gate.run(work.create_scene, runtime, store, scene_id, data_a, data_b,
-                                   parsed_poses, parsed_options, pipeline_options, limits)
+                                   parsed_poses, parsed_options, pipeline_options, pose_options, limits)
     metrics.observe_stages(timings)
     metrics.scenes_created.inc()
     return SceneCreated(id=scene_id, num_gaussians=meta["num_gaussians"], timings=timings,

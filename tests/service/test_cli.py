@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from service import cli
@@ -94,8 +95,8 @@ def test_reconstruct_argument_errors(tmp_path, capsys):
     missing = tmp_path / "none.onnx"
     assert cli.main(["reconstruct", str(tmp_path), "--model", str(missing)]) == 2
     assert "not a scene folder" in capsys.readouterr().err
-    assert cli.main(["reconstruct", "a.png", "b.png", "--model", str(missing)]) == 2
-    assert "--poses" in capsys.readouterr().err
+    assert cli.main(["reconstruct", "a.png", "b.png", "--model", str(missing)]) == 2  # no poses: estimated, but
+    assert "cannot read image" in capsys.readouterr().err                              # the images are missing
     assert cli.main(["reconstruct", "a.png", "b.png", "c.png", "--model", str(missing)]) == 2
     capsys.readouterr()
     (tmp_path / "poses.json").write_text('{"c2w": [[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], '
@@ -184,3 +185,17 @@ def test_settings_from_environment(monkeypatch, tmp_path):
     monkeypatch.setenv("OMNISPLAT_PORT", "not a port")
     with pytest.raises(ValidationError):
         Settings()
+
+
+def test_reconstruct_without_poses_refuses_identical_images(tmp_path, capsys):
+    from PIL import Image
+
+    noise = np.random.default_rng(0).integers(0, 255, (256, 512, 3), dtype=np.uint8)
+    for name in ("a.png", "b.png"):
+        Image.fromarray(noise).save(tmp_path / name)
+    argv = ["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--model", str(tmp_path / "none.onnx"),
+            "--no-build"]
+    assert cli.main(argv) == 2
+    assert "same point" in capsys.readouterr().err
+    assert cli.main([*argv, "--baseline", "1", "--camera-height", "1.5"]) == 2
+    assert "not both" in capsys.readouterr().err

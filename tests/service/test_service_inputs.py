@@ -135,7 +135,7 @@ def test_nan_pose_in_matrix():
 
 def test_options():
     assert parse_options(None, None)[0] == {}
-    raw, parsed = parse_options('{"near": 0.2, "far": 9}', {"near", "far"})
+    raw, parsed, _ = parse_options('{"near": 0.2, "far": 9}', {"near", "far"})
     assert raw == {"near": 0.2, "far": 9} and (parsed.near, parsed.far) == (0.2, 9)
     for bad in ['{"near": -1}', '{"near": 5, "far": 1}', '[1]', '{"x": [1]}', '{"near": "a"}',
                 '{"min_opacity": "abc"}', '{"min_opacity": 1.5}', '{"near": true}']:
@@ -286,9 +286,9 @@ def test_sweep_range_out_of_scale_is_422(options):
     from service.inputs import check_sweep_range
 
     poses = parse_poses(_poses(I4, _moved(0.5)))
-    raw, _ = parse_options(options, None)
+    raw, *_ = parse_options(options, None)
     with pytest.raises(BadInput) as info:
-        check_sweep_range(poses, raw)
+        check_sweep_range(poses.c2w_a, poses.c2w_b, raw)
     assert "baseline" in info.value.message
 
 

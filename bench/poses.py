@@ -1,0 +1,178 @@
+"""``omnisplat bench poses``: poses optional, measured against the scene files' poses.
+
+Per split (references A, B): estimate B's pose from the two images (:mod:`service.poses`,
+scale from A's camera height), compare with the scene's relative pose (rotation error deg,
+translation direction error deg, scale error %), then build the scene as the service does
+(default model, :func:`service.pipeline.build_scene`) with the given, the refined
+(``refine_poses``) and the estimated poses and render every target with plain compositing
+(ERP ``method="direct"``: colour over black, no division by alpha). Targets are placed in the
+estimated frame by the similarity that maps the scene's A onto the identity and its baseline
+onto the estimated one. Writes ``poses.json`` and ``poses.md`` into ``--out``.
+
+    omnisplat bench poses --data ../shared/data/m3d_bedroom ../shared/data/zind_room09
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench import metrics
+from bench.baselines import copy_nearest
+from bench.quality import resize_erp_box
+from rasterizer.geometry import grid_directions
+from rasterizer.relative_pose import floor_scale
+from rasterizer.render import render
+from rasterizer.scene_folder import Frame, SceneFolder, load_scene
+
+DEFAULT_OUT = Path(__file__).resolve().parents[1] / "docs" / "bench"
+
+
+def _log(msg: str) -> None:
+    print(f"[bench poses] {msg}", file=sys.stderr, flush=True)
+
+
+def camera_height(scene: SceneFolder, frame: Frame) -> float:
+    """Metres of ``frame``'s camera above the floor: from its depth map when it has one (the floor
+    rule of :func:`rasterizer.relative_pose.floor_scale` on every 4th pixel), else its world z
+    (z-up scenes with the floor at z = 0, as zind)."""
+    depth = frame.depth()
+    if depth is not None:
+        pts = (grid_directions("erp", *depth.shape) * depth[..., None])[::4, ::4].reshape(-1, 3)
+        return 1.0 / floor_scale(pts[depth[::4, ::4].reshape(-1) > 0], 1.0)[0]
+    return float(frame.c2w[2, 3])
+
+
+def pose_errors(rel_true: np.ndarray, rel_est: np.ndarray) -> dict:
+    """Rotation error (deg), translation direction error (deg), scale error (%) of B relative to A."""
+    cos = (np.trace(rel_true[:3, :3].T @ rel_est[:3, :3]) - 1) / 2
+    t, e = rel_true[:3, 3], rel_est[:3, 3]
+    return {"rotation_deg": float(np.degrees(np.arccos(np.clip(cos, -1, 1)))),
+            "direction_deg": float(np.degrees(np.arccos(np.clip(t @ e / np.linalg.norm(t) / np.linalg.norm(e), -1, 1)))),
+            "scale_pct": float((np.linalg.norm(e) / np.linalg.norm(t) - 1) * 100)}
+
+
+def into_estimate(c2w_a: np.ndarray, c2w: np.ndarray, scale: float) -> np.ndarray:
+    """A scene-frame pose in the estimate's frame (A = I, lengths times ``scale``)."""
+    m = np.linalg.inv(c2w_a) @ c2w
+    m[:3, 3] *= scale
+    return m
+
+
+def run(data: list[Path], out: Path, width: int, threads: int) -> dict:
+    from service.config import Settings
+    from service.encoder import OnnxEncoder
+    from service.errors import ServiceError
+    from service.model_files import ensure_model
+    from service.pipeline import PipelineOptions, build_scene
+    from service.poses import PoseOptions, estimate_poses, refine_poses
+
+    model = ensure_model(Settings().resolved_model_path, build_if_missing=True)
+    encoder = OnnxEncoder(model, threads=threads)
+    options = PipelineOptions.from_dict({})
+    rows = []
+
+    def psnrs(g, targets, to_frame):
+        res = {}
+        for name, frame in targets:
+            target = resize_erp_box(frame.image(), width)
+            for method in ("direct", "yinyang"):
+                pred = render(g, to_frame(frame.c2w), projection="erp", width=width, method=method).colour
+                res.setdefault(method, {})[name] = metrics.psnr(np.clip(pred, 0, 1), target)
+        return res
+
+    for root in data:
+        scene = load_scene(root)
+        for si, split in enumerate(scene.splits):
+            fa, fb = (scene.frames[n] for n in split.references)
+            ia, ib = fa.image(), fb.image()
+            targets = [(n, scene.frames[n]) for n in split.targets]
+            rel = np.linalg.inv(fa.c2w) @ fb.c2w
+            row = {"scene": scene.name, "split": si, "references": list(split.references),
+                   "baseline_m": float(np.linalg.norm(rel[:3, 3])), "targets": list(split.targets)}
+            h = camera_height(scene, fa)
+            row["camera_height_m"] = h
+            refs = [(ia, fa.c2w), (ib, fb.c2w)]
+            row["copy_nearest"] = {n: metrics.psnr(copy_nearest(refs, f.c2w, width // 2, width),
+                                                   resize_erp_box(f.image(), width))
+                                   for n, f in targets}
+            t0 = time.perf_counter()
+            g = build_scene(encoder, ia, ib, fa.c2w, fb.c2w, options).gaussians
+            row["given"] = psnrs(g, targets, lambda c: c)
+            row["build_s"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            c2w_b_ref, info = refine_poses(ia, ib, fa.c2w, fb.c2w)
+            row["refine"] = {"seconds": time.perf_counter() - t0, **info}
+            g = build_scene(encoder, ia, ib, fa.c2w, c2w_b_ref, options).gaussians
+            row["refined"] = psnrs(g, targets, lambda c: c)
+            t0 = time.perf_counter()
+            try:
+                _, c2w_b, info = estimate_poses(ia, ib, PoseOptions(camera_height=h))
+            except ServiceError as exc:
+                row["estimate"] = {"seconds": time.perf_counter() - t0, "error": exc.code, "message": exc.message}
+                _log(f"{scene.name} split {si}: {exc.code}: {exc.message}")
+                rows.append(row)
+                continue
+            row["estimate"] = {"seconds": time.perf_counter() - t0, **pose_errors(rel, c2w_b), "inliers": info["inliers"],
+                               "residual_deg": info["residual_deg"]}
+            s = np.linalg.norm(c2w_b[:3, 3]) / np.linalg.norm(rel[:3, 3])
+            g = build_scene(encoder, ia, ib, np.eye(4), c2w_b, options).gaussians
+            row["estimated"] = psnrs(g, targets, lambda c: into_estimate(fa.c2w, c, s))
+            _log(json.dumps(row))
+            rows.append(row)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "poses.json").write_text(json.dumps(rows, indent=1) + "\n")
+    (out / "poses.md").write_text(markdown(rows))
+    return {"rows": rows}
+
+
+def _mean(d: dict | None, method: str | None = "direct") -> str:
+    if d and method:
+        return f"{np.mean(list(d[method].values())):.2f} / {np.mean(list(d['yinyang'].values())):.2f}"
+    return f"{np.mean(list(d.values())):.2f}" if d else "-"
+
+
+def markdown(rows: list[dict]) -> str:
+    """Per split: pose errors of the estimate, then mean PSNR (dB, "plain / normalised") per pose source;
+    then PSNR per target."""
+    lines = ["| scene split (refs, baseline) | rot err deg | dir err deg | scale err % | inliers | s | "
+             "copy nearest | given | given + refine_poses | estimated |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        e = r["estimate"]
+        head = f"| {r['scene']} {r['split']} ({', '.join(r['references'])}, {r['baseline_m']:.2f} m) "
+        if "error" in e:
+            pose = f"| 422 `{e['error']}` | | | | {e['seconds']:.1f} "
+        else:
+            pose = (f"| {e['rotation_deg']:.2f} | {e['direction_deg']:.2f} | {e['scale_pct']:+.1f} | {e['inliers']} "
+                    f"| {e['seconds']:.1f} ")
+        lines.append(head + pose + f"| {_mean(r['copy_nearest'], None)} | {_mean(r['given'])} | {_mean(r['refined'])} "
+                     f"| {_mean(r.get('estimated'))} |")
+    lines += ["", "| target (split) | copy nearest | given plain / norm. | refined plain / norm. | estimated plain / norm. |",
+              "|---|---|---|---|---|"]
+    for r in rows:
+        for t in r["targets"]:
+            cells = [f"{r[k]['direct'][t]:.2f} / {r[k]['yinyang'][t]:.2f}" if k in r else "-"
+                     for k in ("given", "refined", "estimated")]
+            lines.append(f"| {r['scene']} {t} ({r['split']}) | {r['copy_nearest'][t]:.2f} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="omnisplat bench poses", description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", type=Path, nargs="+", required=True, help="scene folders")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    p.add_argument("--width", type=int, default=1024, help="render width (the targets' width)")
+    p.add_argument("--threads", type=int, default=2)
+    args = p.parse_args(argv)
+    res = run(args.data, args.out, args.width, args.threads)
+    print(markdown(res["rows"]))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

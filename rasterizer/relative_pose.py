@@ -1,0 +1,219 @@
+"""Relative pose of two upright panoramas from bearing matches (numpy only).
+
+Frames: OpenCV camera frames; A is the world (``c2w_A = I``) and B's pose is
+``[R | t]``: a point ``X_B`` in B's frame is ``R X_B + t`` in A's. Two levelled
+panoramas differ by a turn about the camera y axis (gravity), so
+``R = yaw_rotation(yaw)``. A match of unit bearings ``(f_a, f_b)`` satisfies
+``f_a . (t x R f_b) = 0``; errors are angles (rad) of a bearing from its epipolar plane.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Default inlier threshold on the epipolar angle (degrees).
+INLIER_DEG = 1.0
+_EPS = 1e-12
+
+
+def yaw_rotation(yaw) -> np.ndarray:
+    """Rotation(s) about the camera y axis by ``yaw`` rad, (..., 3, 3)."""
+    yaw = np.asarray(yaw, dtype=np.float64)
+    c, s = np.cos(yaw), np.sin(yaw)
+    z, o = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), _EPS)
+
+
+def epipolar_error(fa: np.ndarray, fb: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Symmetric angular epipolar error (rad), the larger of A's and B's; broadcasts over leading axes.
+
+    fa, fb: (..., N, 3) unit bearings; R: (..., 3, 3); t: (..., 3).
+    """
+    g = np.einsum("...ij,...nj->...ni", R, fb)
+    t = np.asarray(t)[..., None, :]
+    triple = np.abs(np.einsum("...ni,...ni->...n", fa, np.cross(t, g)))
+    den = np.minimum(np.linalg.norm(np.cross(t, g), axis=-1), np.linalg.norm(np.cross(t, fa), axis=-1))
+    return np.arcsin(np.clip(triple / np.maximum(den, _EPS), 0.0, 1.0))
+
+
+def triangulate(fa: np.ndarray, fb: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Midpoint ranges ``(lam_a, lam_b)`` (..., N) with ``lam_a f_a ~ lam_b R f_b + t``; NaN-free (0 if parallel)."""
+    g = np.einsum("...ij,...nj->...ni", R, fb)
+    t = np.asarray(t)[..., None, :]
+    k = np.einsum("...ni,...ni->...n", fa, g)
+    at, gt = np.sum(fa * t, -1), np.sum(g * t, -1)
+    den = np.maximum(1.0 - k * k, 1e-9)
+    return (at - k * gt) / den, (k * at - gt) / den
+
+
+def rotation_only_fraction(fa: np.ndarray, fb: np.ndarray, *, threshold_deg: float = 0.5, yaw_step_deg: float = 0.5) -> float:
+    """Largest fraction of matches a pure yaw (no translation) explains within ``threshold_deg``: ~1 means no parallax."""
+    yaws = np.radians(np.arange(0.0, 360.0, yaw_step_deg))
+    cos_thr = np.cos(np.radians(threshold_deg))
+    g = np.einsum("yij,nj->yni", yaw_rotation(yaws), fb)
+    return float(np.max(np.mean(np.sum(g * fa, -1) > cos_thr, axis=1))) if len(fa) else 0.0
+
+
+@dataclass
+class Hypothesis:
+    """One relative pose: yaw (rad), unit ``t``, inlier mask (N,), MSAC cost."""
+
+    yaw: float
+    t: np.ndarray
+    inliers: np.ndarray
+    cost: float
+
+    @property
+    def R(self) -> np.ndarray:
+        return yaw_rotation(self.yaw)
+
+    @property
+    def num_inliers(self) -> int:
+        return int(self.inliers.sum())
+
+
+@dataclass
+class RansacResult:
+    best: Hypothesis
+    rival: Hypothesis | None  # best hypothesis far from ``best`` (another mode), if any
+    num_hypotheses: int
+    extras: dict = field(default_factory=dict)
+
+
+def _minimal_hypotheses(fa: np.ndarray, fb: np.ndarray, triples: np.ndarray, yaw_step_deg: float):
+    """Roots in yaw of det[m1, m2, m3] = 0 (m_k = R f_b,k x f_a,k) per sample triple -> (yaws (H,), t (H, 3))."""
+    yaws = np.radians(np.arange(-180.0, 180.0 + yaw_step_deg, yaw_step_deg))
+    a, b = fa[triples], fb[triples]  # (S, 3, 3)
+    g = np.einsum("yij,skj->yski", yaw_rotation(yaws), b)  # (Y, S, 3, 3)
+    m = np.cross(g, a[None])
+    det = np.linalg.det(m)  # (Y, S)
+    y0, s0 = np.nonzero(np.sign(det[:-1]) * np.sign(det[1:]) < 0)
+    d0, d1 = det[y0, s0], det[y0 + 1, s0]
+    yaw = yaws[y0] + (yaws[y0 + 1] - yaws[y0]) * d0 / (d0 - d1)
+    mm = np.cross(np.einsum("hij,hkj->hki", yaw_rotation(yaw), b[s0]), a[s0])
+    t = np.cross(mm[:, 0], mm[:, 1])
+    t_alt = np.cross(mm[:, 0], mm[:, 2])
+    t = np.where(np.linalg.norm(t, axis=-1, keepdims=True) > np.linalg.norm(t_alt, axis=-1, keepdims=True), t, t_alt)
+    ok = np.linalg.norm(t, axis=-1) > 1e-9
+    return yaw[ok], _unit(t[ok])
+
+
+def _score(fa, fb, yaws, ts, thr):
+    """MSAC cost (H,), inliers (H, N) and ``t`` with the sign most inliers see in front of both cameras."""
+    R = yaw_rotation(yaws)
+    err = epipolar_error(fa[None], fb[None], R, ts)
+    inl = err < thr
+    la, lb = triangulate(fa[None], fb[None], R, ts)
+    front = (la > 0) & (lb > 0)
+    back = (la < 0) & (lb < 0)
+    flip = np.sum(back & inl, 1) > np.sum(front & inl, 1)
+    ts = np.where(flip[:, None], -ts, ts)
+    inl &= np.where(flip[:, None], back, front)
+    cost = np.sum(np.where(inl, err * err, thr * thr), axis=1)
+    return cost, inl, ts
+
+
+def upright_ransac(fa: np.ndarray, fb: np.ndarray, *, threshold_deg: float = INLIER_DEG, samples: int = 400,
+                   yaw_step_deg: float = 1.0, rival_yaw_deg: float = 15.0, rival_t_deg: float = 25.0,
+                   seed: int = 0) -> RansacResult:
+    """Upright 3-point RANSAC on matched bearings fa, fb (N, 3); cheirality picks the sign of ``t``.
+
+    ``rival`` is the best hypothesis whose yaw differs by more than ``rival_yaw_deg`` or whose
+    translation direction differs by more than ``rival_t_deg`` (a second mode, e.g. a 180-deg flip).
+    """
+    n = len(fa)
+    if n < 3:
+        raise ValueError("need at least 3 matches")
+    rng = np.random.default_rng(seed)
+    triples = np.stack([rng.choice(n, 3, replace=False) for _ in range(samples)])
+    yaws, ts = _minimal_hypotheses(fa, fb, triples, yaw_step_deg)
+    if not len(yaws):
+        raise ValueError("no pose hypothesis (degenerate matches)")
+    thr = np.radians(threshold_deg)
+    parts = [_score(fa, fb, yaws[i:i + 256], ts[i:i + 256], thr) for i in range(0, len(yaws), 256)]
+    cost, inl, tt = (np.concatenate(x) for x in zip(*parts))
+    order = np.argsort(cost)
+    b = order[0]
+    best = Hypothesis(float(yaws[b]), tt[b], inl[b], float(cost[b]))
+    dyaw = np.degrees(np.abs(np.angle(np.exp(1j * (yaws - yaws[b])))))
+    dt = np.degrees(np.arccos(np.clip(tt @ tt[b], -1, 1)))
+    far = (dyaw > rival_yaw_deg) | (dt > rival_t_deg)
+    rival = None
+    if far.any():
+        r = order[far[order]][0]
+        rival = Hypothesis(float(yaws[r]), tt[r], inl[r], float(cost[r]))
+    return RansacResult(best, rival, len(yaws))
+
+
+def _params_to_pose(p: np.ndarray, yaw0: float, t0: np.ndarray, basis: np.ndarray):
+    return yaw0 + p[0], _unit(t0 + basis @ p[1:])
+
+
+def refine_upright(fa: np.ndarray, fb: np.ndarray, yaw: float, t: np.ndarray, *, R0: np.ndarray | None = None,
+                   scale_deg: float = INLIER_DEG, iterations: int = 15) -> tuple[float, np.ndarray]:
+    """Robust (Cauchy, scale ``scale_deg``) Gauss-Newton on yaw and the direction of ``t``.
+
+    The rotation is ``R0 @ yaw_rotation(yaw)`` (``R0`` = I by default); returns (yaw, unit t).
+    """
+    R0 = np.eye(3) if R0 is None else np.asarray(R0, dtype=np.float64)
+    t = _unit(np.asarray(t, dtype=np.float64))
+    s = np.radians(scale_deg)
+
+    def residual(yaw_, t_):
+        g = (R0 @ yaw_rotation(yaw_) @ fb.T).T
+        n = np.cross(t_, g)
+        return np.einsum("ni,ni->n", fa, n) / np.maximum(np.linalg.norm(n, axis=-1), _EPS)
+
+    for _ in range(iterations):
+        helper = np.array([1.0, 0, 0]) if abs(t[0]) < 0.9 else np.array([0, 1.0, 0])
+        e1 = _unit(np.cross(t, helper))
+        basis = np.stack([e1, np.cross(t, e1)], 1)
+        r = residual(yaw, t)
+        w = 1.0 / (1.0 + (r / s) ** 2)
+        J = np.empty((len(r), 3))
+        h = 1e-6
+        for k in range(3):
+            dp = np.zeros(3)
+            dp[k] = h
+            J[:, k] = (residual(*_params_to_pose(dp, yaw, t, basis)) - r) / h
+        A = J.T @ (w[:, None] * J) + 1e-9 * np.eye(3)
+        step = -np.linalg.solve(A, J.T @ (w * r))
+        yaw, t = _params_to_pose(step, yaw, t, basis)
+        if np.abs(step).max() < 1e-9:
+            break
+    return float(yaw), t
+
+
+def floor_scale(points: np.ndarray, camera_height: float, parallax: np.ndarray | None = None, *,
+                min_parallax_deg: float = 3.0, min_share: float = 0.7) -> tuple[float, dict]:
+    """Metres per unit from triangulated points (N, 3) in A's frame (y down) and A's height above the floor.
+
+    Points seen with less than ``min_parallax_deg`` of ``parallax`` (N,) rad (near the epipoles, badly
+    triangulated) are ignored. Heights of the points more than 20 deg below the horizon are binned
+    (0.02 in log height, smoothed over +-0.04); the floor is the lowest peak holding at least
+    ``min_share`` of the largest peak (a bed or a table top can be the largest).
+    """
+    p = np.asarray(points, dtype=np.float64)
+    rng_ = np.linalg.norm(p, axis=-1)
+    below = (p[:, 1] > np.sin(np.radians(20)) * rng_) & np.isfinite(rng_)
+    if parallax is not None:
+        below &= np.asarray(parallax) >= np.radians(min_parallax_deg)
+    y = p[below, 1]
+    if len(y) < 5:
+        raise ValueError(f"only {len(y)} well triangulated points below the camera: cannot find the floor")
+    logy = np.log(y)
+    edges = np.arange(logy.min() - 0.05, logy.max() + 0.07, 0.02)
+    hist = np.histogram(logy, edges)[0].astype(float)
+    smooth = np.convolve(hist, [1, 2, 3, 2, 1], mode="same")
+    padded = np.r_[-1.0, smooth, -1.0]
+    peaks = np.nonzero((smooth >= padded[:-2]) & (smooth > padded[2:]) & (smooth >= min_share * smooth.max()))[0]
+    k = int(peaks[-1])
+    near = np.abs(logy - 0.5 * (edges[k] + edges[k + 1])) < 0.05
+    floor_y = float(np.exp(np.median(logy[near])))
+    return camera_height / floor_y, {"floor_points": int(near.sum()), "floor_depth_units": floor_y}

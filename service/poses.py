@@ -1,0 +1,381 @@
+"""Poses from the two panoramas: SIFT matches -> upright relative pose -> metric scale.
+
+Features: SIFT (OpenCV, ``contrastThreshold=0.02``) on 16 perspective crops per ERP
+(8 on the horizon, 4 at +50 and 4 at -50 deg pitch; 100-deg FOV, 640 px), RootSIFT, each
+keypoint kept only by the crop whose axis is nearest (no duplicates), the tripod cap below
+-65 deg latitude dropped. Matching: ratio 0.8 + mutual check, then upright 3-point RANSAC
+(:mod:`rasterizer.relative_pose`), then matching guided by the pose (within 3 then 1.5 deg of
+the epipolar plane, in front of both cameras) and robust refinement. When a second pose mode (e.g. a
+180-deg flip) keeps half the inliers, :func:`photometric_score` of both decides, or the answer is 422.
+
+World frame of an estimate: A's camera frame (OpenCV, ``c2w_A = I``). Scale: ``baseline``
+(metres), else ``camera_height`` (metres above the floor, from the densest floor-height cluster
+of triangulated points), else a baseline of 1. Failures raise :class:`PoseEstimationFailed` (422).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction, pinhole_directions
+from rasterizer.relative_pose import (
+    INLIER_DEG,
+    epipolar_error,
+    floor_scale,
+    refine_upright,
+    rotation_only_fraction,
+    triangulate,
+    upright_ransac,
+    yaw_rotation,
+)
+
+from .errors import BadInput
+
+#: Options keys this module reads (not encoder options).
+POSE_OPTION_KEYS = ("camera_height", "baseline", "refine_poses")
+
+CROP_FOV_DEG = 100.0
+CROP_SIZE = 640
+MAX_ERP_WIDTH = 2048
+TRIPOD_LAT_DEG = -65.0
+MIN_INLIERS = 20
+#: Fewer putative matches than this agreeing with the RANSAC pose: the views share too little.
+MIN_RANSAC_INLIERS = 12
+#: Rival pose with at least this share of the winner's inliers -> ambiguous.
+RIVAL_SHARE = 0.8
+#: Photometric scores this many times apart decide between two pose modes.
+PHOTOMETRIC_MARGIN = 1.15
+#: At least this share of matches explained by a rotation alone -> no parallax.
+NO_PARALLAX_SHARE = 0.8
+
+
+class PoseEstimationFailed(BadInput):
+    code = "pose_estimation_failed"
+
+
+@dataclass(frozen=True)
+class PoseOptions:
+    camera_height: float | None = None
+    baseline: float | None = None
+    refine_poses: bool = False
+
+    @classmethod
+    def pop_from(cls, options: dict[str, Any]) -> "PoseOptions":
+        """Take the pose keys out of ``options`` (mutates it); raises ``BadInput`` on a bad value."""
+        out = {}
+        for key in ("camera_height", "baseline"):
+            v = options.pop(key, None)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 1e4):
+                raise BadInput(f"options.{key}: expected a positive number of metres", code="invalid_options")
+            out[key] = None if v is None else float(v)
+        refine = options.pop("refine_poses", False)
+        if not isinstance(refine, bool):
+            raise BadInput("options.refine_poses: expected true or false", code="invalid_options")
+        if out["camera_height"] is not None and out["baseline"] is not None:
+            raise BadInput("options: give camera_height or baseline, not both", code="invalid_options")
+        return cls(out["camera_height"], out["baseline"], refine)
+
+
+def _crop_rotations() -> np.ndarray:
+    """(16, 3, 3) crop-camera -> panorama-camera rotations."""
+    rots = []
+    for pitch, yaws in ((0.0, np.arange(8) * 45.0), (50.0, 22.5 + np.arange(4) * 90.0),
+                        (-50.0, 67.5 + np.arange(4) * 90.0)):
+        p = np.radians(pitch)
+        rx = np.array([[1, 0, 0], [0, np.cos(p), np.sin(p)], [0, -np.sin(p), np.cos(p)]])
+        rots += [yaw_rotation(np.radians(y)) @ rx for y in yaws]
+    return np.stack(rots)
+
+
+CROP_ROTATIONS = _crop_rotations()
+
+
+def _gray(erp: np.ndarray) -> np.ndarray:
+    import cv2
+
+    img = np.asarray(erp)
+    if img.dtype != np.uint8:
+        img = np.clip(np.asarray(img, np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
+    if gray.shape[1] > MAX_ERP_WIDTH:
+        gray = cv2.resize(gray, (MAX_ERP_WIDTH, MAX_ERP_WIDTH // 2), interpolation=cv2.INTER_AREA)
+    return gray
+
+
+def features(erp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit bearings (N, 3) in the panorama's camera frame and RootSIFT descriptors (N, 128) float32."""
+    import cv2
+
+    gray = _gray(erp)
+    h, w = gray.shape
+    sift = cv2.SIFT_create(nfeatures=800, contrastThreshold=0.02)
+    local = pinhole_directions(CROP_SIZE, CROP_SIZE, CROP_FOV_DEG)
+    axes = CROP_ROTATIONS[:, :, 2]
+    bearings, descs = [], []
+    for k, rot in enumerate(CROP_ROTATIONS):
+        lat, lon = lat_lon_from_direction(local @ rot.T)
+        mx = ((lon + np.pi) / (2 * np.pi) * w - 0.5).astype(np.float32)
+        my = ((np.pi / 2 - lat) / np.pi * h - 0.5).astype(np.float32)
+        crop = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        kps, desc = sift.detectAndCompute(crop, None)
+        if desc is None or not len(kps):
+            continue
+        pts = np.array([kp.pt for kp in kps])
+        fx = 0.5 * CROP_SIZE / np.tan(np.radians(CROP_FOV_DEG) / 2)
+        c = (CROP_SIZE - 1) / 2.0
+        d = np.stack([(pts[:, 0] - c) / fx, (pts[:, 1] - c) / fx, np.ones(len(pts))], -1)
+        d = (d / np.linalg.norm(d, axis=-1, keepdims=True)) @ rot.T
+        own = np.argmax(d @ axes.T, axis=1) == k
+        own &= lat_lon_from_direction(d)[0] > np.radians(TRIPOD_LAT_DEG)
+        desc = desc[own] / np.maximum(desc[own].sum(1, keepdims=True), 1e-7)
+        bearings.append(d[own])
+        descs.append(np.sqrt(desc).astype(np.float32))
+    if not bearings:
+        return np.zeros((0, 3)), np.zeros((0, 128), np.float32)
+    return np.concatenate(bearings), np.concatenate(descs)
+
+
+def putative_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8) -> np.ndarray:
+    """(M, 2) index pairs: nearest neighbours both ways passing Lowe's ratio test (rows in chunks of 1024)."""
+    na, nb = len(desc_a), len(desc_b)
+    if na < 2 or nb < 2:
+        return np.zeros((0, 2), int)
+    best_j = np.zeros(na, int)
+    first, second = np.zeros(na), np.zeros(na)
+    col_best, col_arg = np.full(nb, np.inf), np.zeros(nb, int)
+    for s in range(0, na, 1024):
+        sl = slice(s, min(s + 1024, na))
+        d2 = np.maximum(2.0 - 2.0 * (desc_a[sl] @ desc_b.T), 0.0)
+        part = np.partition(d2, 1, axis=1)
+        first[sl], second[sl] = part[:, 0], part[:, 1]
+        best_j[sl] = np.argmin(d2, axis=1)
+        cm = np.argmin(d2, axis=0)
+        cv = d2[cm, np.arange(nb)]
+        upd = cv < col_best
+        col_best[upd], col_arg[upd] = cv[upd], cm[upd] + s
+    ok = (first < ratio * ratio * second) & (col_arg[best_j] == np.arange(na))
+    return np.stack([np.nonzero(ok)[0], best_j[ok]], 1)
+
+
+def guided_matches(fa, fb, desc_a, desc_b, R, t, *, max_deg: float, ratio: float = 0.9) -> np.ndarray:
+    """Pairs whose bearings fit the pose (epipolar angle < ``max_deg``, in front of both cameras),
+    nearest in descriptor among those candidates, ratio-tested and mutual; (M, 2)."""
+    thr = np.radians(max_deg)
+    g = fb @ R.T
+    n = np.cross(t, g)
+    n_hat = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    cross_a = np.linalg.norm(np.cross(t, fa), axis=-1)
+    na, nb = len(fa), len(fb)
+    best_d = np.full(na, np.inf)
+    second = np.full(na, np.inf)
+    best_j = np.zeros(na, int)
+    col_best = np.full(nb, np.inf)
+    col_arg = np.zeros(nb, int)
+    at, gt = fa @ t, g @ t
+    for s in range(0, na, 1024):
+        sl = slice(s, min(s + 1024, na))
+        sin_a = np.abs(fa[sl] @ n_hat.T)
+        sin_b = np.abs(fa[sl] @ n.T) / np.maximum(cross_a[sl, None], 1e-12)
+        k = fa[sl] @ g.T
+        den = np.maximum(1 - k * k, 1e-9)
+        ok = (np.maximum(sin_a, sin_b) < np.sin(thr)) & ((at[sl, None] - k * gt) / den > 0) & \
+             ((k * at[sl, None] - gt) / den > 0)
+        d2 = np.where(ok, np.maximum(2.0 - 2.0 * (desc_a[sl] @ desc_b.T), 0.0), np.inf)
+        part = np.partition(d2, 1, axis=1)[:, :2] if nb > 1 else np.concatenate([d2, d2 + np.inf], 1)
+        best_d[sl], second[sl] = part[:, 0], part[:, 1]
+        best_j[sl] = np.argmin(d2, axis=1)
+        cm = np.argmin(d2, axis=0)
+        cv = d2[cm, np.arange(nb)]
+        upd = cv < col_best
+        col_best[upd], col_arg[upd] = cv[upd], cm[upd] + s
+    keep = np.isfinite(best_d) & (best_d < ratio * ratio * second) & (col_arg[best_j] == np.arange(na))
+    return np.stack([np.nonzero(keep)[0], best_j[keep]], 1)
+
+
+def _guided_refine(fa, fb, da, db, yaw, t, R0=None):
+    """Two rounds of guided matching + refinement; returns (yaw, t, inlier pairs, residuals deg)."""
+    R0 = np.eye(3) if R0 is None else R0
+    pairs = np.zeros((0, 2), int)
+    for max_deg in (3.0, 1.5):
+        R = R0 @ yaw_rotation(yaw)
+        pairs = guided_matches(fa, fb, da, db, R, t, max_deg=max_deg)
+        if len(pairs) >= 5:
+            yaw, t = refine_upright(fa[pairs[:, 0]], fb[pairs[:, 1]], yaw, t, R0=R0)
+    R = R0 @ yaw_rotation(yaw)
+    err = np.degrees(epipolar_error(fa[pairs[:, 0]], fb[pairs[:, 1]], R, t)) if len(pairs) else np.zeros(0)
+    inl = err < INLIER_DEG
+    return yaw, t, pairs[inl], err[inl]
+
+
+def _support(pairs: np.ndarray, err_deg: np.ndarray, method: str) -> dict[str, Any]:
+    return {"method": method, "inliers": int(len(pairs)),
+            "residual_deg": {"median": float(np.median(err_deg)) if len(err_deg) else None,
+                             "p90": float(np.percentile(err_deg, 90)) if len(err_deg) else None}}
+
+
+def _pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = R, t
+    return m
+
+
+def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(c2w_a = I, c2w_b, support info) from the images alone; raises :class:`PoseEstimationFailed`."""
+    t0 = time.perf_counter()
+    fa, da = features(erp_a)
+    fb, db = features(erp_b)
+    t_feat = time.perf_counter() - t0
+    pairs = putative_matches(da, db)
+    info: dict[str, Any] = {"features": [int(len(fa)), int(len(fb))], "putative_matches": int(len(pairs))}
+    if len(pairs) < MIN_INLIERS:
+        raise PoseEstimationFailed(f"poses: only {len(pairs)} feature matches between the images "
+                                   f"(need {MIN_INLIERS}); give poses, or images that overlap more")
+    ma, mb = fa[pairs[:, 0]], fb[pairs[:, 1]]
+    static = rotation_only_fraction(ma, mb)
+    info["rotation_only_share"] = static
+    if static >= NO_PARALLAX_SHARE:
+        raise PoseEstimationFailed(f"poses: {static:.0%} of the matches move by a rotation alone: the two panoramas "
+                                   "were taken from (nearly) the same point, which carries no depth",
+                                   code="no_parallax")
+    try:
+        ransac = upright_ransac(ma, mb)
+    except ValueError as exc:  # degenerate matches: no hypothesis
+        raise PoseEstimationFailed(f"poses: no relative pose fits the matches ({exc}); give poses") from None
+    yaw, t, inl, err = _guided_refine(fa, fb, da, db, ransac.best.yaw, ransac.best.t)
+    info.update(_support(inl, err, "sift16-rootsift+upright3pt-ransac+guided"))
+    info["ransac_inliers"] = ransac.best.num_inliers
+    if ransac.best.num_inliers < MIN_RANSAC_INLIERS:
+        raise PoseEstimationFailed(f"poses: only {ransac.best.num_inliers} of {len(pairs)} feature matches agree on a "
+                                   f"relative pose (need {MIN_RANSAC_INLIERS}): the views share too little; give poses")
+    if ransac.rival is not None and ransac.rival.num_inliers >= 0.5 * ransac.best.num_inliers:
+        ryaw, rt, rinl, rerr = _guided_refine(fa, fb, da, db, ransac.rival.yaw, ransac.rival.t)
+        rival = {"inliers": int(len(rinl)), "yaw_deg": float(np.degrees(ryaw)),
+                 "yaw_gap_deg": float(np.degrees(abs(np.angle(np.exp(1j * (ryaw - yaw)))))),
+                 "t_gap_deg": float(np.degrees(np.arccos(np.clip(rt @ t, -1, 1))))}
+        if rival["yaw_gap_deg"] > 15 or rival["t_gap_deg"] > 25:
+            score = photometric_score(erp_a, erp_b, yaw_rotation(yaw), t)
+            rival_score = photometric_score(erp_a, erp_b, yaw_rotation(ryaw), rt)
+            rival["photometric"], info["photometric"] = rival_score, score
+            info["rival"] = rival
+            decisive = max(score, rival_score) >= PHOTOMETRIC_MARGIN * min(score, rival_score)
+            if (decisive and rival_score > score) or (not decisive and len(rinl) > len(inl)):
+                rival.update(inliers=int(len(inl)), photometric=score, yaw_deg=float(np.degrees(yaw)))
+                yaw, t, inl, err, score, rival_score = ryaw, rt, rinl, rerr, rival_score, score
+                info.update(_support(inl, err, "sift16-rootsift+upright3pt-ransac+guided"))
+                info["photometric"] = score
+            if not decisive and rival["inliers"] >= RIVAL_SHARE * len(inl):
+                raise PoseEstimationFailed(
+                    f"poses: ambiguous - two relative poses {rival['yaw_gap_deg']:.0f} deg apart in yaw "
+                    f"({rival['t_gap_deg']:.0f} deg in travel direction) fit the matches about equally well "
+                    f"({len(inl)} vs {rival['inliers']} inliers) and the images agree about as well under both "
+                    f"(photometric {max(score, rival_score):.2f} vs {min(score, rival_score):.2f}), as in a "
+                    "symmetric room or when the views share little; give poses", code="ambiguous_pose")
+    info["timings"] = {"features": t_feat, "total": time.perf_counter() - t0}
+    if len(inl) < MIN_INLIERS:
+        raise PoseEstimationFailed(f"poses: only {len(inl)} matches agree on a relative pose (need {MIN_INLIERS}); "
+                                   "give poses")
+    R = yaw_rotation(yaw)
+    scale, info["scale"] = _scale(fa[inl[:, 0]], fb[inl[:, 1]], R, t, opts)
+    info["yaw_deg"] = float(np.degrees(yaw))
+    return np.eye(4), _pose(R, t * scale), info
+
+
+def _scale(fa, fb, R, t, opts: PoseOptions) -> tuple[float, dict]:
+    if opts.baseline is not None:
+        return opts.baseline, {"source": "baseline", "baseline_m": opts.baseline}
+    if opts.camera_height is not None:
+        la, _ = triangulate(fa, fb, R, t)
+        parallax = np.arccos(np.clip(np.sum(fa * (fb @ R.T), -1), -1, 1))
+        try:
+            s, extra = floor_scale(la[:, None] * fa, opts.camera_height, parallax)
+        except ValueError as exc:
+            raise PoseEstimationFailed(f"poses: camera_height given but {exc}; give baseline instead",
+                                       code="scale_failed") from None
+        return s, {"source": "camera_height", "camera_height_m": opts.camera_height, "baseline_m": s, **extra}
+    return 1.0, {"source": "default", "baseline_m": 1.0,
+                 "note": "no camera_height or baseline given: the scene's scale is arbitrary (baseline 1)"}
+
+
+def refine_poses(erp_a: np.ndarray, erp_b: np.ndarray, c2w_a: np.ndarray, c2w_b: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Refine B's given pose against A (yaw about B's y axis and the travel direction; baseline kept)."""
+    fa, da = features(erp_a)
+    fb, db = features(erp_b)
+    rel = np.linalg.inv(c2w_a) @ c2w_b
+    R0, t_rel = rel[:3, :3], rel[:3, 3]
+    length = float(np.linalg.norm(t_rel))
+    yaw, t, inl, err = _guided_refine(fa, fb, da, db, 0.0, t_rel / length, R0=R0)
+    info = _support(inl, err, "sift16-rootsift+guided-upright-refine")
+    if len(inl) < MIN_INLIERS:
+        info["applied"] = False
+        return c2w_b, info
+    info.update(applied=True, yaw_change_deg=float(np.degrees(yaw)),
+                direction_change_deg=float(np.degrees(np.arccos(np.clip(t @ t_rel / length, -1, 1)))))
+    return c2w_a @ _pose(R0 @ yaw_rotation(yaw), t * length), info
+
+
+def poses_for_scene(erp_a: np.ndarray, erp_b: np.ndarray, poses, opts: PoseOptions) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(c2w_a, c2w_b, metadata ``poses`` JSON) for given (:class:`service.inputs.Poses`) or missing (None) poses."""
+    if poses is None:
+        c2w_a, c2w_b, support = estimate_poses(erp_a, erp_b, opts)
+        source = "estimated"
+    elif opts.refine_poses:
+        c2w_a = poses.c2w_a
+        c2w_b, support = refine_poses(erp_a, erp_b, poses.c2w_a, poses.c2w_b)
+        source = "refined" if support["applied"] else "given"
+    else:
+        return poses.c2w_a, poses.c2w_b, {**poses.as_json(), "source": "given"}
+    out = {"convention": "opencv", "c2w": [c2w_a.tolist(), c2w_b.tolist()], "source": source, "support": support}
+    if poses is not None:
+        out["input_convention"] = poses.convention
+    return c2w_a, c2w_b, out
+
+
+def photometric_score(erp_a: np.ndarray, erp_b: np.ndarray, R: np.ndarray, t: np.ndarray, *, height: int = 256,
+                      samples: int = 1500, planes: int = 48, radius: int = 3, seed: int = 0) -> float:
+    """How well B's image agrees with A's under pose ``[R | t]``: mean over textured pixels of A
+    (away from the epipoles) of the best 5x5 ZNCC along the pixel's epipolar curve in B (48 ranges,
+    0.3-30 baselines, fronto-parallel patches); about 1 for the true pose, lower for a wrong one."""
+    import cv2
+
+    ga, gb = (cv2.resize(_gray(e), (2 * height, height), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+              for e in (erp_a, erp_b))
+    t = np.asarray(t, np.float64) / np.linalg.norm(t)
+    gy, gx = np.gradient(ga)
+    mag = np.hypot(gx, gy)
+    rows, cols = np.mgrid[radius:height - radius, 0:2 * height]
+    lat = np.pi / 2 - (rows + 0.5) / height * np.pi
+    lon = (cols + 0.5) / (2 * height) * 2 * np.pi - np.pi
+    d = direction_from_lat_lon(lat, lon)
+    ok = (np.abs(lat) < np.radians(60)) & (np.abs(d @ t) < np.cos(np.radians(15)))
+    band = mag[radius:height - radius]
+    if np.count_nonzero(ok) < 50:
+        return 0.0
+    ok &= band > np.percentile(band[ok], 70)
+    if np.count_nonzero(ok) < 20:  # flat image: nothing to compare
+        return 0.0
+    idx = np.random.default_rng(seed).choice(np.count_nonzero(ok), size=min(samples, np.count_nonzero(ok)), replace=False)
+    r0, c0 = rows[ok][idx], cols[ok][idx]
+    dr, dc = np.mgrid[-radius:radius + 1, -radius:radius + 1]
+    pr, pc = r0[:, None] + dr.ravel(), (c0[:, None] + dc.ravel()) % (2 * height)  # (N, P)
+    patch_a = ga[pr, pc]
+    dirs = direction_from_lat_lon(np.pi / 2 - (pr + 0.5) / height * np.pi, (pc + 0.5) / height * np.pi - np.pi)
+    inv = np.linspace(1 / 0.3, 1 / 30.0, planes)
+    # fronto-parallel patch: each offset ray meets the plane through the centre point, normal to the centre ray
+    centre = dirs[:, dr.size // 2:dr.size // 2 + 1]
+    lam = (1 / inv)[None, None, :] / np.maximum(np.sum(dirs * centre, -1), 1e-3)[..., None]  # (N, 25, K)
+    pts = dirs[..., None, :] * lam[..., None] - t
+    lat_b, lon_b = lat_lon_from_direction(pts @ R)  # R^T (X - t), row vectors
+    mx = ((lon_b + np.pi) / (2 * np.pi) * 2 * height - 0.5).astype(np.float32)
+    my = ((np.pi / 2 - lat_b) / np.pi * height - 0.5).astype(np.float32)
+    patch_b = cv2.remap(gb, mx.reshape(len(r0), -1), my.reshape(len(r0), -1), cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_WRAP).reshape(mx.shape)  # (N, 25, K)
+    za = patch_a - patch_a.mean(1, keepdims=True)
+    za /= np.maximum(np.linalg.norm(za, axis=1, keepdims=True), 1e-6)
+    zb = patch_b - patch_b.mean(1, keepdims=True)
+    zb /= np.maximum(np.linalg.norm(zb, axis=1, keepdims=True), 1e-6)
+    best = np.max(np.einsum("np,npk->nk", za, zb), axis=1)
+    return float(np.mean(best > 0.8))

@@ -1,0 +1,32 @@
+"""bench/poses.py helpers: pose errors, the similarity into the estimate's frame, camera height."""
+
+import numpy as np
+
+from bench.poses import camera_height, into_estimate, pose_errors
+from rasterizer.relative_pose import yaw_rotation
+from rasterizer.scene_folder import load_scene
+
+
+def _pose(yaw_deg, t):
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = yaw_rotation(np.radians(yaw_deg)), t
+    return m
+
+
+def test_pose_errors():
+    e = pose_errors(_pose(10, [1, 0, 0]), _pose(12, [0, 0, 1.1]))
+    assert abs(e["rotation_deg"] - 2) < 1e-9 and abs(e["direction_deg"] - 90) < 1e-9 and abs(e["scale_pct"] - 10) < 1e-9
+
+
+def test_into_estimate_maps_a_to_identity_and_scales():
+    c2w_a, c2w_t = _pose(30, [1, 2, 3]), _pose(50, [2, 2, 3])
+    assert np.allclose(into_estimate(c2w_a, c2w_a, 2.0), np.eye(4))
+    m = into_estimate(c2w_a, c2w_t, 2.0)
+    assert abs(np.linalg.norm(m[:3, 3]) - 2.0) < 1e-9 and np.allclose(m[:3, :3], yaw_rotation(np.radians(20)))
+
+
+def test_camera_height_from_depth_and_from_z(m3d_dir, zind_dir):
+    m3d = load_scene(m3d_dir)
+    assert 0.8 < camera_height(m3d, m3d.frames["00"]) < 2.0
+    zind = load_scene(zind_dir)
+    assert abs(camera_height(zind, zind.frames["pano_2"]) - 1.435) < 1e-3

@@ -1,0 +1,193 @@
+"""Poses from the images: a textured synthetic box room rendered to ERPs with known poses, and m3d without poses."""
+
+import json
+
+import numpy as np
+import pytest
+
+from rasterizer.geometry import direction_from_lat_lon, erp_lat_lon
+from rasterizer.relative_pose import yaw_rotation
+from rasterizer.scene_folder import load_scene
+from service.poses import PoseEstimationFailed, PoseOptions, estimate_poses, poses_for_scene
+from tests.service.test_service_api import LiveServer, make_settings, model_path  # noqa: F401
+
+ROOM_MIN = np.array([-3.0, -1.2, -3.5])  # camera A at the origin, OpenCV (y down): floor at y = 1.5
+ROOM_MAX = np.array([3.5, 1.5, 4.0])
+_LATTICE = np.random.default_rng(7).random((64, 64, 64, 3)).astype(np.float32)
+
+
+def _noise(p: np.ndarray, cell: float) -> np.ndarray:
+    """Trilinear value noise on a random lattice with ``cell`` metres spacing, (..., 3) in [0, 1]."""
+    q = p / cell
+    i = np.floor(q).astype(int)
+    f = q - i
+    f = f * f * (3 - 2 * f)
+    out = 0.0
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                w = (f[..., 0] if dx else 1 - f[..., 0]) * (f[..., 1] if dy else 1 - f[..., 1]) * \
+                    (f[..., 2] if dz else 1 - f[..., 2])
+                out = out + w[..., None] * _LATTICE[(i[..., 0] + dx) % 64, (i[..., 1] + dy) % 64, (i[..., 2] + dz) % 64]
+    return out
+
+
+def room_erp(c2w: np.ndarray, height: int = 384) -> np.ndarray:
+    """uint8 ERP (H, 2H, 3) of the textured box room seen from ``c2w`` (ray-cast, OpenCV frames)."""
+    lat, lon = erp_lat_lon(height, 2 * height)
+    d = direction_from_lat_lon(lat, lon) @ c2w[:3, :3].T
+    o = c2w[:3, 3]
+    with np.errstate(divide="ignore"):
+        tt = np.where(d > 0, (ROOM_MAX - o) / d, (ROOM_MIN - o) / d)
+    p = o + np.min(tt, axis=-1, keepdims=True) * d
+    tex = 0.55 * _noise(p, 0.08) + 0.45 * _noise(p, 0.3)
+    return (np.clip(tex, 0, 1) * 255).astype(np.uint8)
+
+
+def _pose(yaw_deg: float, t) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = yaw_rotation(np.radians(yaw_deg)), t
+    return m
+
+
+def _angle(u, v):
+    u, v = np.asarray(u) / np.linalg.norm(u), np.asarray(v) / np.linalg.norm(v)
+    return np.degrees(np.arccos(np.clip(u @ v, -1, 1)))
+
+
+def _rot_err(R1, R2):
+    return np.degrees(np.arccos(np.clip((np.trace(R1.T @ R2) - 1) / 2, -1, 1)))
+
+
+@pytest.fixture(scope="module")
+def room_a():
+    return room_erp(np.eye(4))
+
+
+@pytest.mark.parametrize("yaw_deg, t, opts, scale_tol", [
+    (35.0, [1.2, 0.0, 0.6], PoseOptions(baseline=2.0), 1e-9),
+    (178.0, [0.0, 0.0, -1.5], PoseOptions(camera_height=1.5), 0.05),  # B faces A's seam, moving along it
+])
+def test_estimate_recovers_the_synthetic_pose(room_a, yaw_deg, t, opts, scale_tol):
+    true = _pose(yaw_deg, t)
+    c2w_a, c2w_b, info = estimate_poses(room_a, room_erp(true), opts)
+    assert np.array_equal(c2w_a, np.eye(4))
+    assert _rot_err(c2w_b[:3, :3], true[:3, :3]) < 0.5
+    assert _angle(c2w_b[:3, 3], true[:3, 3]) < 2.0
+    expected = opts.baseline if opts.baseline is not None else np.linalg.norm(t)
+    assert abs(np.linalg.norm(c2w_b[:3, 3]) / expected - 1) < max(scale_tol, 1e-9) + 1e-9
+    assert info["inliers"] >= 50 and info["residual_deg"]["median"] < 0.5 and info["scale"]["source"] in (
+        "baseline", "camera_height")
+
+
+def test_identical_images_and_zero_baseline_are_refused(room_a):
+    with pytest.raises(PoseEstimationFailed) as exc:
+        estimate_poses(room_a, room_a.copy(), PoseOptions())
+    assert exc.value.status == 422 and exc.value.code == "no_parallax"
+    turned = room_erp(_pose(60.0, [0.0, 0.0, 0.0]))  # same centre, turned: still no depth
+    with pytest.raises(PoseEstimationFailed, match="same point"):
+        estimate_poses(room_a, turned, PoseOptions())
+
+
+def test_unrelated_and_flat_images_are_refused():
+    from service.poses import photometric_score
+
+    noise = np.random.default_rng(0).integers(0, 255, (256, 512, 3), dtype=np.uint8)
+    with pytest.raises(PoseEstimationFailed):
+        estimate_poses(noise, np.roll(noise[::-1], 77, axis=1), PoseOptions())
+    flat = np.full((64, 128, 3), 128, np.uint8)
+    with pytest.raises(PoseEstimationFailed, match="feature matches"):
+        estimate_poses(flat, flat, PoseOptions())
+    assert photometric_score(flat, flat, np.eye(3), np.array([1.0, 0, 0])) == 0.0
+
+
+def test_default_scale_is_one_and_says_so(room_a):
+    _, c2w_b, info = estimate_poses(room_a, room_erp(_pose(-20.0, [0.8, 0.0, -0.9])), PoseOptions())
+    assert abs(np.linalg.norm(c2w_b[:3, 3]) - 1.0) < 1e-9
+    assert info["scale"]["source"] == "default" and "arbitrary" in info["scale"]["note"]
+
+
+def test_refine_given_poses_moves_a_wrong_yaw_back(room_a):
+    from service.inputs import Poses
+
+    true = _pose(25.0, [1.0, 0.0, 0.8])
+    wrong = true @ _pose(2.0, [0, 0, 0])
+    _, c2w_b, meta = poses_for_scene(room_a, room_erp(true), Poses("opencv", np.eye(4), wrong),
+                                     PoseOptions(refine_poses=True))
+    assert meta["source"] == "refined" and json.dumps(meta)
+    assert _rot_err(c2w_b[:3, :3], true[:3, :3]) < 0.3 < _rot_err(wrong[:3, :3], true[:3, :3])
+    assert abs(np.linalg.norm(c2w_b[:3, 3]) - np.linalg.norm(true[:3, 3])) < 1e-9  # baseline kept
+
+
+def test_m3d_without_poses(m3d_dir):
+    scene = load_scene(m3d_dir)
+    a, b = scene.frames["00"], scene.frames["02"]
+    rel = np.linalg.inv(a.c2w) @ b.c2w
+    _, c2w_b, info = estimate_poses(a.image(), b.image(), PoseOptions(baseline=1.0))
+    assert _rot_err(c2w_b[:3, :3], rel[:3, :3]) < 0.5
+    assert _angle(c2w_b[:3, 3], rel[:3, 3]) < 1.0
+    assert info["inliers"] > 200
+
+
+# -- through the API ---------------------------------------------------------------------------------
+
+def _png(img: np.ndarray) -> bytes:
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+@pytest.fixture(scope="module")
+def api(model_path, tmp_path_factory):  # noqa: F811
+    with LiveServer(make_settings(model_path, tmp_path_factory.mktemp("store"))) as server, server.client() as c:
+        yield c
+
+
+def _post(client, a: bytes, b: bytes, data: dict):
+    return client.post("/v1/scenes", files={"image_a": ("a.png", a), "image_b": ("b.png", b)}, data=data)
+
+
+def test_post_without_poses_returns_the_estimate(api, room_a):
+    true = _pose(30.0, [1.0, 0.0, 0.7])
+    a, b = _png(room_a), _png(room_erp(true))
+    for data in ({"options": json.dumps({"baseline": 1.2207})}, {"poses": json.dumps({"c2w": None}),
+                                                                 "options": json.dumps({"baseline": 1.2207})}):
+        r = _post(api, a, b, data)
+        assert r.status_code == 201, r.text
+        meta = api.get(f"/v1/scenes/{r.json()['id']}").json()
+        poses = meta["poses"]
+        assert poses["source"] == "estimated" and poses["convention"] == "opencv"
+        c2w_a, c2w_b = np.array(poses["c2w"][0]), np.array(poses["c2w"][1])
+        assert np.array_equal(c2w_a, np.eye(4)) and _rot_err(c2w_b[:3, :3], true[:3, :3]) < 0.5
+        assert abs(np.linalg.norm(c2w_b[:3, 3]) - 1.2207) < 1e-6
+        assert poses["support"]["inliers"] >= 50 and poses["support"]["method"]
+        assert "poses" in r.json()["timings"]
+
+
+@pytest.mark.parametrize("options, code", [
+    ({}, "no_parallax"),                                   # identical images
+    ({"baseline": -1}, "invalid_options"),
+    ({"camera_height": 1.5, "baseline": 2}, "invalid_options"),
+    ({"refine_poses": 1}, "invalid_options"),
+])
+def test_post_without_poses_bad_cases_are_422(api, room_a, options, code):
+    a = _png(room_a)
+    r = _post(api, a, a, {"options": json.dumps(options)})
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["code"] == code and r.json()["error"]["message"]
+
+
+def test_photometric_score_prefers_the_true_pose_over_a_flip_and_a_turn(room_a):
+    from service.poses import PHOTOMETRIC_MARGIN, photometric_score
+
+    true = _pose(40.0, [1.0, 0.0, -0.6])
+    img_b = room_erp(true)
+    R, t = true[:3, :3], true[:3, 3]
+    right = photometric_score(room_a, img_b, R, t)
+    flipped = photometric_score(room_a, img_b, R @ yaw_rotation(np.pi), -t)
+    turned = photometric_score(room_a, img_b, R @ yaw_rotation(0.35), yaw_rotation(0.35) @ t)
+    assert right > PHOTOMETRIC_MARGIN * max(flipped, turned)
