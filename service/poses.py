@@ -139,52 +139,18 @@ def features(erp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(bearings), np.concatenate(descs)
 
 
-def putative_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8) -> np.ndarray:
-    """(M, 2) index pairs: nearest neighbours both ways passing Lowe's ratio test (rows in chunks of 1024)."""
+def _mutual_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, allowed=None) -> np.ndarray:
+    """(M, 2) index pairs: nearest neighbours both ways passing Lowe's ratio test, among the pairs that
+    ``allowed(rows)`` ((len(rows), len(desc_b)) bool; None: all) admits. Rows in chunks of 1024."""
     na, nb = len(desc_a), len(desc_b)
-    if na < 2 or nb < 2:
-        return np.zeros((0, 2), int)
+    best_d, second = np.full(na, np.inf), np.full(na, np.inf)
     best_j = np.zeros(na, int)
-    first, second = np.zeros(na), np.zeros(na)
     col_best, col_arg = np.full(nb, np.inf), np.zeros(nb, int)
     for s in range(0, na, 1024):
         sl = slice(s, min(s + 1024, na))
         d2 = np.maximum(2.0 - 2.0 * (desc_a[sl] @ desc_b.T), 0.0)
-        part = np.partition(d2, 1, axis=1)
-        first[sl], second[sl] = part[:, 0], part[:, 1]
-        best_j[sl] = np.argmin(d2, axis=1)
-        cm = np.argmin(d2, axis=0)
-        cv = d2[cm, np.arange(nb)]
-        upd = cv < col_best
-        col_best[upd], col_arg[upd] = cv[upd], cm[upd] + s
-    ok = (first < ratio * ratio * second) & (col_arg[best_j] == np.arange(na))
-    return np.stack([np.nonzero(ok)[0], best_j[ok]], 1)
-
-
-def guided_matches(fa, fb, desc_a, desc_b, R, t, *, max_deg: float, ratio: float = 0.9) -> np.ndarray:
-    """Pairs whose bearings fit the pose (epipolar angle < ``max_deg``, in front of both cameras),
-    nearest in descriptor among those candidates, ratio-tested and mutual; (M, 2)."""
-    thr = np.radians(max_deg)
-    g = fb @ R.T
-    n = np.cross(t, g)
-    n_hat = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
-    cross_a = np.linalg.norm(np.cross(t, fa), axis=-1)
-    na, nb = len(fa), len(fb)
-    best_d = np.full(na, np.inf)
-    second = np.full(na, np.inf)
-    best_j = np.zeros(na, int)
-    col_best = np.full(nb, np.inf)
-    col_arg = np.zeros(nb, int)
-    at, gt = fa @ t, g @ t
-    for s in range(0, na, 1024):
-        sl = slice(s, min(s + 1024, na))
-        sin_a = np.abs(fa[sl] @ n_hat.T)
-        sin_b = np.abs(fa[sl] @ n.T) / np.maximum(cross_a[sl, None], 1e-12)
-        k = fa[sl] @ g.T
-        den = np.maximum(1 - k * k, 1e-9)
-        ok = (np.maximum(sin_a, sin_b) < np.sin(thr)) & ((at[sl, None] - k * gt) / den > 0) & \
-             ((k * at[sl, None] - gt) / den > 0)
-        d2 = np.where(ok, np.maximum(2.0 - 2.0 * (desc_a[sl] @ desc_b.T), 0.0), np.inf)
+        if allowed is not None:
+            d2 = np.where(allowed(sl), d2, np.inf)
         part = np.partition(d2, 1, axis=1)[:, :2] if nb > 1 else np.concatenate([d2, d2 + np.inf], 1)
         best_d[sl], second[sl] = part[:, 0], part[:, 1]
         best_j[sl] = np.argmin(d2, axis=1)
@@ -194,6 +160,34 @@ def guided_matches(fa, fb, desc_a, desc_b, R, t, *, max_deg: float, ratio: float
         col_best[upd], col_arg[upd] = cv[upd], cm[upd] + s
     keep = np.isfinite(best_d) & (best_d < ratio * ratio * second) & (col_arg[best_j] == np.arange(na))
     return np.stack([np.nonzero(keep)[0], best_j[keep]], 1)
+
+
+def putative_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8) -> np.ndarray:
+    """(M, 2) index pairs: nearest neighbours both ways passing Lowe's ratio test."""
+    if len(desc_a) < 2 or len(desc_b) < 2:
+        return np.zeros((0, 2), int)
+    return _mutual_matches(desc_a, desc_b, ratio)
+
+
+def guided_matches(fa, fb, desc_a, desc_b, R, t, *, max_deg: float, ratio: float = 0.9) -> np.ndarray:
+    """Pairs whose bearings fit the pose (epipolar angle < ``max_deg``, in front of both cameras),
+    nearest in descriptor among those candidates, ratio-tested and mutual; (M, 2)."""
+    sin_thr = np.sin(np.radians(max_deg))
+    g = fb @ R.T
+    n = np.cross(t, g)
+    n_hat = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    cross_a = np.linalg.norm(np.cross(t, fa), axis=-1)
+    at, gt = fa @ t, g @ t
+
+    def fits_pose(sl):
+        sin_a = np.abs(fa[sl] @ n_hat.T)
+        sin_b = np.abs(fa[sl] @ n.T) / np.maximum(cross_a[sl, None], 1e-12)
+        k = fa[sl] @ g.T
+        den = np.maximum(1 - k * k, 1e-9)
+        return (np.maximum(sin_a, sin_b) < sin_thr) & ((at[sl, None] - k * gt) / den > 0) & \
+            ((k * at[sl, None] - gt) / den > 0)
+
+    return _mutual_matches(desc_a, desc_b, ratio, fits_pose)
 
 
 def _guided_refine(fa, fb, da, db, yaw, t, R0=None):

@@ -61,20 +61,6 @@ try {
     try {
       if (page === null || args.reload) {
         if (page !== null) await page.close();
-  if (args.page_shot) {
-    // the page as a user sees it, with its panel: no query = reference A's pose
-    current = 'page_shot';
-    page = await browser.newPage();
-    await page.setViewport({ width: args.page_shot.width, height: args.page_shot.height, deviceScaleFactor: 1 });
-    watch(page, () => current);
-    const query = args.page_shot.query ? `?${args.page_shot.query}` : '';
-    await page.goto(`${args.base_url}/v1/scenes/${args.scene_id}/viewer${query}`, { waitUntil: 'load' });
-    await page.waitForFunction('window.viewerReady === true || (window.viewerInfo && window.viewerInfo.error)',
-      { timeout: timeoutMs, polling: 200 });
-    report.page_shot = { path: args.page_shot.path, info: await page.evaluate(() => window.viewerInfo) };
-    await page.screenshot({ path: args.page_shot.path });
-    await page.close();
-  }
         page = await browser.newPage();
         await page.setViewport({ width, height, deviceScaleFactor: 1 });
         watch(page, () => current);
