@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
 
+from rasterizer.depth_gaussians import SURFEL_MAX_STRETCH, SURFEL_SCALE_FACTOR
+
 #: Named settings on the error/run-time curve (see export/benchmark_depth.py).
 #: Measured on m3d_bedroom (export/benchmark_depth.py): at 64x192 features
 #: 32 -> 64 planes lowers AbsRel 0.16/0.09 -> 0.12/0.06 (refs 00/02); 96 and
@@ -125,20 +127,17 @@ class EncoderConfig:
     upsample: str = "guided"  # "guided" | "bilinear"
     upsample_radius: int = 2
     upsample_eps: float = 1e-3
-    # Gaussian head (export/gaussian_head.py)
-    # tangential sigma in pixel pitches (the GT-depth oracle uses 0.3). m3d_bedroom / zind mean of 4
-    # at the old defaults: 0.75 23.90 / 17.97 dB, 0.6 24.21 / 18.04, 0.5 24.37 / 18.08,
-    # 0.4 24.48 / 18.10, 0.3 24.55 / 18.08; zind SSIM falls below 0.5 (0.695 -> 0.670 at 0.3)
-    scale_factor: float = 0.5
+    # Gaussian head (export/gaussian_head.py): oriented surfels spanning the steps to the neighbouring
+    # pixels (sigma = scale_factor steps), opaque so that plain front-to-back compositing covers the
+    # scene (0.7.0, "Real Gaussians"; tuning log in docs/experiments.md). Encoder 0.6.0 had camera-facing
+    # discs of 0.5 pixel pitches with opacity 0.15 + 0.83 conf^2 (covered ~0.75 of a panorama).
+    scale_factor: float = SURFEL_SCALE_FACTOR
     ray_scale_ratio: float = 0.1
-    # opacity = min + (max - min) * confidence ** gamma. Tuned on renders (yinyang ERP at 512x256,
-    # quality preset, cached ORT outputs re-mapped in numpy; m3d_bedroom 01 / zind_room09 mean of 4):
-    # 0.35 linear 21.66 / 17.70 dB, 0.15 squared 22.75 / 18.02, 0.05 squared 23.52 / 18.16,
-    # 0.01 gamma 4 collapses. A 0.05 floor leaves textureless inputs (confidence 0) with only
-    # 21% of the render covered (bench stability: textureless_grey/black/saturated_white fail);
-    # 0.15 and 0.2 pass every stability case (0.1 untested), so the floor is 0.15.
-    opacity_min: float = 0.15
-    opacity_max: float = 0.98
+    max_stretch: float = SURFEL_MAX_STRETCH
+    # opacity = min + (max - min) * confidence ** gamma; the floor is high: an unconfident pixel keeps
+    # the fill's geometric depth and is drawn (nearly) opaque instead of translucent.
+    opacity_min: float = 0.98
+    opacity_max: float = 0.99
     opacity_gamma: float = 2.0
     # Tried in 0.4.0, did not pay: the warp GridSample as four GatherElements + lerps (indices from
     # the warp grids in the graph): 0.19 -> 0.16 s alone (8 x 1 x 64 x 192 source, 64 planes, ORT
@@ -153,7 +152,7 @@ class EncoderConfig:
     near_per_baseline: float = 0.3
     far_per_baseline: float = 20.0
     name: str = "omnisplat-trainingfree"
-    version: str = "0.6.0"
+    version: str = "0.7.0"
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
