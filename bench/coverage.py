@@ -142,7 +142,7 @@ def run(data: list[Path], model: Path | None, threads: int = 2) -> list[dict]:
             h, w = rec.range_maps.shape[-2:]
             prov = Provenance(("yin", "yang"), h, w, np.stack([fa.c2w, fb.c2w]), np.arange(len(rec.gaussians)))
             t = time.perf_counter()
-            small = compact(rec.gaussians, prov, CompactionOptions())
+            small, _ = compact(rec.gaussians, prov, CompactionOptions())
             t_compact = time.perf_counter() - t
             entry = {"scene": scene.name, "split": si, "references": list(split.references),
                      "targets": list(split.targets), "model": enc.metadata.get("version"),
