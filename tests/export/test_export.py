@@ -104,7 +104,9 @@ def test_onnxruntime_matches_torch_on_dev_images(exported, m3d_dir):
     cov_got, cov_ref = (covariance_from_scale_rotation(o["scales"], o["quats"]).reshape(n, 9) for o in (got, ref))
     size = np.abs(cov_ref).max(axis=1, keepdims=True)
     flipped |= (np.abs(cov_got - cov_ref) > COV_RTOL * size).any(axis=1)
-    assert flipped.mean() <= MAX_FLIPPED, f"{int(flipped.sum())} of {n} Gaussians differ"
+    # a surfel's shape comes from its own and its four neighbours' ranges: one flipped range pixel
+    # changes up to five Gaussians
+    assert flipped.mean() <= 5 * MAX_FLIPPED, f"{int(flipped.sum())} of {n} Gaussians differ"
     # seam and pole pixels explicitly: first/last rows and columns of every grid
     for sl in (np.s_[..., 0, :], np.s_[..., -1, :], np.s_[..., :, 0], np.s_[..., :, -1]):
         assert np.all(got["range_maps"][sl] > 0)
