@@ -129,8 +129,7 @@ class EncoderConfig:
     upsample_eps: float = 1e-3
     # Gaussian head (export/gaussian_head.py): oriented surfels spanning the steps to the neighbouring
     # pixels (sigma = scale_factor steps), opaque so that plain front-to-back compositing covers the
-    # scene (0.7.0, "Real Gaussians"; tuning log in docs/experiments.md). Encoder 0.6.0 had camera-facing
-    # discs of 0.5 pixel pitches with opacity 0.15 + 0.83 conf^2 (covered ~0.75 of a panorama).
+    # scene (tuning log: docs/experiments.md, "Real Gaussians").
     scale_factor: float = SURFEL_SCALE_FACTOR
     ray_scale_ratio: float = 0.1
     max_stretch: float = SURFEL_MAX_STRETCH
