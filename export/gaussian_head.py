@@ -29,8 +29,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from rasterizer.depth_gaussians import SURFEL_BORDER_STEP2, SURFEL_MAX_STRETCH, SURFEL_SCALE_FACTOR, pixel_steps
+from rasterizer.depth_gaussians import SURFEL_BORDER_STEP2, pixel_steps
 from rasterizer.gaussians import SH_C0
+
+from .config import EncoderConfig
+
+#: Head defaults = the encoder's (export/config.py).
+_CFG = EncoderConfig()
 
 
 def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -122,9 +127,10 @@ class GaussianHead(nn.Module):
     -> means, scales, quats, opacities, sh_dc, each (N, k) with N = 2 G H W in
     [view][grid][row][col] order; ``cam_quats`` (w, x, y, z) are the rotations of ``c2w``."""
 
-    def __init__(self, grids, height: int, width: int, scale_factor: float = SURFEL_SCALE_FACTOR,
-                 ray_scale_ratio: float = 0.1, opacity_min: float = 0.98, opacity_max: float = 0.99,
-                 opacity_gamma: float = 2.0, max_stretch: float = SURFEL_MAX_STRETCH) -> None:
+    def __init__(self, grids, height: int, width: int, scale_factor: float = _CFG.scale_factor,
+                 ray_scale_ratio: float = _CFG.ray_scale_ratio, opacity_min: float = _CFG.opacity_min,
+                 opacity_max: float = _CFG.opacity_max, opacity_gamma: float = _CFG.opacity_gamma,
+                 max_stretch: float = _CFG.max_stretch) -> None:
         super().__init__()
         steps = [pixel_steps(k, height, width) for k in grids]
         for i, name in enumerate(("rays", "east", "south")):
@@ -140,7 +146,6 @@ class GaussianHead(nn.Module):
     def forward(self, rng, conf, colour, c2w, cam_quats):
         rot = c2w[:, :3, :3]  # (2, 3, 3)
         centre = c2w[:, :3, 3]  # (2, 3)
-        g, h, w = self.rays.shape[:3]
         r = rng.unsqueeze(-1)  # (2, G, H, W, 1)
         pts = r * self.rays  # camera frame
         fa, fb = r * self.east, r * self.south  # camera-facing pixel steps
