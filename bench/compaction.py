@@ -40,6 +40,7 @@ from rasterizer.splat import RenderLimitError
 from rasterizer.yin_yang import erp_to_yin_yang
 
 from .models import bench_model
+from .quality import COMPOSITING_LABEL, composited
 from .report import readme_markers, update_readme
 
 REPO = Path(__file__).resolve().parents[1]
@@ -122,13 +123,25 @@ def contributions(g: Gaussians, c2w) -> int:
     return sum(len(footprints(g, Camera(kind, 3 * h, h, c2w), opacity_bound=g.opacities)) for kind in ("yin", "yang"))
 
 
+#: Compositing of the scored ERP renders (``--compositing``; bench.quality.COMPOSITING).
+COMPOSITING = {"mode": "plain"}
+
+
+def erp_colour(g: Gaussians, c2w, repeats: int = 1):
+    """(colour in the chosen compositing or None, best seconds) of the Yin-Yang ERP render."""
+    out, sec = timed_render(g, c2w, repeats, projection="erp", width=RENDER_WIDTH)
+    if out is None:
+        return None, sec
+    return composited(out.colour, out.alpha, "yinyang", COMPOSITING["mode"]), sec
+
+
 def evaluate(g: Gaussians, target, gt_img, reference: np.ndarray | None = None, repeats: int = 1) -> dict:
     """Count, PLY bytes, render seconds, PSNR against the target image (and against ``reference``)."""
-    out, sec = timed_render(g, target.c2w, repeats, projection="erp", width=RENDER_WIDTH)
+    colour, sec = erp_colour(g, target.c2w, repeats)
     row = {"count": len(g), "ply_bytes": len(ply_bytes(g)), "render_s": round(sec, 3),
-           "psnr": round(metrics.psnr(out.colour, gt_img), 4), "contributions": contributions(g, target.c2w)}
+           "psnr": round(metrics.psnr(colour, gt_img), 4), "contributions": contributions(g, target.c2w)}
     if reference is not None:
-        row["psnr_vs_none"] = round(metrics.psnr(out.colour, reference), 2)
+        row["psnr_vs_none"] = round(metrics.psnr(colour, reference), 2)
     return row
 
 
@@ -136,7 +149,7 @@ def bench_source(g: Gaussians, prov: Provenance, targets, images, conf=None) -> 
     """All variants x targets for one set of Gaussians; plus culling on the 'all' set."""
     res: dict = {"variants": {}, "culling": {}}
     kept_all = None
-    uncompacted = {tn: render(g, targets[tn].c2w, projection="erp", width=RENDER_WIDTH).colour for tn in targets}
+    uncompacted = {tn: erp_colour(g, targets[tn].c2w)[0] for tn in targets}
     sets = {}
     for name, opts in variants(len(g)).items():
         best = np.inf
@@ -234,7 +247,8 @@ def run(data_dirs, model: Path | None, use_gt: bool, adaptive: bool) -> dict:
     encoder = OnnxEncoder(model or bench_model(512, 1024, PRESETS["quality"]["num_planes"]))
     coarse = OnnxEncoder(bench_model(256, 512, 32)) if adaptive else None
     results: dict = {"model": encoder.metadata.get("name"), "model_sha256": encoder.metadata.get("sha256"),
-                     "num_planes": encoder.num_planes, "render": f"ERP {RENDER_WIDTH}x{RENDER_WIDTH // 2} via Yin-Yang",
+                     "num_planes": encoder.num_planes, "render": f"ERP {RENDER_WIDTH}x{RENDER_WIDTH // 2} via Yin-Yang, "
+                     f"{COMPOSITING_LABEL[COMPOSITING['mode']]}", "compositing": COMPOSITING["mode"],
                      "cpu_count": os.cpu_count(), "load_avg_start": os.getloadavg(), "splits": []}
     for d in data_dirs:
         scene = load_scene(d)
@@ -388,7 +402,7 @@ def readme_block(results: dict, report_path: str) -> str:
              f"{results['load_avg_start'][0]:.1f} -> {results['load_avg_end'][0]:.1f}; 'default' is what the service "
              f"and CLI do. Full report: [{report_path}]({report_path}).", "",
              "| split | source | variant | Gaussians | fewer % | contributions less % | render s | render less % | "
-             "ΔPSNR dB (worst target) | compact s |",
+             f"ΔPSNR dB {COMPOSITING_LABEL[results.get('compositing', 'va')]} (worst target) | compact s |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     names = {"none": "none", "all_but_smooth": "overlap + duplicates", "all_steps": "overlap + duplicates + smooth",
              "all": "default (smooth merge)"}
@@ -408,7 +422,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-gt", action="store_true", help="skip the GT-depth Gaussians")
     p.add_argument("--no-adaptive", action="store_true", help="skip the adaptive near/far runs")
     p.add_argument("--readme", type=Path, default=None, help="also rewrite this README's marked compaction block")
+    p.add_argument("--compositing", choices=tuple(COMPOSITING_LABEL), default="plain",
+                   help="plain: over black, no division (default, what viewers show); va: divided by alpha")
     args = p.parse_args(argv)
+    COMPOSITING["mode"] = args.compositing
     results = run(args.data, args.model, not args.no_gt, not args.no_adaptive)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "compaction.json").write_text(json.dumps(results, indent=1, default=float))

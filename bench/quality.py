@@ -131,19 +131,45 @@ def encoder_stages(timings: dict, wall: float) -> dict:
 
 
 def oracle_gaussians(gaussians_from_depth, refs, depths):
-    """GT-depth Gaussians of both references, concatenated."""
+    """GT-depth surfels of both references (the encoder head's shapes, full confidence), concatenated."""
+    from export.config import EncoderConfig
     from rasterizer.gaussians import Gaussians
 
-    parts = [gaussians_from_depth(img, depth, c2w) for (img, c2w), depth in zip(refs, depths)]
+    cfg = EncoderConfig()
+    parts = [gaussians_from_depth(img, depth, c2w, surfels=True, scale_factor=cfg.scale_factor,
+                                  thickness=cfg.ray_scale_ratio, max_stretch=cfg.max_stretch,
+                                  opacity=cfg.opacity_max) for (img, c2w), depth in zip(refs, depths)]
     return Gaussians.concatenate(parts)
 
 
-def render_view(gaussians, c2w: np.ndarray, width: int, rasterizer: str):
-    """(colour, alpha) of an ERP render."""
+#: How a render is composited: "plain" = front to back over black, no division (what 3DGS viewers
+#: show); "va" = colour divided by accumulated alpha where alpha >= 1/255.
+COMPOSITING = ("plain", "va")
+COMPOSITING_LABEL = {"plain": "plain", "va": "V/A"}
+
+
+def render_view(gaussians, c2w: np.ndarray, width: int, rasterizer: str, compositing: str = "plain"):
+    """(colour, alpha) of an ERP render with the given rasterizer and compositing.
+
+    The Yin-Yang path returns V/A colour; its plain colour is that times alpha (the merged
+    premultiplied colour). The direct path returns plain colour; its V/A is :func:`alpha_normalised`.
+    """
     from rasterizer.render import render
 
     out = render(gaussians, c2w, projection="erp", width=width, method=rasterizer)
-    return np.asarray(out.colour), np.asarray(out.alpha)
+    alpha = np.asarray(out.alpha)
+    return composited(np.asarray(out.colour), alpha, rasterizer, compositing), alpha
+
+
+def composited(colour: np.ndarray, alpha: np.ndarray, rasterizer: str, compositing: str) -> np.ndarray:
+    """An ERP render's colour (as ``render(..., method=rasterizer)`` returns it) in the given compositing."""
+    if compositing not in COMPOSITING:
+        raise ValueError(f"compositing must be one of {COMPOSITING}, got {compositing!r}")
+    if rasterizer == "yinyang" and compositing == "plain":
+        return colour * alpha[..., None]
+    if rasterizer == "direct" and compositing == "va":
+        return alpha_normalised(colour, alpha)
+    return colour
 
 
 def alpha_normalised(colour: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -155,7 +181,8 @@ def alpha_normalised(colour: np.ndarray, alpha: np.ndarray) -> np.ndarray:
 # -- the bench ---------------------------------------------------------------------
 
 def run(scene_dirs: list[Path], settings: list[Setting], *, models_dir: Path, threads: int = 2,
-        render_width: int | None = None, warmup: bool = False, max_splits: int | None = None) -> list[dict]:
+        render_width: int | None = None, warmup: bool = False, max_splits: int | None = None,
+        compositing: str = "plain") -> list[dict]:
     """Per-target records for every (setting, scene split, target)."""
     runner = Runner(models_dir, threads, warmup)
     # Build every model first: the whole sweep then uses one snapshot of the exporter's code.
@@ -194,15 +221,20 @@ def run(scene_dirs: list[Path], settings: list[Setting], *, models_dir: Path, th
                     if setting.kind == "copy":
                         pred = copy_nearest(refs, frame.c2w, width // 2, width)
                     else:
-                        pred, alpha = render_view(g, frame.c2w, width, setting.rasterizer)
+                        pred, alpha = render_view(g, frame.c2w, width, setting.rasterizer, compositing)
                     t_render = time.perf_counter() - t0
-                    rec = {"setting": setting.slug, "setting_name": setting.name, "scene": scene.name,
+                    label = "" if setting.kind == "copy" else f", {COMPOSITING_LABEL[compositing]}"
+                    rec = {"setting": setting.slug, "setting_name": setting.name + label, "scene": scene.name,
+                           "compositing": compositing,
                            "split": si, "group": group, "extrapolation": extra, "target": name,
                            "references": list(split.references), "width": width,
                            "finite": bool(np.all(np.isfinite(pred))),
                            **score(pred, gt),
                            "seconds": {"decode": decode, **stages, "render": t_render}}
-                    if alpha is not None and setting.rasterizer == "direct":
+                    if alpha is not None:
+                        rec["mean_alpha"] = float(alpha.mean())
+                        rec["alpha_ge_099"] = float((alpha >= 0.99).mean())
+                    if alpha is not None and setting.rasterizer == "direct" and compositing == "plain":
                         rec["psnr_alpha_normalised"] = metrics.psnr(np.clip(alpha_normalised(pred, alpha), 0, 1), gt)
                     if g is not None:
                         rec["num_gaussians"] = len(g)
@@ -258,12 +290,13 @@ NOTES = [
     "split; no warm-up run (ONNX first-run overhead is included).",
     "Timings are wall clock on a 2-core machine and noisy, more so the higher the load average above; "
     "compare settings, not absolute numbers.",
-    "The direct ERP rasterizer composites colour over black (docs/contracts.md) while the Yin-Yang path divides "
-    "the merged colour by alpha; the ablation table also gives the direct render divided by its alpha (same "
-    "render, no extra time), which separates the projection from that normalisation.",
+    "Compositing is named beside every setting: plain = front to back over black with no division by alpha "
+    "(what 3DGS viewers show; for the Yin-Yang rasterizer its V/A colour times alpha, i.e. the merged "
+    "premultiplied colour), V/A = colour divided by accumulated alpha (`--compositing va`). A plain run's "
+    "JSON also gives the direct render divided by its alpha (same render, no extra time).",
     "copy nearest reference = the nearest reference rotated into the target's orientation (depth at infinity). "
-    "GT-depth oracle = Gaussians from the ground-truth depth of both references (scenes with depth only, so its "
-    "mean covers m3d_bedroom alone).",
+    "GT-depth oracle = the encoder head's surfels from the ground-truth depth of both references at full "
+    "confidence (scenes with depth only, so its mean covers m3d_bedroom alone).",
     "Generated by `omnisplat bench quality`; do not edit by hand.",
 ]
 
@@ -279,6 +312,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--render-width", type=int, default=None, help="evaluation width (default: the target image's)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--warmup", action="store_true", help="one untimed reconstruction per model before timing")
+    p.add_argument("--compositing", choices=COMPOSITING, default="plain",
+                   help="plain: front to back over black, no division (default, what viewers show); "
+                        "va: colour divided by alpha")
     p.add_argument("--name", default="quality", help="output file stem (default 'quality')")
     p.add_argument("--readme", type=Path, default=None,
                    help="also replace the marked quality block of this README (e.g. README.md) with the mean table")
@@ -296,7 +332,7 @@ def main(argv: list[str] | None = None) -> int:
     info = machine_info()
     t0 = time.perf_counter()
     records = run(data, settings, models_dir=args.models_dir, threads=args.threads, render_width=width,
-                  warmup=args.warmup, max_splits=1 if args.short else None)
+                  warmup=args.warmup, max_splits=1 if args.short else None, compositing=args.compositing)
     summary = aggregate(records)
     line = machine_line(info)
     code = code_version()

@@ -27,6 +27,7 @@ from rasterizer.render import render
 from rasterizer.scene_folder import load_scene
 
 from .machine import machine_info, machine_line
+from .quality import COMPOSITING_LABEL, composited
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "docs" / "bench"
@@ -42,10 +43,15 @@ def _log(msg: str) -> None:
     print(f"[bench refine] {msg}", file=sys.stderr, flush=True)
 
 
+#: Compositing of the scored target renders (``--compositing``; bench.quality.COMPOSITING).
+COMPOSITING = {"mode": "plain"}
+
+
 def _score(g, targets) -> dict:
     ps, ss = [], []
     for c2w, gt in targets:
-        out = np.clip(np.nan_to_num(render(g, c2w, projection="erp", width=gt.shape[1]).colour), 0, 1)
+        out = render(g, c2w, projection="erp", width=gt.shape[1])
+        out = np.clip(np.nan_to_num(composited(out.colour, out.alpha, "yinyang", COMPOSITING["mode"])), 0, 1)
         ps.append(metrics.psnr(out, gt))
         ss.append(metrics.ssim(out, gt))
     return {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss))}
@@ -103,7 +109,8 @@ def markdown(result: dict) -> str:
              f"Method: {result['method']}", "",
              f"Working size: Yin/Yang h = {result['height']} (two grids of h x 3h per reference); "
              f"model `{result['model']}`. Seconds = footprints (once) + refinement including the guard; "
-             "encoder not included. Row = the default options with `iterations` = the cap (0 = unrefined).", ""]
+             "encoder not included. Row = the default options with `iterations` = the cap (0 = unrefined). "
+             f"Target PSNR / SSIM of Yin-Yang ERP renders, {result.get('compositing', 'V/A')} compositing.", ""]
     for sc in result["scenes"]:
         base = sc["rows"][0]["psnr"] if sc["rows"] else float("nan")
         lines += [f"## {sc['scene']} split {sc['split']} (references {', '.join(sc['references'])}; "
@@ -182,7 +189,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="bench every split of each scene folder (default) or only the first")
     ap.add_argument("--no-variants", action="store_true", help="skip the unguarded / Huber / L1 comparisons")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--compositing", choices=tuple(COMPOSITING_LABEL), default="plain",
+                    help="scored renders: plain (over black, no division; default) or va (divided by alpha)")
     args = ap.parse_args(argv)
+    COMPOSITING["mode"] = args.compositing
     from service.encoder import OnnxEncoder
 
     model = args.model
@@ -201,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
             scenes.append(bench_scene(encoder, Path(d), si, sorted(set(args.iterations)), args.height, options,
                                       variants))
     result = {"machine": machine_line(machine_info()), "model": str(Path(model).name), "height": args.height,
-              "method": METHOD,
+              "method": METHOD, "compositing": COMPOSITING_LABEL[args.compositing],
               "options": options, "scenes": scenes, "notes": NOTES}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "refine.json").write_text(json.dumps(result, indent=1))

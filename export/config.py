@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, replace
 from typing import Literal, get_args
 
+from rasterizer.depth_gaussians import SURFEL_MAX_STRETCH, SURFEL_SCALE_FACTOR
+
 Matcher = Literal["window", "descriptor"]
 Readout = Literal["wta", "softargmin"]
 Fill = Literal["pushpull", "guided", "planar", "planar_guided"]
@@ -75,18 +77,22 @@ class EncoderConfig:
     upsample: Upsample = "guided"
     upsample_radius: int = 2
     upsample_eps: float = 1e-3
-    # Gaussian head (export/gaussian_head.py): tangential sigma in pixel pitches, ray sigma relative to it
-    scale_factor: float = 0.5
+    # Gaussian head (export/gaussian_head.py): oriented surfels spanning the steps to the neighbouring
+    # pixels (sigma = scale_factor steps), opaque so that plain front-to-back compositing covers the
+    # scene (tuning log: docs/experiments.md, "Real Gaussians").
+    scale_factor: float = SURFEL_SCALE_FACTOR
     ray_scale_ratio: float = 0.1
-    # opacity = min + (max - min) * confidence ** gamma
-    opacity_min: float = 0.15
-    opacity_max: float = 0.98
+    max_stretch: float = SURFEL_MAX_STRETCH
+    # opacity = min + (max - min) * confidence ** gamma; the floor is high: an unconfident pixel keeps
+    # the fill's geometric depth and is drawn (nearly) opaque instead of translucent.
+    opacity_min: float = 0.98
+    opacity_max: float = 0.99
     opacity_gamma: float = 2.0
     # default runtime sweep range in units of the baseline (rasterizer.sweep.default_near_far)
     near_per_baseline: float = 0.3
     far_per_baseline: float = 20.0
     name: str = "omnisplat-trainingfree"
-    version: str = "0.6.0"
+    version: str = "0.7.0"
 
     def __post_init__(self) -> None:
         if self.width != 2 * self.height:

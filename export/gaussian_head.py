@@ -1,20 +1,26 @@
-"""One world-space Gaussian per Yin / Yang (or ERP) pixel of both views.
+"""One world-space surfel (flat Gaussian) per Yin / Yang (or ERP) pixel of both views.
 
 * mean = camera centre + range * (R_c2w ray);
-* scales: the pixel's angular footprint times range and ``scale_factor``
-  along the image's longitude and latitude axes (longitude pitch times
-  cos(lat)), and ``ray_scale_ratio`` of the smaller one along the ray (a
-  flat disc facing the camera);
-* orientation: local axes (east, south, ray) of the pixel, rotated to the
-  world by the camera quaternion (w, x, y, z);
+* shape: the surface steps to the neighbouring pixels. ``a`` (next column)
+  and ``b`` (next row) are central differences of the 3-D points of the range
+  map; where one side jumps (longer than ``max_stretch`` camera-facing pixel
+  steps: a depth discontinuity or a grazing surface) the other side is used,
+  and where both do the camera-facing step (pixel pitch x range along the
+  image's east / south axes, longitude pitch times cos(lat)). The in-plane
+  covariance is ``scale_factor^2 (a a^T + b b^T)`` (neighbours overlap as a
+  lattice; seen from the reference it is the pixel footprint, at any
+  incidence), the normal ``a x b`` gets ``ray_scale_ratio`` of the smaller
+  in-plane sigma. A surfel never stretches across a depth step.
+* orientation: the eigenvectors of that covariance (closed-form 2x2
+  eigen-decomposition in the plane of a and b), as a (w, x, y, z) quaternion;
 * opacity = opacity_min + (opacity_max - opacity_min) * confidence ** opacity_gamma
-  (a steep curve with a low floor: confident pixels dominate the blend,
-  unconfident ones - epipoles, rejected and filled pixels - still fill holes
-  no confident pixel covers);
+  with a high floor: the fill's geometric fallback depth is drawn opaque
+  instead of translucent, so plain front-to-back compositing covers the scene;
 * colour as SH DC of the pixel colour.
 
-Per-pixel constants (rays, local quaternions, footprints) are computed in
-numpy from :mod:`rasterizer.geometry` at export and stored in the graph.
+Per-pixel constants (rays, east / south steps) are computed in numpy from
+:mod:`rasterizer.geometry` at export and stored in the graph; the numpy twin
+is :func:`rasterizer.depth_gaussians.surfel_shapes`.
 """
 
 from __future__ import annotations
@@ -23,30 +29,90 @@ import numpy as np
 import torch
 from torch import nn
 
-from rasterizer.gaussians import SH_C0, rotmat_to_quat
-from rasterizer.geometry import YANG_ROTATION, erp_lat_lon, yin_lat_lon
+from rasterizer.depth_gaussians import SURFEL_BORDER_STEP2, pixel_steps
+from rasterizer.gaussians import SH_C0
+
+from .config import EncoderConfig
+
+#: Head defaults = the encoder's (export/config.py).
+_CFG = EncoderConfig()
 
 
-def pixel_frames(kind: str, height: int, width: int):
-    """Camera-frame rays (h, w, 3), local (w, x, y, z) quats (h, w, 4), footprints (h, w, 2) rad."""
-    if kind == "erp":
-        lat, lon = erp_lat_lon(height, width)
-        dlon, dlat = 2 * np.pi / width, np.pi / height
-    else:
-        lat, lon = yin_lat_lon(height, width)
-        dlon, dlat = 1.5 * np.pi / width, 0.5 * np.pi / height
-    lat, lon = np.broadcast_arrays(lat, lon)
-    cl, sl, co, so = np.cos(lat), np.sin(lat), np.cos(lon), np.sin(lon)
-    ray = np.stack([cl * so, -sl, cl * co], -1)
-    east = np.stack([co, np.zeros_like(co), -so], -1)
-    south = np.stack([sl * so, cl, sl * co], -1)  # -d ray / d lat: image "down"
-    frame = np.stack([east, south, ray], -1)  # columns: local x, y, z
-    if kind == "yang":
-        frame = YANG_ROTATION @ frame
-        ray = ray @ YANG_ROTATION.T
-    quats = rotmat_to_quat(frame.reshape(-1, 3, 3)).reshape(height, width, 4)
-    foot = np.stack([np.maximum(cl, 1e-3) * dlon, np.full_like(cl, dlat)], -1)
-    return ray.astype(np.float32), quats.astype(np.float32), foot.astype(np.float32)
+def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return (a * b).sum(-1, keepdim=True)
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    a0, a1, a2 = a.unbind(-1)
+    b0, b1, b2 = b.unbind(-1)
+    return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], dim=-1)
+
+
+def _steps(p: torch.Tensor, facing: torch.Tensor, dim: int, max_stretch: float) -> torch.Tensor:
+    """Surface step (..., 3) along grid axis ``dim`` of points p (..., H, W, 3): see the module docstring."""
+    n = p.shape[dim]
+    fwd = p.narrow(dim, 1, n - 1) - p.narrow(dim, 0, n - 1)
+    lf = _dot(fwd, fwd)
+    pad = torch.zeros_like(fwd.narrow(dim, 0, 1))
+    far = pad[..., :1] + SURFEL_BORDER_STEP2
+    fwd_p, lf_p = torch.cat([fwd, pad], dim), torch.cat([lf, far], dim)  # step to the next pixel
+    bwd_p, lb_p = torch.cat([pad, fwd], dim), torch.cat([far, lf], dim)  # step from the previous one
+    limit = _dot(facing, facing) * (max_stretch * max_stretch)
+    ok_f, ok_b = lf_p <= limit, lb_p <= limit
+    one = torch.where(lf_p <= lb_p, fwd_p, bwd_p)
+    step = torch.where(ok_f & ok_b, 0.5 * (fwd_p + bwd_p), one)
+    return torch.where(ok_f | ok_b, step, facing)
+
+
+def surfel_frames(a: torch.Tensor, b: torch.Tensor, facing_a: torch.Tensor, facing_b: torch.Tensor,
+                  scale_factor: float, ray_scale_ratio: float):
+    """Steps a, b (..., 3) -> principal axes (..., 3, 3) (columns u1, u2, n) and scales (..., 3).
+
+    Covariance = scale_factor^2 (a a^T + b b^T) + (ray_scale_ratio * smaller sigma)^2 n n^T;
+    nearly parallel steps (sin < 0.05) fall back to the facing steps.
+    """
+    n = _cross(a, b)
+    la, lb, ln = _dot(a, a), _dot(b, b), _dot(n, n)
+    flat = ln <= 0.0025 * la * lb
+    a, b = torch.where(flat, facing_a, a), torch.where(flat, facing_b, b)
+    n = _cross(a, b)
+    n = n / torch.sqrt(_dot(n, n)).clamp(min=1e-30)
+    la = torch.sqrt(_dot(a, a)).clamp(min=1e-30)
+    e1 = a / la
+    e2 = _cross(n, e1)
+    b1, b2 = _dot(b, e1), _dot(b, e2)
+    # in-plane covariance [[p, q], [q, s]] in (e1, e2), closed-form eigen-decomposition
+    p, q, s = la * la + b1 * b1, b1 * b2, b2 * b2
+    half = 0.5 * (p - s)
+    d = torch.sqrt(half * half + q * q)
+    mean = 0.5 * (p + s)
+    cos2 = torch.where(d > 1e-12 * mean, half / d.clamp(min=1e-30), torch.ones_like(d))
+    cos = torch.sqrt((0.5 * (1.0 + cos2)).clamp(min=0.0))
+    sin = torch.sqrt((0.5 * (1.0 - cos2)).clamp(min=0.0)) * torch.where(q < 0, -torch.ones_like(q), torch.ones_like(q))
+    u1 = cos * e1 + sin * e2
+    u2 = _cross(n, u1)
+    s1 = scale_factor * torch.sqrt(mean + d)
+    s2 = scale_factor * torch.sqrt((mean - d).clamp(min=0.0))
+    scales = torch.cat([s1, s2, ray_scale_ratio * torch.minimum(s1, s2)], dim=-1)
+    return torch.stack([u1, u2, n], dim=-1), scales
+
+
+def rotmat_to_quat(r: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotations -> (..., 4) unit (w, x, y, z), w >= 0 (the branch of the largest diagonal term,
+    as :func:`rasterizer.gaussians.rotmat_to_quat`)."""
+    m00, m11, m22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
+    trace = m00 + m11 + m22
+    d21, d02, d10 = r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]
+    s01, s02, s12 = r[..., 0, 1] + r[..., 1, 0], r[..., 0, 2] + r[..., 2, 0], r[..., 1, 2] + r[..., 2, 1]
+    cand = [torch.stack(c, -1) for c in ((1 + trace, d21, d02, d10), (d21, 1 + m00 - m11 - m22, s01, s02),
+                                         (d02, s01, 1 - m00 + m11 - m22, s12), (d10, s02, s12, 1 - m00 - m11 + m22))]
+    q, best = cand[0], trace
+    for c, v in zip(cand[1:], (m00, m11, m22)):
+        gt = (v > best).unsqueeze(-1)
+        q = torch.where(gt, c, q)
+        best = torch.maximum(best, v)
+    q = q / torch.sqrt((q * q).sum(-1, keepdim=True)).clamp(min=1e-30)
+    return torch.where(q[..., :1] < 0, -q, q)
 
 
 def quat_left_matrix(q: torch.Tensor) -> torch.Tensor:
@@ -59,35 +125,39 @@ def quat_left_matrix(q: torch.Tensor) -> torch.Tensor:
 class GaussianHead(nn.Module):
     """range, confidence (2, G, H, W), colour (2, G, 3, H, W), c2w (2,4,4), cam_quats (2,4)
     -> means, scales, quats, opacities, sh_dc, each (N, k) with N = 2 G H W in
-    [view][grid][row][col] order."""
+    [view][grid][row][col] order; ``cam_quats`` (w, x, y, z) are the rotations of ``c2w``."""
 
-    def __init__(self, grids, height: int, width: int, scale_factor: float = 0.5,
-                 ray_scale_ratio: float = 0.1, opacity_min: float = 0.15, opacity_max: float = 0.98,
-                 opacity_gamma: float = 2.0) -> None:
+    def __init__(self, grids, height: int, width: int, scale_factor: float = _CFG.scale_factor,
+                 ray_scale_ratio: float = _CFG.ray_scale_ratio, opacity_min: float = _CFG.opacity_min,
+                 opacity_max: float = _CFG.opacity_max, opacity_gamma: float = _CFG.opacity_gamma,
+                 max_stretch: float = _CFG.max_stretch) -> None:
         super().__init__()
-        frames = [pixel_frames(k, height, width) for k in grids]
-        self.register_buffer("rays", torch.from_numpy(np.stack([f[0] for f in frames])), persistent=False)
-        self.register_buffer("local_quats", torch.from_numpy(np.stack([f[1] for f in frames])), persistent=False)
-        self.register_buffer("footprint", torch.from_numpy(np.stack([f[2] for f in frames])), persistent=False)
+        steps = [pixel_steps(k, height, width) for k in grids]
+        for i, name in enumerate(("rays", "east", "south")):
+            self.register_buffer(name, torch.from_numpy(np.stack([s[i] for s in steps]).astype(np.float32)),
+                                 persistent=False)
         self.scale_factor = float(scale_factor)
         self.ray_scale_ratio = float(ray_scale_ratio)
         self.opacity_min = float(opacity_min)
         self.opacity_max = float(opacity_max)
         self.opacity_gamma = float(opacity_gamma)
+        self.max_stretch = float(max_stretch)
 
     def forward(self, rng, conf, colour, c2w, cam_quats):
         rot = c2w[:, :3, :3]  # (2, 3, 3)
         centre = c2w[:, :3, 3]  # (2, 3)
-        g, h, w = self.rays.shape[:3]
-        rays_w = torch.matmul(self.rays.reshape(1, g * h * w, 3), rot.transpose(1, 2)).reshape(2, g, h, w, 3)
-        means = centre[:, None, None, None, :] + rng.unsqueeze(-1) * rays_w
-        foot = self.footprint.unsqueeze(0) * (self.scale_factor * rng).unsqueeze(-1)  # (2, G, H, W, 2)
-        along = foot.amin(dim=-1, keepdim=True) * self.ray_scale_ratio
-        scales = torch.cat([foot, along], dim=-1)
-        # camera rotation times local frame as one MatMul (2, GHW, 4): per-pixel constants stay one
-        # (G, H, W, 4) tensor instead of 16 folded broadcast products
-        quats = torch.matmul(self.local_quats.reshape(1, g * h * w, 4), quat_left_matrix(cam_quats).transpose(1, 2))
+        r = rng.unsqueeze(-1)  # (2, G, H, W, 1)
+        pts = r * self.rays  # camera frame
+        fa, fb = r * self.east, r * self.south  # camera-facing pixel steps
+        a = _steps(pts, fa, 3, self.max_stretch)
+        b = _steps(pts, fb, 2, self.max_stretch)
+        axes, scales = surfel_frames(a, b, fa, fb, self.scale_factor, self.ray_scale_ratio)
+        rot_b = rot.reshape(2, 1, 1, 1, 3, 3)
         c = conf.clamp(0.0, 1.0)
+        means = centre.reshape(2, 1, 1, 1, 3) + torch.matmul(rot_b, pts.unsqueeze(-1)).squeeze(-1)
+        # camera-frame surfel rotation, turned to the world by the camera quaternion (one MatMul)
+        quats = torch.matmul(quat_left_matrix(cam_quats).reshape(2, 1, 1, 1, 4, 4),
+                             rotmat_to_quat(axes).unsqueeze(-1)).squeeze(-1)
         if self.opacity_gamma == 2.0:
             c = c * c
         elif self.opacity_gamma != 1.0:

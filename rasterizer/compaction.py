@@ -43,6 +43,7 @@ from functools import lru_cache
 import numpy as np
 
 from . import geometry as geo
+from .depth_gaussians import SURFEL_SCALE_FACTOR
 from .gaussians import SH_C0, Gaussians
 from .ply import ply_bytes
 from .yin_yang import blend_weight_yin
@@ -750,27 +751,29 @@ def _render_area(scales: np.ndarray, pixel: np.ndarray) -> np.ndarray:
     return np.sqrt((s_mid**2 + low) * (s_max**2 + low))
 
 
-#: Blocks of 4x4 and more are widened in-plane to a standard deviation of at least this
-#: fraction of their size: moment matching alone leaves 16 Gaussians' lattice at 0.34 of its
-#: spacing, which ripples when magnified (a synthetic wall seen at 2x: 26 dB -> 36 dB).
-MIN_OVERLAP_LARGE = 0.45
+#: Merged blocks are widened in-plane to a standard deviation of at least this fraction of their
+#: size, the overlap of the encoder's surfels (``SURFEL_SCALE_FACTOR`` neighbour steps): moment
+#: matching alone leaves a 2x2 block's lattice at 0.43 of its spacing (16 Gaussians' at 0.34), which
+#: lets the background through between opaque merged Gaussians (plain compositing) and ripples when
+#: magnified (a synthetic wall seen at 2x: 26 dB -> 36 dB at 0.45 for 4x4 blocks).
+MIN_OVERLAP = SURFEL_SCALE_FACTOR
 
 
 def _merged_cov6(u: _Units, side: int) -> np.ndarray:
-    """(m, 6) merged covariance: mean covariance + spread, widened in-plane for blocks of side >= 4.
+    """(m, 6) merged covariance: mean covariance + spread, widened in-plane.
 
     The widening adds isotropic in-plane variance (about the plane normal) up to
-    MIN_OVERLAP_LARGE^2 x block size^2, the size taken from the in-plane spread
+    MIN_OVERLAP^2 x block size^2, the size taken from the in-plane spread
     (a full b x b block has spread (b^2 - 1) / 12 pitch^2 per axis).
     """
     cov = (u.cov + u.m2) / u.w[:, None]
-    if side >= 4 and MIN_OVERLAP_LARGE > 0:
+    if side >= 2 and MIN_OVERLAP > 0:
         spread = u.m2 / u.w[:, None]
         lam0, n, _ = _smallest_eigenpair(spread)
         inplane_spread = 0.5 * (spread[:, 0] + spread[:, 1] + spread[:, 2] - lam0)
         nn = np.stack([n[:, i] * n[:, j] for i, j in _SYM], axis=1)
         cur = 0.5 * (cov[:, 0] + cov[:, 1] + cov[:, 2] - (nn * cov * np.array([1, 1, 1, 2, 2, 2])).sum(1))
-        target = MIN_OVERLAP_LARGE**2 * 12.0 * side**2 / (side**2 - 1) * inplane_spread
+        target = MIN_OVERLAP**2 * 12.0 * side**2 / (side**2 - 1) * inplane_spread
         delta = np.maximum(target - cur, 0.0)
         eye = np.array([1.0, 1, 1, 0, 0, 0])
         cov = cov + delta[:, None] * (eye - nn)
@@ -832,17 +835,14 @@ def merged_gaussians(u: _Units, cam: np.ndarray, pitch: float, side: int = 2) ->
     Mean = weighted mean of the means (weight = opacity x footprint area);
     covariance = weighted mean of the covariances + weighted spread of the
     means; scales and rotation from its eigen-decomposition; SH = weighted
-    mean. Opacity keeps the block's mean optical depth: a Gaussian of
+    mean; the covariance is widened in-plane to :data:`MIN_OVERLAP` of the
+    block size, so merged neighbours overlap as the surfels did. Opacity keeps the block's mean optical depth: a Gaussian of
     opacity a and footprint area A (sigma_1 sigma_2) has optical depth
     -ln(1 - a g) integrating to 2 pi A Li2(a) (:func:`opacity_depth`), and
     overlapping Gaussians add, so the merged opacity solves
     A' Li2(a') = sum_i A_i Li2(a_i) (areas with the low-pass at the grid's
-    own pixel size, :data:`COVERAGE_LOW_PASS`), capped at 0.99. A 2x2
-    block of opaque Gaussians needs more than 0.99: the merged lattice then
-    covers ~93% instead of ~100% between its Gaussians (the renders divide
-    colour by alpha, so this shows only where something lies behind);
-    4x4 and larger blocks are merged only where the cap is not reached
-    (there one Gaussian could cover as little as ~69%).
+    own pixel size, :data:`COVERAGE_LOW_PASS`), capped at 0.99 (blocks
+    whose widened Gaussian would need more are not merged at 4x4 and up).
     """
     w = u.w[:, None]
     mu = u.mu

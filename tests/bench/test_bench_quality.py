@@ -33,7 +33,7 @@ def test_short_quality_bench_writes_json_table_plot(tmp_path, m3d_dir, bench_mod
     assert model["psnr"] > recs["copy"]["psnr"] - 2.0
     assert all(model["seconds"][k] > 0 for k in ("decode", "encoder", "render"))
     md = (out / "quality.md").read_text()
-    assert "| 64x128, 16 planes, features /1, YY encoder, Yin-Yang rasterizer |" in md and data["machine"]["numpy"] in md
+    assert "| 64x128, 16 planes, features /1, YY encoder, Yin-Yang rasterizer, plain |" in md and data["machine"]["numpy"] in md
     assert (out / "quality_psnr_vs_seconds.png").read_bytes()[:4] == b"\x89PNG"
 
 

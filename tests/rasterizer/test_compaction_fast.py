@@ -88,6 +88,13 @@ def _reference_level1(g: Gaussians, prov: Provenance, alive, colour_tol=_DEFAULT
     shb = per_block(w_all[:, None, None] * sub.sh.astype(np.float64))
     depth = per_block(depth_all)
     cov = cp._sym_full((covb + m2b) / wb[:, None])
+    # in-plane widening to MIN_OVERLAP of the 2x2 block's size (plane normal = smallest axis of the spread)
+    spread = cp._sym_full(m2b / wb[:, None])
+    nrm = np.linalg.eigh(spread)[1][:, :, 0]
+    along = lambda c: np.einsum("ni,nij,nj->n", nrm, c, nrm)  # noqa: E731
+    inplane = lambda c: np.trace(c, axis1=1, axis2=2) - along(c)  # noqa: E731
+    delta = np.maximum(cp.MIN_OVERLAP**2 * 12.0 * 4 / 3 * inplane(spread) - inplane(cov), 0.0) / 2
+    cov = cov + delta[:, None, None] * (np.eye(3) - np.einsum("ni,nj->nij", nrm, nrm))
     rngb = np.sqrt(cp._sum3(mub * mub))
     scales, quats = scale_rotation_from_covariance(cov, min_scale=1e-12)
     scales = np.maximum(scales, 1e-9 * rngb[:, None])
