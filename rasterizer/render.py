@@ -175,7 +175,9 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
         :class:`~rasterizer.gaussians.GaussiansError` (a ValueError) naming the field.
     c2w : 4x4 (or 3x4) OpenCV camera-to-world pose; validated by
         :func:`rasterizer.geometry.as_c2w` (PoseError, a ValueError).
-    projection : "erp" | "yin" | "yang" | "perspective".
+    projection : "erp" | "yin" | "yang" | "perspective". Gaussians are composited front to back
+        by range, except in a perspective view, which sorts by camera-frame z as every 3DGS
+        viewer does (so the API's perspective render is what a viewer shows).
     width, height : image size in pixels. Default height: W/2 (erp), W/3
         (yin, yang), W (perspective).
     fov_deg : horizontal field of view of the perspective camera.

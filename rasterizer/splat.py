@@ -177,8 +177,9 @@ class SharedPose:
     s_max (N,) float64 largest scale; factors (9, N) :func:`gaussian_factors`
     (lazily; the Yin/Yang projection computes the rows it needs chunk by chunk
     when none were given); order (N,) the Gaussian of each front-to-back rank and rank (N,) its
-    inverse (by range, ties in input order); grid_keep: per Yin/Yang camera,
-    the indices of the Gaussians that pass the near and domain culls.
+    inverse (by range, ties in input order; by camera-frame z when ``depth_order``, as every 3DGS
+    viewer sorts for a pinhole camera); grid_keep: per Yin/Yang camera, the indices of the
+    Gaussians that pass the near and domain culls.
     """
 
     x: np.ndarray
@@ -192,6 +193,7 @@ class SharedPose:
     rank_: np.ndarray | None = None
     p_cam_: np.ndarray | None = None
     grid_keep: dict = field(default_factory=dict, repr=False)
+    depth_order: bool = False
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     @property
@@ -207,9 +209,10 @@ class SharedPose:
         return self.p_cam_
 
     def _ranks(self) -> None:
-        # ranges >= 0: their float64 bit patterns sort like the values (and a stable sort of
-        # integers is faster than of floats); ties keep the input order
-        order = np.argsort(self.ranges.view(np.int64), kind="stable")
+        # keys >= 0: their float64 bit patterns sort like the values (and a stable sort of
+        # integers is faster than of floats); ties keep the input order. z < 0 is culled anyway.
+        key = np.maximum(self.z, 0.0) if self.depth_order else self.ranges
+        order = np.argsort(key.view(np.int64), kind="stable")
         rank = np.empty_like(order)
         rank[order] = np.arange(order.size)
         self.rank_ = rank
@@ -238,7 +241,8 @@ def shared_pose(gaussians, camera: Camera, factors: np.ndarray | None = None,
         p_cam = np.asarray(camera_points[0], dtype=np.float64)
         ranges = np.asarray(camera_points[1], dtype=np.float64)
         cols = [np.ascontiguousarray(p_cam[:, k]) for k in range(3)]
-        return SharedPose(cols[0], cols[1], cols[2], ranges, s_max, gaussians, factors_=factors, p_cam_=p_cam)
+        return SharedPose(cols[0], cols[1], cols[2], ranges, s_max, gaussians, factors_=factors, p_cam_=p_cam,
+                          depth_order=camera.kind == "perspective")
     # camera.to_camera and the ranges, chunk by chunk, straight into contiguous columns
     pts = np.asarray(gaussians.means)
     n = pts.shape[0]
@@ -254,7 +258,8 @@ def shared_pose(gaussians, camera: Camera, factors: np.ndarray | None = None,
             pc[:, k] = d[0] * rot[0, k] + d[1] * rot[1, k] + d[2] * rot[2, k]
         ranges[c] = np.sqrt(np.einsum("ij,ij->i", pc, pc))
         xyz[:, c] = pc.T
-    return SharedPose(xyz[0], xyz[1], xyz[2], ranges, s_max, gaussians, factors_=factors)
+    return SharedPose(xyz[0], xyz[1], xyz[2], ranges, s_max, gaussians, factors_=factors,
+                      depth_order=camera.kind == "perspective")
 
 
 def _grid_frame(kind: str, x, y, z):

@@ -115,12 +115,12 @@ def test_yang_render_is_yin_render_of_the_yang_pose():
     assert np.allclose(yang.range, yin.range, rtol=1e-5, atol=1e-5)
 
 
-def reference_composite(fp_mean, fp_conic, ranges, opacities, colours, w, h, period=None):
-    """Slow per-pixel loop: evaluate every Gaussian, sort by range, apply the 3DGS rules."""
+def reference_composite(fp_mean, fp_conic, ranges, opacities, colours, w, h, period=None, depths=None):
+    """Slow per-pixel loop: evaluate every Gaussian, sort by range (by ``depths`` if given), apply the 3DGS rules."""
     colour = np.zeros((h, w, 3))
     alpha = np.zeros((h, w))
     rng_img = np.zeros((h, w))
-    order = np.argsort(ranges, kind="stable")
+    order = np.argsort(ranges if depths is None else depths, kind="stable")
     for r in range(h):
         for c in range(w):
             t = 1.0
@@ -172,15 +172,17 @@ def test_footprints_and_composite_match_a_slow_reference_loop(kind):
     keep = np.zeros(n, bool)
     keep[pr.index] = True
     sel = np.flatnonzero(keep)
+    # a pinhole camera sorts by camera-frame z, as 3DGS viewers do (the pose is the identity here)
+    depth = g.means[:, 2] if kind == "perspective" else None
     ref = reference_composite(full[sel], conic[sel], ranges[sel], g.opacities[sel], colours[sel], w, h,
-                              period=w if kind == "erp" else None)
+                              period=w if kind == "erp" else None, depths=None if depth is None else depth[sel])
     assert alpha.max() > 0.5
     assert np.allclose(colour, ref[0], atol=2e-5)
     assert np.allclose(alpha, ref[1], atol=2e-5)
     assert np.allclose(rng_img, ref[2], atol=1e-4)
     # each pixel lists its Gaussians front to back
     same = fp.pixel[1:] == fp.pixel[:-1]
-    r = fp.ranges[fp.gaussian]
+    r = (fp.ranges if depth is None else depth)[fp.gaussian]
     assert np.all(np.diff(fp.pixel) >= 0) and np.all(r[1:][same] >= r[:-1][same])
     assert np.all((fp.weight >= ALPHA_MIN * 0.999) & (fp.weight <= 1))
 
@@ -277,8 +279,9 @@ def test_footprints_order_with_many_layers_seam_and_poles(kind):
 
     Many overlapping layers (shells at several ranges), Gaussians straddling the ERP seam
     (lon = +-180 deg, wrapping columns) and the poles, and a perspective view: every pixel's
-    list must be in (range, input index) order and the contributions must be exactly those of
-    an independent lexsort of the same (pixel, Gaussian) pairs.
+    list must be in (range, input index) order (camera z for the pinhole view, as 3DGS viewers
+    sort) and the contributions must be exactly those of an independent lexsort of the same
+    (pixel, Gaussian) pairs.
     """
     rng = np.random.default_rng(3)
     n = 3000
@@ -296,7 +299,7 @@ def test_footprints_order_with_many_layers_seam_and_poles(kind):
     for bound in (None, g.opacities):
         fp = footprints(g, cam, opacity_bound=bound)
         assert len(fp) > 20 * h * w / 4  # many layers per pixel
-        r = fp.ranges[fp.gaussian]
+        r = (means[:, 2] if kind == "perspective" else fp.ranges)[fp.gaussian]  # the pose is the identity
         ref = np.lexsort((fp.gaussian, r, fp.pixel))
         assert np.array_equal(ref, np.arange(len(fp)))
         assert np.unique(fp.pixel.astype(np.int64) * n + fp.gaussian).size == len(fp)
