@@ -48,7 +48,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise ModelUnavailable(f"model file {model_path} does not exist (run `omnisplat export` or "
                                    "`omnisplat serve`, which builds it)")
         app.state.store = SceneStore(settings.store_dir, cache_scenes=settings.cache_scenes,
-                                     cache_bytes=settings.cache_bytes, max_scenes=settings.max_scenes)
+                                     cache_bytes=settings.cache_bytes, max_scenes=settings.max_scenes,
+                                     tmp_grace_s=settings.store_tmp_grace_s)
         runtime = ModelRuntime(model_path, threads=settings.ort_threads)
         app.state.runtime = runtime
 

@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from .. import jobs as work
 from ..deps import SceneId, StoreDep
 from ..errors import Busy, NotFound
+from ..job_state import JobFiles, identity
 from ..limits import WorkGate
 from ..schemas import error_responses
 from ..store import SCENE_ID_PATTERN
@@ -65,8 +66,9 @@ class JobStatus(BaseModel):
 def _registry(request: Request) -> work.JobRegistry:
     state = request.app.state
     reg = getattr(state, "jobs", None)
-    if reg is None:
-        reg = state.jobs = work.JobRegistry()
+    if reg is None:  # job records beside the scenes: every replica sharing the store answers them
+        files = JobFiles(state.store.root / "jobs", identity(state.settings.replica_id))
+        reg = state.jobs = work.JobRegistry(files=files)
     return reg
 
 
