@@ -192,19 +192,22 @@ def checks(url: str, store: Path) -> tuple[bool, dict]:
     killed_at = time.monotonic()
     out["killed"] = owner
     codes: dict[str, int] = {}
-    final = None
+    answered_by: set[str] = set()
+    final, to_failed = None, None
     i = 0
-    while time.monotonic() - killed_at < 90:
+    while True:  # requests for 20 s after the kill, and until the job is reported finished (at most 90 s)
+        elapsed = time.monotonic() - killed_at
+        if elapsed >= 90 or (final is not None and elapsed >= 20):
+            break
         i += 1
         for u in (f"{url}/v1/jobs/{long_id}", f"{url}/v1/scenes/{scene_id}", render_url(url, scene_id, i, 256)):
-            status, _, body = request(u, timeout=60)
+            status, headers, body = request(u, timeout=60)
             codes[str(status)] = codes.get(str(status), 0) + 1
-            if u.endswith(long_id) and status == 200 and json.loads(body)["status"] != "running":
-                final = json.loads(body)
-        if final is not None:
-            break
+            answered_by.add(headers.get(HEADER, "?"))
+            if final is None and u.endswith(long_id) and status == 200 and json.loads(body)["status"] != "running":
+                final, to_failed = json.loads(body), round(time.monotonic() - killed_at, 1)
         time.sleep(0.2)
-    out["after_kill"] = {"codes": codes, "seconds_to_failed": round(time.monotonic() - killed_at, 1),
+    out["after_kill"] = {"codes": codes, "seconds_to_failed": to_failed, "answered_by": sorted(answered_by),
                          "job": None if final is None else {"status": final["status"], "error": final["error"]}}
     check(final is not None and final["status"] == "failed" and final["error"]["code"] == "replica_lost",
           f"killed job reported {final}")

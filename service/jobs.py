@@ -35,9 +35,9 @@ from .errors import ServiceError
 from .job_state import ACTIVE, HEARTBEAT_S, JobFiles
 from .store import SceneStore, content_id
 
-REFERENCES_ARTIFACT = "references.npz"
 log = logging.getLogger("omnisplat.jobs")
 
+REFERENCES_ARTIFACT = "references.npz"
 REFINE_VERSION = "refine/v2"  # v2: cross-view guard (same params, different result)
 #: finished jobs kept in memory (oldest dropped first)
 MAX_FINISHED_JOBS = 1000
@@ -236,7 +236,7 @@ class JobRegistry:
             job = self._jobs.get(job_id)
             if job is not None and job.status != "failed":
                 return job, False
-            if job is None and not done:
+            if not done:
                 other = self._recorded(job_id)  # queued/running on another replica
                 if other is not None and other.status in ACTIVE:
                     return other, False
