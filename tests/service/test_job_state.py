@@ -11,6 +11,7 @@ import pytest
 
 from service.job_state import JobFiles, identity
 from service.jobs import JobRegistry
+from tests.service.test_service_api import LiveServer, make_settings, model_path, panorama, post_scene  # noqa: F401
 
 JOB = "a" * 32
 PARENT = "b" * 32
@@ -105,3 +106,27 @@ def test_without_files_the_registry_stays_in_memory(tmp_path):
 def test_job_file_paths_stay_inside(tmp_path, bad):
     with pytest.raises(ValueError):
         JobFiles(tmp_path).path(bad)
+
+
+def test_two_services_on_one_store_answer_each_others_jobs(model_path, tmp_path):  # noqa: F811
+    """Two apps sharing a store (as Ray replicas do): a job POSTed to one is answered by the other."""
+    settings = [make_settings(model_path, tmp_path, replica_id=name) for name in ("one", "two")]
+    with LiveServer(settings[0]) as one, LiveServer(settings[1]) as two, one.client() as a, two.client() as b:
+        r = post_scene(a, panorama(seed=5), panorama(seed=5, shift=4))
+        assert r.status_code == 201, r.text
+        sid = r.json()["id"]
+        r = a.post(f"/v1/scenes/{sid}/refine", json={"iterations": 4, "height": 24, "patience": 0})
+        assert r.status_code == 202, r.text
+        location = r.headers["location"]
+        first = b.get(location)
+        assert first.status_code == 200 and first.json()["owner"]["replica"] == "one"
+        # the same request to the other service joins the job instead of starting a second one
+        joined = b.post(f"/v1/scenes/{sid}/refine", json={"iterations": 4, "height": 24, "patience": 0})
+        assert joined.status_code == 202 and joined.headers["location"] == location
+        deadline = time.monotonic() + 120
+        while (body := b.get(location).json())["status"] not in ("done", "failed"):
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        assert body["status"] == "done" and b.get(f"/v1/scenes/{body['scene_id']}").status_code == 200
+        counts = two.app.state.jobs.counts()  # the second service never ran it itself
+        assert counts["queued"] == counts["running"] == counts["failed"] == 0
