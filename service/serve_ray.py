@@ -89,6 +89,12 @@ def replica_app(settings: Settings):
     return app
 
 
+def model_error(app) -> str | None:
+    """Why this app's model failed to load (None while loading or once ready)."""
+    runtime = getattr(getattr(app, "state", None), "runtime", None)
+    return getattr(runtime, "error", None)
+
+
 def build(settings: Settings, opts: RayOptions):
     """The bound Ray Serve application (needs ``ray[serve]``)."""
     from ray import serve
@@ -100,7 +106,14 @@ def build(settings: Settings, opts: RayOptions):
             self.settings = replica_settings(config, opts.replica_cpus, replica)
 
         def __serve_build_asgi_app__(self):
-            return replica_app(self.settings)
+            self.omnisplat_app = replica_app(self.settings)
+            return self.omnisplat_app
+
+        def check_health(self) -> None:
+            """Ray's health check: a replica whose model failed to load is replaced."""
+            failed = model_error(getattr(self, "omnisplat_app", None))
+            if failed:
+                raise RuntimeError(f"model failed to load: {failed}")
 
     config = settings.model_dump(mode="json", exclude={"resolved_model_path"})
     return serve.deployment(**deployment_options(settings, opts))(Omnisplat).bind(config)

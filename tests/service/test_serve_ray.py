@@ -14,7 +14,15 @@ from fastapi import FastAPI
 
 from service import cli
 from service.config import Settings
-from service.serve_ray import REPLICA_HEADER, SHARED_TMP_GRACE_S, RayOptions, ReplicaHeader, deployment_options, replica_settings
+from service.serve_ray import (
+    REPLICA_HEADER,
+    SHARED_TMP_GRACE_S,
+    RayOptions,
+    ReplicaHeader,
+    deployment_options,
+    model_error,
+    replica_settings,
+)
 
 
 def test_deployment_options_follow_settings_and_options():
@@ -64,3 +72,12 @@ def test_serve_help_lists_the_ray_flags(flag, capsys):
     with pytest.raises(SystemExit):
         cli.main(["serve", "--help"])
     assert flag in capsys.readouterr().out
+
+
+def test_model_error_is_what_ray_health_checks_see():
+    app = FastAPI()
+    assert model_error(app) is None  # lifespan not run yet
+    app.state.runtime = type("R", (), {"error": None})()
+    assert model_error(app) is None
+    app.state.runtime.error = "InvalidProtobuf: bad model"
+    assert model_error(app) == "InvalidProtobuf: bad model"
