@@ -22,6 +22,10 @@ python3 -m venv "$VENV" && "$VENV/bin/python" -m pip install -q --disable-pip-ve
     || { echo "FAIL: could not install .[ray,export]"; exit 1; }
 WORK="$(mktemp -d /tmp/omnisplat-ray.XXXXXX)"
 export OMNISPLAT_STORE_DIR="$WORK/store" RAY_USAGE_STATS_ENABLED=0 OMP_NUM_THREADS=1
+# Token authentication with a token of this run only (a ~/.ray/auth_token left by a local ray.init
+# would otherwise switch the head to tokens without the second node knowing).
+RAY_AUTH_TOKEN="$(python3 -c 'import secrets; print(secrets.token_hex(32))')"
+export RAY_AUTH_MODE=token RAY_AUTH_TOKEN
 # The Serve proxy prefers replicas on its own node; off here so that both nodes' replicas take requests.
 export RAY_SERVE_PROXY_PREFER_LOCAL_NODE_ROUTING=0
 SERVE_PID=""
