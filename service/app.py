@@ -24,6 +24,7 @@ from . import __version__
 from .access import AccessGuard
 from .config import Settings, get_settings
 from .errors import install_error_handlers
+from .job_state import JobFiles, identity
 from .jobs import REFINE_QUEUE, JobRegistry
 from .limits import BodySizeLimit, WorkGate
 from .metrics import RequestMetrics, ServiceMetrics
@@ -53,7 +54,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                    "`omnisplat serve`, which builds it)")
         state = app.state
         state.store = SceneStore(settings.store_dir, cache_scenes=settings.cache_scenes,
-                                 cache_bytes=settings.cache_bytes, max_scenes=settings.max_scenes)
+                                 cache_bytes=settings.cache_bytes, max_scenes=settings.max_scenes,
+                                 tmp_grace_s=settings.store_tmp_grace_s)
         state.inference_gate = WorkGate("inference", settings.inference_concurrency, settings.inference_queue,
                                         settings.retry_after_s, metrics.rejected.labels(kind="inference").inc)
         state.render_gate = WorkGate("render", settings.render_concurrency, settings.render_queue,
@@ -65,7 +67,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         state.heavy_render_gate = WorkGate("render_heavy", settings.inference_concurrency, settings.render_queue,
                                            settings.retry_after_s, metrics.rejected.labels(kind="render_heavy").inc,
                                            limiter=state.inference_gate.limiter)
-        state.jobs = JobRegistry()
+        # job records beside the scenes: every replica sharing the store answers them
+        state.jobs = JobRegistry(files=JobFiles(state.store.root / "jobs", identity(settings.replica_id)))
         runtime = ModelRuntime(model_path, threads=settings.ort_threads)
         state.runtime = runtime
 

@@ -215,9 +215,25 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except ModelUnavailable as exc:
         raise CliError(str(exc)) from None
     _say(f"model {settings.resolved_model_path}; scenes in {settings.store_dir}")
+    if args.ray:
+        return _serve_ray(args, settings.model_copy(update={"model_path": settings.resolved_model_path}))
     _say(f"serving on http://{settings.host}:{settings.port} (docs at /docs; /readyz turns 200 after warm-up)")
     uvicorn.Server(server_config(create_app(settings), settings, log_level=args.log_level)).run()
     return 0
+
+
+def _serve_ray(args: argparse.Namespace, settings) -> int:
+    try:
+        import ray.serve  # noqa: F401  (the [ray] extra)
+
+        from .serve_ray import RayOptions, run
+    except ModuleNotFoundError as exc:
+        raise CliError(f"--ray needs {exc.name!r}: pip install 'omnisplat[ray]'") from None
+    opts = RayOptions(min_replicas=args.min_replicas, max_replicas=max(args.min_replicas, args.max_replicas),
+                      replica_cpus=args.replica_cpus)
+    _say(f"Ray Serve: {opts.min_replicas}-{opts.max_replicas} replicas of {opts.replica_cpus:g} CPU "
+         f"on http://{settings.host}:{settings.port}")
+    return run(settings, opts, address=args.ray_address)
 
 
 # -- reconstruct -------------------------------------------------------------------
@@ -474,6 +490,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-requests", type=int,
                    help="requests in progress before 503 + Retry-After (default 256; health exempt)")
     s.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+    ray = s.add_argument_group("Ray Serve (pip install 'omnisplat[ray]'; see README 'Scale-out on Ray Serve')")
+    ray.add_argument("--ray", action="store_true", help="serve on Ray Serve replicas instead of one uvicorn process")
+    ray.add_argument("--ray-address", help="join this Ray cluster (e.g. 'auto'); default: start a local one")
+    ray.add_argument("--min-replicas", type=int, default=1, help="autoscaling lower bound (default 1)")
+    ray.add_argument("--max-replicas", type=int, default=2, help="autoscaling upper bound (default 2)")
+    ray.add_argument("--replica-cpus", type=float, default=1.0,
+                     help="CPUs per replica, also its onnxruntime threads (default 1)")
     s.set_defaults(func=cmd_serve)
 
     r = sub.add_parser("reconstruct", help="scene folder or two images + poses -> Gaussian PLY and a JSON summary",

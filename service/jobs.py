@@ -6,9 +6,11 @@
   ``meta["parent"] = parent_id``, and copy the references to it so it can be refined again.
 * :class:`JobRegistry`: jobs keyed by their result id (``job_id == result scene id``, the
   content hash of parent id + canonical params + model sha256), so the same request on the
-  same scene maps to the same job and the same result. Jobs live in memory: a restart
-  drops queued/running ones (the store never holds a half-written scene) and a finished
-  one is still answered as ``done`` from the store.
+  same scene maps to the same job and the same result. Given :class:`service.job_state.JobFiles`,
+  every state change (and a heartbeat) is also written to the store, so any replica sharing
+  it answers the job; one whose owner died is reported ``failed`` (``replica_lost``), never
+  ``running`` forever. The store never holds a half-written scene, and a finished job is
+  still answered as ``done`` from the store.
 
 Reference images: a scene must carry the artifact ``references.npz`` (uint8 ERP arrays
 ``image_a``, ``image_b``, H x 2H x 3, as fed to the encoder); poses come from
@@ -19,20 +21,26 @@ Reference images: a scene must carry the artifact ``references.npz`` (uint8 ERP 
 from __future__ import annotations
 
 import json
+import logging
 import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from .job_state import ACTIVE, HEARTBEAT_S, JobFiles
 from .references import REFERENCES_ARTIFACT, load_references
 from .store import SceneStore, content_id
+
+log = logging.getLogger("omnisplat.jobs")
 
 REFINE_VERSION = "refine/v2"  # v2: cross-view guard (same params, different result)
 #: finished jobs kept in memory (oldest dropped first)
 MAX_FINISHED_JOBS = 1000
 #: refinement jobs allowed to wait for the (shared) inference capacity
 REFINE_QUEUE = 4
+#: least seconds between two progress writes of one job to its job file
+PROGRESS_WRITE_S = 0.5
 
 
 class JobCancelled(Exception):
@@ -116,6 +124,7 @@ class Job:
     created_at: float = field(default_factory=time.time)
     started_at: float | None = None
     finished_at: float | None = None
+    owner: dict | None = None  # host, pid, replica of the process running it (with job files)
     task: Any = field(default=None, repr=False)
 
     def as_json(self) -> dict:
@@ -123,22 +132,61 @@ class Job:
         return {"id": self.id, "status": self.status, "progress": round(float(self.progress), 4),
                 "scene_id": self.id if done else None, "parent_id": self.parent_id, "params": self.params,
                 "error": self.error, "created_at": self.created_at, "started_at": self.started_at,
-                "finished_at": self.finished_at,
+                "finished_at": self.finished_at, **({"owner": self.owner} if self.owner else {}),
                 "links": {"self": f"/v1/jobs/{self.id}", **({"scene": f"/v1/scenes/{self.id}"} if done else {})}}
+
+    @classmethod
+    def from_record(cls, record: dict) -> "Job":
+        """A read-only snapshot of a job file written by any replica."""
+        return cls(record["id"], record["parent_id"], record.get("params") or {}, record["status"],
+                   float(record.get("progress") or 0.0), record.get("error"), record.get("created_at") or 0.0,
+                   record.get("started_at"), record.get("finished_at"), record.get("owner"))
 
 
 class JobRegistry:
-    """Thread-safe in-memory jobs (progress is written from worker threads)."""
+    """Thread-safe jobs (progress is written from worker threads); shared through ``files`` when given."""
 
-    def __init__(self, max_finished: int = MAX_FINISHED_JOBS) -> None:
+    def __init__(self, max_finished: int = MAX_FINISHED_JOBS, files: JobFiles | None = None) -> None:
         self._jobs: OrderedDict[str, Job] = OrderedDict()
         self._lock = threading.Lock()
         self.max_finished = max_finished
         self.cancelled = threading.Event()
+        self.files = files
+        self._saved: dict[str, float] = {}  # job id -> time of its last write (progress throttle)
+        self._heartbeat: threading.Thread | None = None
 
     def get(self, job_id: str) -> Job | None:
+        """This process's job, else the one another replica recorded (``failed`` if its owner died)."""
         with self._lock:
-            return self._jobs.get(job_id)
+            job = self._jobs.get(job_id)
+        return job if job is not None else self._recorded(job_id)
+
+    def _recorded(self, job_id: str) -> Job | None:
+        record = self.files.read(job_id) if self.files is not None else None
+        if record is None:
+            return None
+        job = Job.from_record(record)
+        reason = self.files.lost(record)
+        if reason is not None:
+            job.status, job.finished_at = "failed", record.get("heartbeat")
+            job.error = {"code": "replica_lost", "message": reason}
+        return job
+
+    def _save(self, job: Job) -> None:
+        if self.files is None:
+            return
+        self._saved[job.id] = time.monotonic()
+        try:
+            self.files.write(job.as_json())
+        except OSError as exc:  # a full or briefly unreachable volume: this replica still answers; next write retries
+            log.warning("job %s: job file not written (%s)", job.id, exc)
+
+    def _beat(self) -> None:
+        while not self.cancelled.wait(HEARTBEAT_S):
+            with self._lock:
+                active = [j for j in self._jobs.values() if j.status in ACTIVE]
+            for job in active:
+                self._save(job)
 
     def submit(self, job_id: str, parent_id: str, params: dict, *, done: bool = False) -> tuple[Job, bool]:
         """The job for ``job_id``: an existing queued/running/done one, else a new one (created=True).
@@ -149,36 +197,50 @@ class JobRegistry:
             job = self._jobs.get(job_id)
             if job is not None and job.status != "failed":
                 return job, False
-            job = Job(job_id, parent_id, params)
+            if not done:
+                other = self._recorded(job_id)  # queued/running on another replica
+                if other is not None and other.status in ACTIVE:
+                    return other, False
+            job = Job(job_id, parent_id, params, owner=self.files.owner if self.files is not None else None)
             if done:
                 job.status, job.progress, job.finished_at = "done", 1.0, time.time()
             self._jobs[job_id] = job
             self._jobs.move_to_end(job_id)
             self._trim()
-            return job, not done
+            if self.files is not None and not done and self._heartbeat is None:
+                self._heartbeat = threading.Thread(target=self._beat, name="job-heartbeat", daemon=True)
+                self._heartbeat.start()
+        self._save(job)
+        return job, not done
 
     def _trim(self) -> None:
         finished = [k for k, j in self._jobs.items() if j.status in ("done", "failed")]
         for k in finished[: max(0, len(finished) - self.max_finished)]:
             del self._jobs[k]
+            self._saved.pop(k, None)
 
     def progress_callback(self, job: Job) -> Callable[[float], None]:
         def report(fraction: float) -> None:
             if self.cancelled.is_set():
                 raise JobCancelled("service shutting down")
             job.progress = float(min(1.0, max(job.progress, fraction)))
+            if time.monotonic() - self._saved.get(job.id, 0.0) >= PROGRESS_WRITE_S:
+                self._save(job)
         return report
 
     def mark_running(self, job: Job) -> None:
         job.status, job.started_at = "running", time.time()
+        self._save(job)
 
     def mark_done(self, job: Job) -> None:
         job.status, job.progress, job.finished_at = "done", 1.0, time.time()
+        self._save(job)
 
     def mark_failed(self, job: Job, exc: BaseException) -> None:
         code = getattr(exc, "code", None) or type(exc).__name__
         message = getattr(exc, "message", None) or str(exc) or type(exc).__name__
         job.status, job.error, job.finished_at = "failed", {"code": code, "message": message}, time.time()
+        self._save(job)
 
     def cancel_all(self) -> None:
         """Make running jobs stop at their next progress report (service shutdown)."""

@@ -97,6 +97,13 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def _age(path: Path) -> float:
+    try:
+        return time.time() - path.stat().st_mtime
+    except OSError:
+        return float("inf")
+
+
 def _write_file(path: Path, writer: Callable[[Any], None]) -> None:
     with open(path, "wb") as f:
         writer(f)
@@ -172,7 +179,7 @@ class SceneStore:
     """Scenes on local disk (durable, atomic) plus a bounded in-memory LRU of their Gaussians."""
 
     def __init__(self, root: str | Path, *, cache_scenes: int = 8, cache_bytes: int = 1 << 30,
-                 max_scenes: int = 0) -> None:
+                 max_scenes: int = 0, tmp_grace_s: float = 0.0) -> None:
         self.root = Path(root)
         self.scenes_dir = self.root / "scenes"
         self.tmp_dir = self.root / "tmp"
@@ -181,6 +188,8 @@ class SceneStore:
             d.mkdir(parents=True, exist_ok=True)
         for d in (self.tmp_dir, self.trash_dir):  # leftovers of a crash: never visible as scenes
             for child in d.iterdir():
+                if tmp_grace_s and _age(child) < tmp_grace_s:
+                    continue  # another process sharing the store may still be writing it
                 shutil.rmtree(child, ignore_errors=True) if child.is_dir() else child.unlink(missing_ok=True)
         self.max_scenes = max_scenes
         self.cache = _LRU(cache_scenes, cache_bytes)

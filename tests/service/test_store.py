@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -176,3 +177,16 @@ def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
         store.put(sid, _gaussians(5), {})
     assert not store.exists(sid)
     assert list((tmp_path / "tmp").iterdir()) == [] and list((tmp_path / "scenes").iterdir()) == []
+
+
+def test_shared_store_keeps_young_unfinished_writes(tmp_path):
+    """With tmp_grace_s (replicas sharing a store), a start-up leaves another writer's young staging alone."""
+    SceneStore(tmp_path)
+    young, old = tmp_path / "tmp" / "young", tmp_path / "tmp" / "old"
+    young.mkdir()
+    old.mkdir()
+    os.utime(old, (time.time() - 3600, time.time() - 3600))
+    SceneStore(tmp_path, tmp_grace_s=600)
+    assert young.exists() and not old.exists()
+    SceneStore(tmp_path)  # a single process owns its store: everything left is a crash's leftover
+    assert not young.exists()
