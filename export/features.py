@@ -25,7 +25,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-_LUMA = (0.299, 0.587, 0.114)
+#: Rec. 601 luma weights of the grey image every matcher works on.
+LUMA = (0.299, 0.587, 0.114)
 
 
 def pad2d(x: torch.Tensor, pad: int, wrap: bool) -> torch.Tensor:
@@ -65,7 +66,7 @@ class GreyFeatures(nn.Module):
 
     def __init__(self) -> None:
         super().__init__()
-        self.register_buffer("luma", torch.tensor(_LUMA).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("luma", torch.tensor(LUMA).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, rgb: torch.Tensor) -> torch.Tensor:
         return (rgb * self.luma).sum(dim=1, keepdim=True)
@@ -88,7 +89,7 @@ class TrainingFreeFeatures(nn.Module):
         self.zncc_weight = float(zncc_weight)
         self.wrap = wrap
         self.out_channels = len(self.zncc_offsets) + len(self.census_offsets)
-        self.register_buffer("luma", torch.tensor(_LUMA).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("luma", torch.tensor(LUMA).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, rgb: torch.Tensor) -> torch.Tensor:
         grey = (rgb * self.luma).sum(dim=1, keepdim=True)

@@ -54,14 +54,12 @@ from .aggregation import (
 )
 from .config import EncoderConfig
 from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, domain_mask, sample_maps
-from .features import GreyFeatures, TrainingFreeFeatures
+from .features import LUMA, GreyFeatures, TrainingFreeFeatures
 from .fine_sweep import FineSweep
 from .gaussian_head import GaussianHead
 from .matches import Matches
 from .readout import DepthReadout, index_to_inverse
 from .yin_yang_sampling import YinYangSampler
-
-_LUMA = (0.299, 0.587, 0.114)
 
 
 class OmniSplatEncoder(nn.Module):
@@ -92,7 +90,7 @@ class OmniSplatEncoder(nn.Module):
         self.matches = Matches(cfg.grids, self.full_w if wrap else 0)
         rays = np.stack([grid_directions(k, self.feat_h, self.feat_w) for k in cfg.grids]).astype(np.float32)
         self.register_buffer("feat_rays", torch.from_numpy(rays), persistent=False)  # (G, h, w, 3)
-        self.register_buffer("luma", torch.tensor(_LUMA).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("luma", torch.tensor(LUMA).view(1, 3, 1, 1), persistent=False)
         self.levels = pyramid_levels(self.feat_h, self.feat_w)
         # planar fill guide: ray directions in units of fill_plane_scale feature-pixel pitches
         pitch = (np.pi if cfg.erp_encoder else 0.5 * np.pi) / self.feat_h

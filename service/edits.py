@@ -19,7 +19,6 @@ selection is graph work only.
 from __future__ import annotations
 
 import io
-import json
 import threading
 import time
 from collections import OrderedDict
@@ -30,7 +29,7 @@ from .errors import BadInput, NotFound, ServiceError
 from .images import encode
 from .inputs import RenderQuery
 from .references import REFERENCES_ARTIFACT, load_references
-from .store import SceneStore, content_id
+from .store import SceneStore, canonical_json, content_id
 
 EDIT_ARTIFACT = "edit.npz"
 INDEX_ARTIFACT = "edit_index.npz"
@@ -106,10 +105,6 @@ def index_bytes(index, keep: np.ndarray | None = None) -> bytes:
     return buf.getvalue()
 
 
-def _canonical(obj) -> str:
-    return json.dumps(obj, sort_keys=True, separators=(",", ":"))
-
-
 def selection_links(scene_id: str, sel_id: str) -> dict[str, str]:
     base = f"/v1/scenes/{scene_id}/selections/{sel_id}"
     return {"self": base, "mask": f"{base}/mask", "edits": f"/v1/scenes/{scene_id}/edits"}
@@ -124,7 +119,7 @@ def create_selection(store: SceneStore, scene_id: str, request: dict) -> dict:
     from rasterizer.edit.scene import select_points, select_segment
     from rasterizer.edit.segment import SelectionError
 
-    sel_id = content_id("selection/v1", scene_id, _canonical(request))
+    sel_id = content_id("selection/v1", scene_id, canonical_json(request))
     t0 = time.perf_counter()
     index = scene_index(store, scene_id)
     t_index = time.perf_counter() - t0
@@ -178,12 +173,11 @@ def _view_image(maps: np.ndarray, view: str, width: int) -> np.ndarray:
 
 def _render_values(store: SceneStore, scene_id: str, colours: np.ndarray, query: RenderQuery) -> tuple[np.ndarray, np.ndarray]:
     """Render the scene with per-Gaussian flat ``colours`` (N, 3) in [0, 1]: (colour (H, W, 3), alpha (H, W))."""
-    from rasterizer.gaussians import SH_C0
+    from rasterizer.gaussians import rgb_to_sh_dc
     from rasterizer.render import render
 
     g = store.gaussians(scene_id)
-    sh = np.zeros((len(g), 1, 3), dtype=np.float32)
-    sh[:, 0] = (colours.astype(np.float32) - 0.5) / np.float32(SH_C0)
+    sh = rgb_to_sh_dc(colours)[:, None, :]
     kwargs = {"projection": query.projection, "width": query.width, "normalize": True}
     if query.projection == "perspective":
         kwargs.update(height=query.height, fov_deg=query.fov_deg)
@@ -225,7 +219,7 @@ def segments_png(store: SceneStore, scene_id: str, view: str | None, width: int,
 
 
 def edit_id_for(scene_id: str, request: dict) -> str:
-    return content_id(EDIT_VERSION, scene_id, _canonical(request))
+    return content_id(EDIT_VERSION, scene_id, canonical_json(request))
 
 
 def _uncovered(gaussians, masks: np.ndarray, c2ws) -> dict[str, float]:

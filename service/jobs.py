@@ -20,7 +20,6 @@ Reference images: a scene must carry the artifact ``references.npz`` (uint8 ERP 
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -30,7 +29,7 @@ from typing import Any, Callable
 
 from .job_state import ACTIVE, HEARTBEAT_S, JobFiles
 from .references import REFERENCES_ARTIFACT, load_references
-from .store import SceneStore, content_id
+from .store import SceneStore, canonical_json, content_id
 
 log = logging.getLogger("omnisplat.jobs")
 
@@ -47,13 +46,9 @@ class JobCancelled(Exception):
     """Raised inside a job's progress callback when the registry is shutting down."""
 
 
-def canonical_params(params: dict) -> str:
-    return json.dumps(params, sort_keys=True, separators=(",", ":"))
-
-
 def result_id_for(parent_id: str, params: dict, model_sha256: str) -> str:
     """Id of the refined scene: same parent + params + model, same id."""
-    return content_id(REFINE_VERSION, parent_id, canonical_params(params), model_sha256 or "")
+    return content_id(REFINE_VERSION, parent_id, canonical_json(params), model_sha256 or "")
 
 
 def refine_scene(store: SceneStore, parent_id: str, result_id: str, params: dict,

@@ -84,6 +84,11 @@ def content_id(*parts: bytes | str) -> str:
     return h.hexdigest()[:32]
 
 
+def canonical_json(obj) -> str:
+    """The one JSON text of a request object that ids are hashed from (sorted keys, no spaces)."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"))
+
+
 def _fsync_dir(path: Path) -> None:
     try:
         fd = os.open(path, os.O_RDONLY)

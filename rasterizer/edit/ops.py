@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import geometry as geo
-from ..gaussians import SH_C0, Gaussians
+from ..gaussians import Gaussians, rgb_to_sh_dc
 from .correspondences import grid_point_directions
 
 EDIT_OPS = ("remove", "keep", "recolor", "translate")
@@ -59,7 +59,7 @@ def edit_gaussians(g: Gaussians, selected: np.ndarray, op: str, *, color=None, o
         rgb = np.asarray(color, dtype=np.float32).reshape(3)
         sh = g.sh.copy()
         sh[selected] = 0.0
-        sh[selected, 0] = (rgb - np.float32(0.5)) / np.float32(SH_C0)
+        sh[selected, 0] = rgb_to_sh_dc(rgb)
         return g.with_(sh=sh)
     if op == "translate":
         means = g.means.copy()
