@@ -178,10 +178,7 @@ def _render_values(store: SceneStore, scene_id: str, colours: np.ndarray, query:
 
     g = store.gaussians(scene_id)
     sh = rgb_to_sh_dc(colours)[:, None, :]
-    kwargs = {"projection": query.projection, "width": query.width, "normalize": True}
-    if query.projection == "perspective":
-        kwargs.update(height=query.height, fov_deg=query.fov_deg)
-    out = render(g.with_(sh=sh), query.c2w, **kwargs)
+    out = render(g.with_(sh=sh), query.c2w, **query.render_kwargs(normalize=True))
     return out.colour, out.alpha
 
 

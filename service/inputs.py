@@ -183,6 +183,13 @@ class RenderQuery:
     format: str
     compositing: str = "plain"
 
+    def render_kwargs(self, *, normalize: bool) -> dict[str, Any]:
+        """Keyword arguments of :func:`rasterizer.render.render` for this query (pose passed apart)."""
+        kwargs: dict[str, Any] = {"projection": self.projection, "width": self.width, "normalize": normalize}
+        if self.projection == "perspective":
+            kwargs.update(height=self.height, fov_deg=self.fov_deg)
+        return kwargs
+
     def output_size(self) -> tuple[int, int]:
         """(height, width) of the rendered image."""
         if self.projection == "erp":

@@ -149,11 +149,9 @@ def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[
     timings["load"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     # plain (default): what every 3DGS viewer shows of the PLY; va: the paper's colour / alpha
-    kwargs = {"projection": query.projection, "width": query.width, "normalize": query.compositing == "va"}
+    kwargs = query.render_kwargs(normalize=query.compositing == "va")
     if isinstance(sweep_near, (int, float)) and sweep_near > 0:  # cull scaled to the scene (mm baselines)
         kwargs["near"] = min(DEFAULT_NEAR, NEAR_CULL_PER_SWEEP_NEAR * float(sweep_near))
-    if query.projection == "perspective":
-        kwargs.update(height=query.height, fov_deg=query.fov_deg)
     out = render(gaussians, query.c2w, **kwargs)
     timings["render"] = time.perf_counter() - t0
     t0 = time.perf_counter()
