@@ -33,26 +33,31 @@ class ModelBuildError(RuntimeError):
     """Exporting a bench model failed; the message carries the exporter's stderr tail."""
 
 
-def model_filename(height: int, width: int, planes: int, erp_encoder: bool, downscale: int | None = None) -> str:
+def model_filename(height: int, width: int, planes: int, erp_encoder: bool, downscale: int | None = None,
+                   layout: bool = True) -> str:
     ds = "" if downscale is None else f"_d{downscale}"
-    return f"omnisplat_{height}x{width}_p{planes}_{'erp' if erp_encoder else 'yy'}{ds}_{export_code_hash()}.onnx"
+    lay = "" if layout else "_nolayout"
+    return f"omnisplat_{height}x{width}_p{planes}_{'erp' if erp_encoder else 'yy'}{ds}{lay}_{export_code_hash()}.onnx"
 
 
 def bench_model(height: int, width: int, planes: int, erp_encoder: bool = False, *, downscale: int | None = None,
-                 models_dir: Path | str = DEFAULT_MODELS_DIR, threads: int = 2,
+                 layout: bool = True, models_dir: Path | str = DEFAULT_MODELS_DIR, threads: int = 2,
                  timeout_s: float = 1800.0, log=None) -> Path:
     """Path of the cached model for these settings, exporting it first if missing.
 
-    ``downscale`` (feature grid = Gaussian grid / downscale) defaults to the exporter's preset.
+    ``downscale`` (feature grid = Gaussian grid / downscale) defaults to the exporter's preset;
+    ``layout=False`` builds it without the layout prior (export/layout.py; an ablation).
     """
     models_dir = Path(models_dir)
     models_dir.mkdir(parents=True, exist_ok=True)
-    path = models_dir / model_filename(height, width, planes, erp_encoder, downscale)
+    path = models_dir / model_filename(height, width, planes, erp_encoder, downscale, layout)
     if path.exists() and path.stat().st_size > 0:
         return path
     kwargs = {"out_path": str(path), "height": height, "width": width, "num_planes": planes, "erp_encoder": erp_encoder}
     if downscale is not None:
         kwargs["downscale"] = int(downscale)
+    if not layout:
+        kwargs["layout_strength"] = 0.0
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO_ROOT), os.environ.get("PYTHONPATH", "")])}
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-c", _EXPORT_SNIPPET.format(threads=int(threads)), json.dumps(kwargs)],

@@ -74,6 +74,12 @@ class EncoderConfig:
     fine_agg_radii: tuple[int, ...] = (2, 6)
     fine_fill: bool = False
     fine_lr_tol: float = 4.0
+    # indoor layout prior (export/layout.py): floor / ceiling planes as weak, agreement-gated
+    # observations of both fills, weight layout_strength x a ramp in |sin elevation| over
+    # layout_elevation, agreement within layout_tol of the plane's inverse range (0 = off)
+    layout_strength: float = 3.0
+    layout_elevation: tuple[float, float] = (0.2, 0.5)
+    layout_tol: float = 0.08
     upsample: Upsample = "guided"
     upsample_radius: int = 2
     upsample_eps: float = 1e-3
@@ -92,7 +98,7 @@ class EncoderConfig:
     near_per_baseline: float = 0.3
     far_per_baseline: float = 20.0
     name: str = "omnisplat-trainingfree"
-    version: str = "0.7.0"
+    version: str = "0.8.0"
 
     def __post_init__(self) -> None:
         if self.width != 2 * self.height:
@@ -110,6 +116,10 @@ class EncoderConfig:
                 raise ValueError(f"fine_hypotheses must be 0 or odd and >= 3, got {self.fine_hypotheses}")
             if full_h % self.fine_downscale or full_w % self.fine_downscale:
                 raise ValueError(f"grid size {full_h}x{full_w} is not divisible by fine_downscale={self.fine_downscale}")
+        lo, hi = self.layout_elevation
+        if self.layout_strength < 0 or not 0 <= lo < hi <= 1 or self.layout_tol <= 0:
+            raise ValueError("need layout_strength >= 0, 0 <= layout_elevation[0] < [1] <= 1 and layout_tol > 0; "
+                             f"got {self.layout_strength}, {self.layout_elevation}, {self.layout_tol}")
         if self.num_planes < 3:
             raise ValueError(f"num_planes must be >= 3, got {self.num_planes}")
 

@@ -13,7 +13,9 @@ refinement can replace a stage without touching the geometry):
 6. :class:`DepthReadout` - sub-plane depth + two peak confidences (a steep
    one weights the fill, a gentle one becomes the output confidence);
 7. left-right check (A->B vs B->A) by warping, inside the graph;
-8. fill of unreliable pixels (``linear_push_pull``: pyramid of local linear
+8. :mod:`export.layout`: floor and ceiling planes fitted to both views' confident points,
+   fed to the fills below as weak observations where nearby confident pixels agree with them;
+   fill of unreliable pixels (``linear_push_pull``: pyramid of local linear
    models of inverse range in the ray direction and grey level - exact for
    planes; or ``guided_push_pull`` in the grey level only, or plain
    push-pull), guided-filter smoothing, guided upsampling to the Gaussian grid;
@@ -57,6 +59,7 @@ from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, dom
 from .features import LUMA, GreyFeatures, TrainingFreeFeatures
 from .fine_sweep import FineSweep
 from .gaussian_head import GaussianHead
+from .layout import fit_planes, plane_prior, with_plane_prior
 from .matches import Matches
 from .readout import DepthReadout, index_to_inverse
 from .yin_yang_sampling import YinYangSampler
@@ -175,7 +178,14 @@ class OmniSplatEncoder(nn.Module):
             out.append(((travel - 2.0) / 6.0).clamp(0.0, 1.0).reshape(g_count, 1, h, w))
         return torch.stack(out)
 
-    def cascade(self, inv, grey_low, grey_full, obs, rel_rt, inv_depths):
+    def layout(self, planes, inv, weight, rays, c2w, levels):
+        """The fill's (value, weight) with the layout planes added (:func:`export.layout.with_plane_prior`)."""
+        if planes is None:
+            return inv, weight
+        plane_inv, ramp = plane_prior(planes, rays, c2w, self.cfg.layout_elevation)
+        return with_plane_prior(inv, weight, plane_inv, ramp, levels, self.cfg.layout_strength, self.cfg.layout_tol)
+
+    def cascade(self, inv, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes):
         """Coarse inverse range (2G, 1, h, w) -> refined on the fine grid, with that grid's grey guide.
 
         Guided upsampling of the coarse map seeds :class:`FineSweep`; with
@@ -198,7 +208,8 @@ class OmniSplatEncoder(nn.Module):
                             align_corners=False)
         guide = self.fine_plane_guide.unsqueeze(0).expand(2, g_count, 3, *size).reshape(2 * g_count, 3, *size)
         guide = torch.cat([guide, grey * float(cfg.fill_eps ** -0.5)], dim=1)
-        filled = linear_push_pull(refined, conf_fill * ok * obs, guide, self.fine_levels, inv_depths.mean())
+        value, weight = self.layout(planes, refined, conf_fill * ok * obs, self.fine_rays, c2w, self.fine_levels)
+        filled = linear_push_pull(value, weight, guide, self.fine_levels, inv_depths.mean())
         return guided_filter(grey, filled, 1, cfg.upsample_eps, wrap), grey
 
     # -- forward -------------------------------------------------------------
@@ -225,21 +236,25 @@ class OmniSplatEncoder(nn.Module):
         reliable = (ok * obs).reshape(2 * g_count, 1, h, w)
         weight = conf * reliable
         fallback = inv_depths.mean()
+        planes = None
+        if cfg.layout_strength > 0:
+            planes = fit_planes(self.feat_rays, inv, conf_fill * reliable, c2w)
+        value, value_w = self.layout(planes, inv, conf_fill * reliable, self.feat_rays, c2w, self.levels)
         if cfg.fill == "guided":
-            filled = guided_push_pull(inv, conf_fill * reliable, grey_low, self.levels, fallback, cfg.fill_eps)
+            filled = guided_push_pull(value, value_w, grey_low, self.levels, fallback, cfg.fill_eps)
         elif cfg.fill in ("planar", "planar_guided"):
             guide = self.plane_guide  # (G, 3, h, w) -> per (view, grid)
             guide = guide.unsqueeze(0).expand(2, g_count, 3, h, w).reshape(2 * g_count, 3, h, w)
             if cfg.fill == "planar_guided":
                 guide = torch.cat([guide, grey_low * float(cfg.fill_eps ** -0.5)], dim=1)
-            filled = linear_push_pull(inv, conf_fill * reliable, guide, self.levels, fallback)
+            filled = linear_push_pull(value, value_w, guide, self.levels, fallback)
         else:
-            filled = push_pull(inv, conf_fill * reliable, self.levels, fallback)
+            filled = push_pull(value, value_w, self.levels, fallback)
         filled = guided_filter(grey_low, filled, 1, cfg.upsample_eps, wrap)
 
         size = (self.full_h, self.full_w)
         if self.fine is not None:
-            filled, grey_low = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths)
+            filled, grey_low = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes)
         if cfg.upsample == "guided" and filled.shape[-2:] != size:
             inv_full = guided_upsample(grey_low, filled, grey_full, cfg.upsample_radius, cfg.upsample_eps, wrap)
         elif filled.shape[-2:] != size:

@@ -57,6 +57,11 @@ def _bench_coverage():
     return main
 
 
+def _bench_layout():
+    from bench.layout import main
+    return main
+
+
 def _bench_depth():
     from bench.depth import main
     return main
@@ -94,6 +99,7 @@ BENCH = {
     "refine": (_bench_refine, "+opt refinement: quality against iterations and seconds"),
     "compaction": (_bench_compaction, "Gaussian count, PLY bytes, render time and PSNR per compaction step"),
     "coverage": (_bench_coverage, "accumulated alpha of the reconstructed Gaussians, quality plain vs V/A"),
+    "layout": (_bench_layout, "the indoor layout prior before / after: PSNR per target, seconds, a picture"),
     "depth": (_bench_depth, "encoder depth error and ONNX run time on the dev scenes"),
     "service": (_bench_service, "HTTP service timings: ready, POST, render, peak memory"),
     "edit": (_bench_edit, "selection consistency across the references (mIoU vs baselines) and edit timings"),

@@ -1,0 +1,128 @@
+"""Layout prior (export/layout.py): plane fit on a synthetic room, upright gate, agreement gating."""
+
+import numpy as np
+import pytest
+import torch
+
+from export.aggregation import pyramid_levels
+from export.layout import fit_planes, plane_prior, with_plane_prior
+from rasterizer.geometry import grid_directions
+
+H, W = 32, 96  # one Yin/Yang feature grid
+FLOOR, CEILING = 1.4, 0.9  # metres below / above the cameras
+HALF = (2.5, 3.0)  # box half-extents (x, z), metres
+
+
+def _rays() -> torch.Tensor:
+    return torch.from_numpy(np.stack([grid_directions(k, H, W) for k in ("yin", "yang")]).astype(np.float32))
+
+
+def _box_range(rays_world: np.ndarray, centre: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Range to the walls, floor and ceiling of an axis-aligned box room (world frame ``up`` = -gravity)."""
+    down = -rup(up)
+    s = rays_world @ down
+    horiz = rays_world - s[..., None] * down
+    # walls: |x| = HALF[0], |z| = HALF[1] in the horizontal plane spanned by e1, e2
+    e1 = np.cross(down, [0.0, 0.0, 1.0]) if abs(down[2]) < 0.9 else np.cross(down, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(down, e1)
+    c1, c2 = centre @ e1, centre @ e2
+    t = np.full(s.shape, np.inf)
+    for axis, half, c in ((e1, HALF[0], c1), (e2, HALF[1], c2)):
+        v = horiz @ axis
+        with np.errstate(divide="ignore"):
+            t = np.minimum(t, np.where(v > 1e-9, (half - c) / v, np.where(v < -1e-9, (-half - c) / v, np.inf)))
+    with np.errstate(divide="ignore"):
+        t = np.minimum(t, np.where(s > 1e-9, FLOOR / s, np.where(s < -1e-9, CEILING / -s, np.inf)))
+    return t
+
+
+def rup(up):
+    up = np.asarray(up, dtype=np.float64)
+    return up / np.linalg.norm(up)
+
+
+def _pose(yaw_deg: float, centre, up=(0.0, -1.0, 0.0)) -> np.ndarray:
+    """Upright camera: OpenCV y (down) along -up, yawed about it."""
+    down = -rup(up)
+    a = np.cross(down, [0.0, 0.0, 1.0]) if abs(down[2]) < 0.9 else np.cross(down, [1.0, 0.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(a, down)
+    yaw = np.radians(yaw_deg)
+    x = np.cos(yaw) * a + np.sin(yaw) * b
+    z = np.cross(x, down)
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.stack([x, down, z], axis=1)
+    c2w[:3, 3] = centre
+    return c2w
+
+
+def _room(up=(0.0, -1.0, 0.0)):
+    rays = _rays()
+    side = np.cross(rup(up), [1.0, 0.0, 0.0]) if abs(rup(up)[0]) < 0.9 else np.cross(rup(up), [0.0, 0.0, 1.0])
+    poses = [_pose(10.0, np.zeros(3), up), _pose(-35.0, 0.8 * side / np.linalg.norm(side), up)]
+    inv = []
+    for c2w in poses:
+        world = rays.numpy().astype(np.float64) @ c2w[:3, :3].T
+        inv.append(1.0 / _box_range(world, c2w[:3, 3], up))
+    inv = torch.from_numpy(np.stack(inv).reshape(4, 1, H, W).astype(np.float32))
+    return rays, inv, torch.from_numpy(np.stack(poses).astype(np.float32))
+
+
+@pytest.mark.parametrize("up", [(0.0, -1.0, 0.0), (0.0, 0.0, 1.0), (0.3, 0.2, 0.9)], ids=["y-up", "z-up", "tilted-world"])
+def test_fit_planes_recovers_floor_and_ceiling(up):
+    rays, inv, c2w = _room(up)
+    gravity, floor, ceiling, upright = fit_planes(rays, inv, torch.ones_like(inv), c2w)
+    assert float(upright) == 1.0
+    np.testing.assert_allclose(gravity.numpy(), -rup(up), atol=1e-5)
+    np.testing.assert_allclose(floor.numpy(), [FLOOR, FLOOR], rtol=0.02)
+    np.testing.assert_allclose(ceiling.numpy(), [CEILING, CEILING], rtol=0.02)
+    # the prior then reproduces the box's floor and ceiling pixels exactly where they are steep
+    plane_inv, ramp = plane_prior((gravity, floor, ceiling, upright), rays, c2w, (0.2, 0.5))
+    steep = ramp >= 1.0
+    assert steep.float().mean() > 0.2
+    # the box's walls are nearer than the planes at some steep pixels: compare only true plane pixels
+    on = steep & ((plane_inv - inv).abs() <= 0.02 * inv)
+    assert on.float().sum() >= 0.6 * steep.float().sum()
+
+
+def test_tilted_cameras_get_no_prior():
+    rays, inv, c2w = _room()
+    tilt = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.866, -0.5], [0.0, 0.5, 0.866]])  # 30 deg about x
+    c2w[1, :3, :3] = tilt @ c2w[1, :3, :3]
+    planes = fit_planes(rays, inv, torch.ones_like(inv), c2w)
+    assert float(planes[3]) == 0.0
+    _, ramp = plane_prior(planes, rays, c2w, (0.2, 0.5))
+    assert float(ramp.abs().max()) == 0.0
+
+
+def test_no_confident_pixels_adds_nothing():
+    """Textureless input: no weight anywhere -> the prior adds no weight (no invented planes)."""
+    rays, inv, c2w = _room()
+    zero = torch.zeros_like(inv)
+    planes = fit_planes(rays, inv, zero, c2w)
+    assert all(torch.isfinite(t).all() for t in planes)
+    plane_inv, ramp = plane_prior(planes, rays, c2w, (0.2, 0.5))
+    value, weight = with_plane_prior(inv, zero, plane_inv, ramp, pyramid_levels(H, W), 3.0, 0.08)
+    assert torch.isfinite(value).all() and float(weight.abs().max()) == 0.0
+
+
+def test_agreement_gates_the_prior():
+    """A floor patch whose confident pixels lie on the plane takes it; one whose confident pixels
+    lie 30% nearer (a table top) keeps its own data: the prior's weight there stays near zero."""
+    levels = pyramid_levels(H, W)
+    plane_inv = torch.full((1, 1, H, W), 0.5)
+    ramp = torch.ones_like(plane_inv)
+    weight = torch.zeros_like(plane_inv)
+    weight[..., ::4, ::4] = 1.0  # sparse confident pixels
+    for data, expect_prior in ((0.5, True), (0.5 / 0.7, False)):
+        inv = torch.full_like(plane_inv, data)
+        inv[weight == 0] = 0.1  # unconfident pixels' raw picks: wrong
+        value, w = with_plane_prior(inv, weight, plane_inv, ramp, levels, 3.0, 0.08)
+        gap = weight == 0
+        added = (w - weight)[gap]
+        if expect_prior:
+            assert float(added.min()) > 2.0
+            torch.testing.assert_close(value[gap], plane_inv[gap])
+        else:
+            assert float(added.max()) < 1e-3
