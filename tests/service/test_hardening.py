@@ -449,4 +449,6 @@ def test_far_off_cameras_are_recentred_in_float64(model_path):  # noqa: F811
     moved = far.gaussians.means.astype(np.float64) - offset
     # float32 at ~1e3 resolves 6e-5: the positions agree to that, not to the offset's rounding in the graph
     assert np.abs(moved - near.gaussians.means).max() < 1e-3
-    assert len(np.unique(far.gaussians.means[:, 0])) > 0.5 * len(far.gaussians)
+    # and they stay as distinct as float32 storage at ~1e3 allows (nothing collapsed inside the graph)
+    stored = (near.gaussians.means[:, 0].astype(np.float64) + offset[0]).astype(np.float32)
+    assert len(np.unique(far.gaussians.means[:, 0])) >= 0.99 * len(np.unique(stored))
