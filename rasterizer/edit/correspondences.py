@@ -19,8 +19,9 @@ from ..yin_yang import blend_weight_yin
 
 #: Channels of the ``matches`` output, in order.
 CHANNELS = ("grid", "col", "row", "score", "status")
-#: ``status`` values: consistent, occluded in the other view, left-right failure.
-OK, OCCLUDED, INCONSISTENT = 0, 1, 2
+#: ``status`` values: consistent, occluded in the other view, left-right failure (the encoder's), and
+#: PHOTO: the two pixels differ in colour (set by :func:`photo_checked`, never by the encoder).
+OK, OCCLUDED, INCONSISTENT, PHOTO = 0, 1, 2, 3
 #: Fixed-point steps per pixel of the packed coordinates.
 _SUBPIXEL = 32
 
@@ -92,7 +93,7 @@ def erp_to_grid_pixel(grids: tuple[str, ...], height: int, width: int, erp_heigh
 @dataclass(frozen=True)
 class ErpMatches:
     """Per ERP pixel of one view: the matched ERP pixel (col, row, continuous) in the other view,
-    the match score and status (:data:`OK`, :data:`OCCLUDED`, :data:`INCONSISTENT`); each (He, We)."""
+    the match score and status (:data:`OK`, :data:`OCCLUDED`, :data:`INCONSISTENT`, :data:`PHOTO`); each (He, We)."""
 
     col: np.ndarray
     row: np.ndarray
@@ -101,7 +102,14 @@ class ErpMatches:
 
     @property
     def valid(self) -> np.ndarray:
+        """(He, We) bool: the match passed the left-right / occlusion check (and the colour check, if run)."""
         return self.status == OK
+
+    @property
+    def weak(self) -> np.ndarray:
+        """(He, We) bool: a left-right failure whose two pixels agree in colour (after :func:`photo_checked`):
+        the other view's range there disagrees, but this view's match may still be right."""
+        return self.status == INCONSISTENT
 
 
 def erp_matches(matches: np.ndarray, view: int, grids: tuple[str, ...], erp_height: int) -> ErpMatches:
@@ -116,11 +124,12 @@ def erp_matches(matches: np.ndarray, view: int, grids: tuple[str, ...], erp_heig
 
 
 def photo_checked(match: ErpMatches, colour: np.ndarray, other_colour: np.ndarray, tol: float) -> ErpMatches:
-    """``match`` with the consistent matches whose colours (H, W, 3) differ by more than ``tol`` (RGB
-    distance) from the colour they land on in ``other_colour`` marked :data:`INCONSISTENT`."""
+    """``match`` with the consistent and the left-right-failed matches whose colours (H, W, 3) differ by
+    more than ``tol`` (RGB distance) from the colour they land on in ``other_colour`` marked :data:`PHOTO`
+    (occluded ones stay occluded). What is left :data:`INCONSISTENT` is then :attr:`ErpMatches.weak`."""
     seen, _ = carry(other_colour, match)
-    off = np.linalg.norm(seen - colour, axis=-1) > tol
-    status = np.where(off & (match.status == OK), np.uint8(INCONSISTENT), match.status).astype(np.uint8)
+    off = (np.linalg.norm(seen - colour, axis=-1) > tol) & ((match.status == OK) | (match.status == INCONSISTENT))
+    status = np.where(off, np.uint8(PHOTO), match.status).astype(np.uint8)
     return ErpMatches(match.col, match.row, match.score, status)
 
 

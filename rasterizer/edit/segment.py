@@ -10,10 +10,11 @@
    ones by edges no heavier than ``level`` (single linkage); negative
    points lower the level until none of them is joined;
 4. :func:`carry_selection`: a mask of one view carried to the other through
-   the encoder's matches (only left-right consistent, unoccluded matches
-   whose two pixels have similar colours count): pulled per pixel, pushed from
-   the prompted view's masked pixels, and decided by superpixels where the
-   prompted view could not see;
+   the encoder's matches (left-right consistent, unoccluded matches whose two
+   pixels have similar colours; then this view's left-right failures whose
+   colours agree): pulled per pixel, pushed from the prompted view's pixels
+   (majority of masked against unmasked), and decided by superpixels where
+   no match decides;
 5. :func:`auto_segments`: both views cut at ``auto_level``, each region
    linked to the region of the other view most of its consistently matched
    pixels land in (when that is at least ``link_overlap`` of them), one label
@@ -53,7 +54,11 @@ class SegmentOptions:
     colour to be the same point (it then counts as inconsistent; m3d_bedroom
     bench edit mIoU 0.778 without, 0.81-0.82 at 0.15-0.3); snap: the carried
     mask takes whole superpixels of this view (else consistent matches keep their
-    carried value per pixel and superpixels decide only the rest); link_overlap:
+    carried value per pixel and superpixels decide only the rest); weak_pull:
+    left-right failures of this view whose colours agree pull like consistent
+    matches where nothing consistent decides; push_majority: a pushed pixel is
+    selected when more masked than unmasked pixels land on it (else any masked
+    one selects it); link_overlap:
     fraction of a region's matched pixels that must land in one region of
     the other view to link them.
     """
@@ -69,6 +74,8 @@ class SegmentOptions:
     auto_level: float = 0.5
     min_votes: int = 8
     snap: bool = False
+    weak_pull: bool = True
+    push_majority: bool = True
     photo_tol: float = 0.2
     link_overlap: float = 0.5
 
@@ -208,29 +215,42 @@ def carry_selection(mask_src: np.ndarray, match: ErpMatches, graph: RegionGraph,
 
     ``match`` maps this view's pixels into the other view (pulled: a consistent match takes the
     mask value it lands on); ``match_src`` (optional) maps the other view's pixels into this one
-    (pushed: a consistent masked pixel marks the pixel it lands on, where this view's own match is
-    not consistent: that keeps thin or small objects whose range this view estimated worse).
-    ``graph`` is this view's.
+    (pushed: where this view's own match is not consistent, the other view's consistent pixels that land
+    on a pixel vote on it, masked against unmasked: that keeps thin or small objects whose range this
+    view estimated worse). ``graph`` is this view's. With ``opts.weak_pull``, this view's
+    :attr:`~.correspondences.ErpMatches.weak` matches (left-right failures whose colours agree: the
+    other view's range is off there) vote for their superpixel and decide their own pixel before the
+    superpixel and the pushes do; pixels left (occluded, colour mismatch, no match) take the decision of
+    their superpixel: the majority of its matched pixels, or, when it has fewer than ``opts.min_votes``,
+    the selection grown to it from decided superpixels at ``level``.
     """
     values, valid = carry(mask_src.astype(np.float32), match)
+    inside = values >= 0.5
+    weak = match.weak & ~valid if opts.weak_pull else np.zeros_like(valid)
     lab = graph.labels.ravel()
-    ok = valid.ravel()
-    votes = np.bincount(lab[ok], minlength=graph.n)
-    ins = np.bincount(lab[ok], weights=values.ravel()[ok], minlength=graph.n)
+    voter = (valid | weak).ravel()
+    votes = np.bincount(lab[voter], minlength=graph.n)
+    ins = np.bincount(lab[voter], weights=inside.ravel()[voter], minlength=graph.n)
     known = votes >= opts.min_votes
     sel = known & (ins >= 0.5 * np.maximum(votes, 1))
     if sel.any():
         comp = graph.components(level, nodes=sel | ~known)  # grow only into superpixels the other view did not see
         sel |= ~known & np.isin(comp, comp[sel])
-    pushed = np.zeros(graph.labels.shape, dtype=bool)
+    region = sel[graph.labels]
     if match_src is not None:
-        h, w = pushed.shape
-        src = mask_src & match_src.valid
-        pushed[np.clip(np.rint(match_src.row[src]).astype(np.int64), 0, h - 1),
-               np.mod(np.rint(match_src.col[src]).astype(np.int64), w)] = True
+        h, w = region.shape
+        src = match_src.valid
+        land = (np.clip(np.rint(match_src.row[src]).astype(np.int64), 0, h - 1) * w
+                + np.mod(np.rint(match_src.col[src]).astype(np.int64), w))
+        pushed_in = np.bincount(land[mask_src[src]], minlength=h * w).reshape(h, w)
+        if opts.push_majority:
+            pushed_out = np.bincount(land[~mask_src[src]], minlength=h * w).reshape(h, w)
+            region = np.where(pushed_in + pushed_out > 0, pushed_in > pushed_out, region)
+        else:
+            region = region | (pushed_in > 0)
     if opts.snap:
-        return sel[graph.labels] | pushed
-    return np.where(valid, values >= 0.5, sel[graph.labels] | pushed)  # a consistent pull is trusted
+        return region
+    return np.where(valid | weak, inside, region)  # a consistent (or weak) pull is trusted
 
 
 def auto_segments(graphs: tuple[RegionGraph, RegionGraph], matches: tuple[ErpMatches, ErpMatches],

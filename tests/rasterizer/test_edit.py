@@ -192,21 +192,24 @@ def test_auto_segments_share_labels_across_views():
     assert len(np.unique(out[0])) == 4
 
 
-def test_photo_check_marks_only_consistent_matches_that_change_colour():
+def test_photo_check_marks_matches_that_change_colour_and_keeps_weak_ones():
     h, w = 2, 4
     col, row = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
     status = np.zeros((h, w), np.uint8)
     status[1, 3] = corr.OCCLUDED
+    status[1, 0] = status[1, 1] = corr.INCONSISTENT  # left-right failures
     em = corr.ErpMatches(col, row, np.ones((h, w), np.float32), status)
     here = np.zeros((h, w, 3), np.float32)
     there = here.copy()
     there[0, 1] = 0.5  # RGB distance 0.87 > 0.2: not the same point
     there[0, 2] = 0.1  # 0.17 <= 0.2: kept
     there[1, 3] = 1.0  # already occluded: stays occluded
+    there[1, 1] = 1.0  # a left-right failure that changes colour too
     out = corr.photo_checked(em, here, there, 0.2)
     expect = np.zeros((h, w), np.uint8)
-    expect[0, 1], expect[1, 3] = corr.INCONSISTENT, corr.OCCLUDED
+    expect[0, 1], expect[1, 3], expect[1, 0], expect[1, 1] = corr.PHOTO, corr.OCCLUDED, corr.INCONSISTENT, corr.PHOTO
     assert np.array_equal(out.status, expect)
+    assert out.valid.sum() == 4 and out.weak.sum() == 1 and out.weak[1, 0]
     assert out.col is em.col and np.array_equal(em.status, status)  # the input is not modified
 
 
@@ -217,15 +220,65 @@ def test_push_fills_only_pixels_without_a_consistent_pull():
     col, row = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
     ok = np.zeros((h, w), np.uint8)
     here_status = ok.copy()
-    here_status[0, 5] = corr.INCONSISTENT
+    here_status[0, 5] = corr.PHOTO  # not a weak match: it does not pull
     here = corr.ErpMatches(col, row, np.ones((h, w), np.float32), here_status)  # identity pull
     # the source's pixels (0, 0) and (0, 1) push onto (0, 5) and (0, 6) of this view
     push_col = col.copy()
     push_col[0, 0], push_col[0, 1] = 5, 6
-    there = corr.ErpMatches(push_col, row, np.ones((h, w), np.float32), ok)
+    there_status = ok.copy()
+    there_status[0, 5] = there_status[0, 6] = corr.OCCLUDED  # so no unmasked pixel lands there too
+    there = corr.ErpMatches(push_col, row, np.ones((h, w), np.float32), there_status)
     src = np.zeros((h, w), bool)
     src[0, 0] = src[0, 1] = True
     out = carry_selection(src, here, g, 1.0, SegmentOptions(min_votes=1), match_src=there)
     assert out[0, 5]  # its own match failed: the push decides
     assert not out[0, 6]  # a consistent pull (to an unselected pixel) wins over the push
     assert out[0, 0] and out[0, 1]  # pulled
+
+
+def _strip_graph(h=4, w=8):
+    """Four 2-column superpixels, edges too heavy to join anything (each decides on its own votes)."""
+    labels = np.repeat(np.array([[0, 0, 1, 1, 2, 2, 3, 3]]), h, 0).astype(np.int32)
+    return RegionGraph(labels, np.full(4, 2 * h), np.array([0, 1, 2]), np.array([1, 2, 3]), np.full(3, 9.0, np.float32))
+
+
+def test_weak_match_pulls_where_nothing_consistent_decides():
+    """A left-right failure whose colours agree (weak) decides its own pixel and votes for its superpixel."""
+    h, w = 4, 8
+    g = _strip_graph(h, w)
+    col, row = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    status = np.full((h, w), corr.OCCLUDED, np.uint8)
+    status[:, 0:2] = corr.OK  # superpixel 0: consistent, lands on unmasked pixels
+    status[:, 2:4] = corr.INCONSISTENT  # superpixel 1: weak only, half of it lands on masked pixels
+    status[0, 4] = corr.INCONSISTENT  # superpixel 2: one weak pixel on a masked pixel, the rest unseen
+    em = corr.ErpMatches(col, row, np.ones((h, w), np.float32), status)
+    src = np.zeros((h, w), bool)
+    src[:, 2] = True
+    src[0, 4] = True
+    on = carry_selection(src, em, g, 1.0, SegmentOptions(min_votes=2, weak_pull=True))
+    off = carry_selection(src, em, g, 1.0, SegmentOptions(min_votes=2, weak_pull=False))
+    assert on[:, 2].all() and not on[:, 3].any() and not on[:, 0:2].any()  # weak pulls kept per pixel
+    assert on[0, 4] and not on[1:, 4:6].any()  # one weak vote: below min_votes, superpixel 2 stays out
+    assert not off.any()  # without weak pulls nothing consistent selects anything
+
+
+def test_push_majority_needs_more_masked_than_unmasked_pushes():
+    h, w = 4, 8
+    g = _strip_graph(h, w)
+    col, row = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    here = corr.ErpMatches(col, row, np.ones((h, w), np.float32), np.full((h, w), corr.OCCLUDED, np.uint8))
+    # the source's row-0 pixels 0..2 land on (0, 6), its pixels 3..4 on (0, 7): masked are 0, 1 and 3
+    push_col = col.copy()
+    push_col[0, 0:3], push_col[0, 3:5] = 6, 7
+    push_row = row.copy()
+    push_row[0, 0:5] = 0
+    ok = np.full((h, w), corr.OCCLUDED, np.uint8)
+    ok[0, 0:5] = corr.OK
+    there = corr.ErpMatches(push_col, push_row, np.ones((h, w), np.float32), ok)
+    src = np.zeros((h, w), bool)
+    src[0, [0, 1, 3]] = True
+    major = carry_selection(src, here, g, 1.0, SegmentOptions(min_votes=1, push_majority=True), match_src=there)
+    anyone = carry_selection(src, here, g, 1.0, SegmentOptions(min_votes=1, push_majority=False), match_src=there)
+    assert major[0, 6] and not major[0, 7]  # 2 masked vs 1 unmasked; 1 vs 1 is no majority
+    assert anyone[0, 6] and anyone[0, 7]
+    assert major.sum() == 1 and anyone.sum() == 2  # nothing else is decided
