@@ -209,7 +209,7 @@ class OmniSplatEncoder(nn.Module):
         guide = self.fine_plane_guide.unsqueeze(0).expand(2, g_count, 3, *size).reshape(2 * g_count, 3, *size)
         guide = torch.cat([guide, grey * float(cfg.fill_eps ** -0.5)], dim=1)
         value, weight = self.layout(planes, refined, conf_fill * ok * obs, self.fine_rays, c2w, self.fine_levels)
-        filled = linear_push_pull(value, weight, guide, self.fine_levels, inv_depths.mean())
+        filled = linear_push_pull(value, weight, guide, self.fine_levels, inv_depths[0])  # far: see forward()
         return guided_filter(grey, filled, 1, cfg.upsample_eps, wrap), grey
 
     # -- forward -------------------------------------------------------------
@@ -235,7 +235,9 @@ class OmniSplatEncoder(nn.Module):
         obs = self.observability(rel_rt, inv_depths)
         reliable = (ok * obs).reshape(2 * g_count, 1, h, w)
         weight = conf * reliable
-        fallback = inv_depths.mean()
+        # where no confident pixel is anywhere near, the fill tends to the far plane: behind everything
+        # seen (the mean inverse depth, ~0.6 baselines, put opaque floaters between the cameras)
+        fallback = inv_depths[0]
         planes = None
         if cfg.layout_strength > 0:
             planes = fit_planes(self.feat_rays, inv, conf_fill * reliable, c2w)
