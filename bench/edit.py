@@ -5,9 +5,10 @@ ground truth in B = A's mask carried through the *GT* range maps: a B pixel take
 A pixel its GT point projects to, where A's GT range there agrees (3% relative; else the pixel is void:
 A does not see it). IoU over non-void B pixels, cos-latitude weighted. Baselines on the same A masks:
 (a) the same pixels in B, (b) dense optical flow B -> A (OpenCV DIS, medium preset) on the ERPs.
-Also: stored bytes of the correspondences, index build and per-selection seconds, agreement of the
-automatic segments across views at GT-matched pixels, and one picture (prompt, both masks, the
-target view after remove and after recolor).
+Selections run on the stored correspondences (``edit.npz`` read back: float16 ranges), as the
+service's do. Also: stored bytes of the correspondences, index build and per-selection seconds,
+agreement of the automatic segments across views at GT-matched pixels, and one picture (prompt, both
+masks, the target view after remove and after recolor).
 """
 
 from __future__ import annotations
@@ -157,11 +158,12 @@ def run(model: Path, data: Path, threads: int = 2, out: Path = DEFAULT_OUT) -> d
     t_pack_z = time.perf_counter() - t0
     raw = build.edit.matches.nbytes
     images = [ra.image(), rb.image()]
+    stored = type(build.edit).from_bytes(blob)  # what the service selects on: float16 ranges, unpacked matches
     t0 = time.perf_counter()
-    index = build_index(build.edit, images)
+    index = build_index(stored, images)
     t_index = time.perf_counter() - t0
     t0 = time.perf_counter()
-    build_index(build.edit, images, labels=index.superpixel_labels())
+    build_index(stored, images, labels=index.superpixel_labels())
     t_index_stored = time.perf_counter() - t0
     he = index.erp_height
     depth_a, depth_b = (np.asarray(f.depth(), dtype=np.float32) for f in (ra, rb))
