@@ -53,6 +53,12 @@ def _mode_distance(dist: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     return torch.exp((near * x).sum() / near.sum().clamp(min=1e-6))
 
 
+def _sin_elevation(rays: torch.Tensor, rot: torch.Tensor, gravity: torch.Tensor) -> torch.Tensor:
+    """(2, G h w) sine of each camera-frame ray's elevation below the horizon, per view (rot (2, 3, 3))."""
+    world = torch.matmul(rays.reshape(1, -1, 3), rot.transpose(1, 2))
+    return (world * gravity).sum(-1)
+
+
 def fit_planes(rays: torch.Tensor, inv: torch.Tensor, weight: torch.Tensor, c2w: torch.Tensor):
     """Floor and ceiling of both views from their confident points.
 
@@ -66,8 +72,7 @@ def fit_planes(rays: torch.Tensor, inv: torch.Tensor, weight: torch.Tensor, c2w:
     gravity = gravity / torch.sqrt((gravity * gravity).sum()).clamp(min=1e-12)
     upright = ((down[0] * down[1]).sum() >= math.cos(math.radians(UPRIGHT_DEG))).to(inv.dtype)
     height = centre @ gravity  # (2,) camera positions along gravity
-    world = torch.matmul(rays.reshape(1, -1, 3), rot.transpose(1, 2))  # (2, G h w, 3)
-    sin_el = (world * gravity).sum(-1).reshape(-1)  # > 0 below the horizon
+    sin_el = _sin_elevation(rays, rot, gravity).reshape(-1)  # > 0 below the horizon
     rng = (1.0 / inv.clamp(min=1e-6)).reshape(-1)
     w = weight.reshape(-1)
     h_mean = height.mean()
@@ -84,8 +89,7 @@ def plane_prior(planes, rays: torch.Tensor, c2w: torch.Tensor, elevation: tuple[
     """Plane inverse range and ramp weight (2G, 1, h, w) for camera-frame rays (G, h, w, 3)."""
     gravity, floor, ceiling, upright = planes
     g_count, h, w = rays.shape[:3]
-    world = torch.matmul(rays.reshape(1, -1, 3), c2w[:, :3, :3].transpose(1, 2))
-    sin_el = (world * gravity).sum(-1)  # (2, G h w)
+    sin_el = _sin_elevation(rays, c2w[:, :3, :3], gravity)
     dist = torch.where(sin_el > 0, floor.reshape(2, 1), ceiling.reshape(2, 1))
     inv = sin_el.abs() / dist.clamp(min=1e-6)
     lo, hi = elevation

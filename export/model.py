@@ -238,10 +238,9 @@ class OmniSplatEncoder(nn.Module):
         # where no confident pixel is anywhere near, the fill tends to the far plane: behind everything
         # seen (the mean inverse depth, ~0.6 baselines, put opaque floaters between the cameras)
         fallback = inv_depths[0]
-        planes = None
-        if cfg.layout_strength > 0:
-            planes = fit_planes(self.feat_rays, inv, conf_fill * reliable, c2w)
-        value, value_w = self.layout(planes, inv, conf_fill * reliable, self.feat_rays, c2w, self.levels)
+        fill_weight = conf_fill * reliable
+        planes = fit_planes(self.feat_rays, inv, fill_weight, c2w) if cfg.layout_strength > 0 else None
+        value, value_w = self.layout(planes, inv, fill_weight, self.feat_rays, c2w, self.levels)
         if cfg.fill == "guided":
             filled = guided_push_pull(value, value_w, grey_low, self.levels, fallback, cfg.fill_eps)
         elif cfg.fill in ("planar", "planar_guided"):
