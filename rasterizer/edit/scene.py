@@ -189,7 +189,7 @@ def select_points(index: SceneIndex, view: int, points, negative=()) -> Selectio
     masks[view] = chosen[graph.labels]
     other = 1 - view
     masks[other] = carry_selection(masks[view], index.matches[other], index.graphs[other], level, index.opts,
-                                   index.matches[view])
+                                   index.matches[view], colour=index.colour[other])
     return _finish(index, masks, level, view)
 
 

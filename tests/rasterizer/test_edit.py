@@ -5,6 +5,7 @@ import pytest
 
 from rasterizer import geometry as geo
 from rasterizer.edit import correspondences as corr
+from rasterizer.edit.graphcut import min_cut
 from rasterizer.edit.ops import edit_gaussians, gaussian_values, palette, source_pixels
 from rasterizer.edit.scene import points_to_pixels
 from rasterizer.edit.segment import (
@@ -282,3 +283,35 @@ def test_push_majority_needs_more_masked_than_unmasked_pushes():
     assert major[0, 6] and not major[0, 7]  # 2 masked vs 1 unmasked; 1 vs 1 is no majority
     assert anyone[0, 6] and anyone[0, 7]
     assert major.sum() == 1 and anyone.sum() == 2  # nothing else is decided
+
+
+def test_min_cut_on_a_chain():
+    # source - 0 - 1 - 2 - sink; the weak link 1-2 is cut
+    side = min_cut(np.array([5.0, 0, 0]), np.array([0, 0, 5.0]), np.array([0, 1]), np.array([1, 2]), np.array([3.0, 0.5]))
+    assert side.tolist() == [True, True, False]
+
+
+@pytest.mark.parametrize("shift", [0, 14])  # 14: the square straddles the seam
+def test_graph_cut_drops_isolated_carried_pixels_but_keeps_colour_edges(shift):
+    """Identity matches carry a square with a hole and a stray pixel on a flat background: the cut fills
+    the hole and drops the stray pixel, but keeps a lone pixel that differs in colour from its neighbours."""
+    h, w = 16, 32
+    colour = np.full((h, w, 3), 0.5, np.float32)
+    colour[4:12, 8:20] = (1.0, 0.0, 0.0)
+    colour[2, 28] = (0.0, 0.0, 1.0)
+    src = np.zeros((h, w), bool)
+    src[4:12, 8:20] = True
+    src[7, 12] = False  # a hole inside the square
+    src[13, 3] = True  # a stray pixel on the flat background
+    src[2, 28] = True  # a lone pixel with its own colour
+    colour, src = np.roll(colour, shift, 1), np.roll(src, shift, 1)
+    col, row = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    em = corr.ErpMatches(col, row, np.ones((h, w), np.float32), np.zeros((h, w), np.uint8))
+    g = RegionGraph(np.zeros((h, w), np.int32), np.array([h * w]), np.zeros(0, int), np.zeros(0, int), np.zeros(0, np.float32))
+    on = carry_selection(src, em, g, 1.0, SegmentOptions(), colour=colour)
+    off = carry_selection(src, em, g, 1.0, SegmentOptions(cut_weight=0.0), colour=colour)
+    want = np.zeros((h, w), bool)
+    want[4:12, 8:20] = True
+    want[2, 28] = True
+    assert np.array_equal(on, np.roll(want, shift, 1))
+    assert np.array_equal(off, src)  # without the cut every consistent pull is kept as carried
