@@ -89,16 +89,18 @@ class EncoderConfig:
     scale_factor: float = SURFEL_SCALE_FACTOR
     ray_scale_ratio: float = 0.1
     max_stretch: float = SURFEL_MAX_STRETCH
-    # opacity = min + (max - min) * confidence ** gamma; the floor is high: an unconfident pixel keeps
-    # the fill's geometric depth and is drawn (nearly) opaque instead of translucent.
-    opacity_min: float = 0.98
+    # opacity = min + (max - min) * confidence ** gamma. Unconfident surfels are translucent so that the
+    # two references' uncertain surfaces blend at a novel pose; the service's environment shell
+    # (rasterizer.shell) behind them keeps plain compositing covered (docs/experiments.md,
+    # "Environment shell"; 0.98 until encoder 0.8.0).
+    opacity_min: float = 0.3
     opacity_max: float = 0.99
     opacity_gamma: float = 2.0
     # default runtime sweep range in units of the baseline (rasterizer.sweep.default_near_far)
     near_per_baseline: float = 0.3
     far_per_baseline: float = 20.0
     name: str = "omnisplat-trainingfree"
-    version: str = "0.8.0"
+    version: str = "0.9.0"
 
     def __post_init__(self) -> None:
         if self.width != 2 * self.height:

@@ -37,7 +37,7 @@ The layout (which view, grid, row, column each Gaussian came from) is a
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from functools import lru_cache
 
 import numpy as np
@@ -46,6 +46,7 @@ from . import geometry as geo
 from .depth_gaussians import SURFEL_SCALE_FACTOR
 from .gaussians import SH_C0, Gaussians
 from .ply import ply_bytes
+from .shell import shell_layout
 from .yin_yang import blend_weight_yin
 
 OVERLAP_MODES = ("split", "yin", "off")
@@ -150,7 +151,9 @@ class Provenance:
     grids: grid kinds per view, e.g. ("yin", "yang") or ("erp",); height,
     width: size of one grid; c2w: (V, 4, 4) reference poses; index: (N,)
     flat position of each Gaussian in the full layout, or None when the
-    Gaussians are the full layout in order.
+    Gaussians are the full layout in order; shell: how many Gaussians after
+    those are the environment shell (:mod:`rasterizer.shell`), which
+    compaction passes through unchanged.
     """
 
     grids: tuple[str, ...]
@@ -158,6 +161,7 @@ class Provenance:
     width: int
     c2w: np.ndarray
     index: np.ndarray | None = None
+    shell: int = 0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "c2w", np.asarray(self.c2w, dtype=np.float64).reshape(-1, 4, 4))
@@ -169,11 +173,13 @@ class Provenance:
         """Layout of an :class:`service.encoder.Reconstruction` (range_maps (2, G, H, W))."""
         v, g, h, w = np.shape(reconstruction.range_maps)
         grids = ("erp",) if g == 1 else ("yin", "yang")
-        prov = cls(grids, h, w, np.stack([np.asarray(c2w_a), np.asarray(c2w_b)]))
-        if len(reconstruction.gaussians) != prov.full_count:
+        shell = int(getattr(reconstruction, "shell", 0))
+        prov = cls(grids, h, w, np.stack([np.asarray(c2w_a), np.asarray(c2w_b)]), shell=shell)
+        if len(reconstruction.gaussians) != prov.full_count + shell:
             raise CompactionError(
-                f"reconstruction has {len(reconstruction.gaussians)} Gaussians, layout {prov.full_count}: "
-                "run the encoder without min_opacity and compact with CompactionOptions.min_opacity instead")
+                f"reconstruction has {len(reconstruction.gaussians)} Gaussians, layout {prov.full_count} "
+                f"+ shell {shell}: run the encoder without min_opacity and compact with "
+                "CompactionOptions.min_opacity instead")
         return prov
 
     @property
@@ -204,7 +210,7 @@ class Provenance:
         return view, grid, row, col
 
     def subset(self, keep: np.ndarray, n: int) -> "Provenance":
-        """Provenance of ``gaussians.subset(keep)``."""
+        """Provenance of ``gaussians.subset(keep)`` (of the pixel-aligned ones: no shell)."""
         return Provenance(self.grids, self.height, self.width, self.c2w, self.flat_index(n)[keep])
 
 
@@ -1033,6 +1039,8 @@ def compact_result(gaussians: Gaussians, provenance: Provenance, options: Compac
                    confidence: np.ndarray | None = None) -> CompactionResult:
     """Run the enabled steps in order (see the module docstring)."""
     opts = options or CompactionOptions()
+    if provenance.shell:
+        return _compact_with_shell(gaussians, provenance, opts, confidence)
     n = len(gaussians)
     flat = provenance.flat_index(n)  # validates the count
     alive = np.ones(n, dtype=bool)
@@ -1103,12 +1111,7 @@ def compact_result(gaussians: Gaussians, provenance: Provenance, options: Compac
     seconds["assemble"] = round(time.perf_counter() - t0, 4)
 
     t0 = time.perf_counter()
-    limit = None
-    if opts.max_count is not None:
-        limit = int(opts.max_count)
-    if opts.max_bytes is not None:
-        by_bytes = ply_count_for_bytes(int(opts.max_bytes), gaussians.sh.shape[1])
-        limit = by_bytes if limit is None else min(limit, by_bytes)
+    limit = _count_limit(opts, gaussians.sh.shape[1])
     removed["cap"] = 0
     if limit is not None and limit < len(out_g):
         kept = np.flatnonzero(cap_keep_mask(out_g, out_prov, np.ones(len(out_g), bool), limit))
@@ -1122,6 +1125,50 @@ def compact_result(gaussians: Gaussians, provenance: Provenance, options: Compac
     stats = {"input": n, "output": len(out_g), "removed": removed, "merge_smooth": smooth_stats,
              "seconds": seconds, "options": opts.to_dict()}
     return CompactionResult(out_g, out_prov, out_block, index, stats)
+
+
+def _count_limit(opts: CompactionOptions, sh_coeffs: int) -> int | None:
+    """The Gaussian count ``max_count`` / ``max_bytes`` allow (None: no cap)."""
+    limit = None if opts.max_count is None else int(opts.max_count)
+    if opts.max_bytes is not None:
+        by_bytes = ply_count_for_bytes(int(opts.max_bytes), sh_coeffs)
+        limit = by_bytes if limit is None else min(limit, by_bytes)
+    return limit
+
+
+def _compact_with_shell(gaussians: Gaussians, provenance: Provenance, opts: CompactionOptions,
+                        confidence: np.ndarray | None) -> CompactionResult:
+    """Compact the pixel-aligned Gaussians; the shell after them is appended unchanged (its blocks'
+    top-left pixels as provenance, :func:`rasterizer.shell.shell_layout`)."""
+    n, count = len(gaussians), provenance.shell
+    if n < count:
+        raise CompactionError(f"{n} Gaussians but a shell of {count}")
+    index, block = shell_layout(provenance.views, len(provenance.grids), provenance.height, provenance.width)
+    if index.size != count:
+        raise CompactionError(f"shell of {count} Gaussians, layout {index.size}")
+    shell = gaussians.subset(np.arange(n - count, n))
+    keep = shell.opacities >= np.float32(opts.min_opacity) if opts.min_opacity > 0 else np.ones(count, bool)
+    limit = _count_limit(opts, gaussians.sh.shape[1])
+    front_opts = opts
+    capped = 0
+    if limit is not None:  # the cap counts the shell too; a cap below the shell's size thins it evenly
+        kept = np.flatnonzero(keep)
+        if kept.size > limit:
+            thin = np.zeros(count, bool)
+            thin[kept[np.linspace(0, kept.size - 1, limit).astype(np.int64)]] = True if limit else False
+            capped, keep = kept.size - int(thin.sum()), thin
+        front_opts = replace(opts, max_count=limit - int(keep.sum()), max_bytes=None)
+    res = compact_result(gaussians.subset(np.arange(n - count)), replace(provenance, shell=0), front_opts,
+                         confidence=confidence)
+    out_g = Gaussians.concatenate([res.gaussians, shell.subset(keep)])
+    pos = np.concatenate([res.provenance.flat_index(len(res.gaussians)), index[keep]])
+    removed = dict(res.stats["removed"])
+    removed["min_opacity"] += int(count - capped - keep.sum())
+    removed["cap"] += capped
+    stats = {**res.stats, "input": n, "output": len(out_g), "removed": removed, "shell": int(keep.sum()),
+             "options": opts.to_dict()}
+    return CompactionResult(out_g, Provenance(provenance.grids, provenance.height, provenance.width, provenance.c2w, pos),
+                            np.concatenate([res.block, block[keep]]), res.index, stats)
 
 
 def compact_index(gaussians: Gaussians, provenance: Provenance, options: CompactionOptions | None = None, *,

@@ -18,6 +18,7 @@ import onnxruntime as ort
 
 from rasterizer.gaussians import Gaussians
 from rasterizer.geometry import PoseError, as_c2w
+from rasterizer.shell import environment_shell
 from rasterizer.sweep import (
     FAR_PER_BASELINE,
     INPUT_NAMES,
@@ -45,7 +46,8 @@ class EncoderInputError(ValueError):
 class Reconstruction:
     """Result of :meth:`OnnxEncoder.reconstruct`.
 
-    gaussians: world-space Gaussians of both views (SH DC only).
+    gaussians: world-space Gaussians of both views (SH DC only): the pixel-aligned ones in
+    [view][grid][row][col] order, then the ``shell`` Gaussians of :mod:`rasterizer.shell`.
     timings: seconds per stage (resample, sweep_inputs, onnx, gaussians, total).
     info: near, far, baseline, counts, model name/version/sha256.
     range_maps, confidence: (2, G, Hg, Wg) per view and grid (Yin, Yang or ERP),
@@ -60,6 +62,7 @@ class Reconstruction:
     range_maps: np.ndarray
     confidence: np.ndarray = field(repr=False)
     matches: np.ndarray | None = field(default=None, repr=False)
+    shell: int = 0  # the last ``shell`` Gaussians are the environment shell (rasterizer.shell)
 
 
 def _as_image(img, name: str) -> np.ndarray:
@@ -132,6 +135,7 @@ class OnnxEncoder:
         self.num_planes = int(props["num_planes"])
         self.feature_size = (int(props["feature_height"]), int(props["feature_width"]))
         self.erp_encoder = props.get("erp_encoder", "false") == "true"
+        self.grids = tuple(props.get("grids", "erp" if self.erp_encoder else "yin,yang").split(","))
         # default sweep range per unit baseline (models before 0.2 stored the same numbers as
         # near_default / far_default in metres for the 1 m design baseline)
         self.near_per_baseline = float(props.get("near_per_baseline", props.get("near_default", NEAR_PER_BASELINE)))
@@ -189,6 +193,7 @@ class OnnxEncoder:
             check_scene_scale(pa, pb, near, far)
         except SweepRangeError as exc:
             raise EncoderInputError(str(exc)) from None
+        poses = np.stack([pa, pb])  # the caller's frame (the shell is built there)
         origin = recentring_offset(pa, pb)
         pa, pb = pa.copy(), pb.copy()
         pa[:3, 3] -= origin
@@ -214,22 +219,25 @@ class OnnxEncoder:
         timings["onnx"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        keep = None
-        min_opacity = float(options.get("min_opacity", 0.0))
-        if min_opacity > 0:
-            keep = out["opacities"] >= min_opacity
-        arrays = [out[k] if keep is None else out[k][keep] for k in ("means", "scales", "quats", "opacities", "sh_dc")]
+        arrays = [out[k] for k in ("means", "scales", "quats", "opacities", "sh_dc")]
         arrays[4] = arrays[4][:, None, :]
         if origin.any():  # back to the caller's frame, offset added in float64
             arrays[0] = (arrays[0].astype(np.float64) + origin).astype(np.float32)
         gaussians = Gaussians(*arrays)
+        shell = environment_shell(gaussians, out["range_maps"], poses, self.grids)
+        min_opacity = float(options.get("min_opacity", 0.0))
+        if min_opacity > 0:
+            gaussians = gaussians.subset(gaussians.opacities >= min_opacity)
+        gaussians = Gaussians.concatenate([gaussians, shell])
         timings["gaussians"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_start
         info = {
             "near": near, "far": far, "baseline": b, "num_planes": self.num_planes,
             "num_gaussians": len(gaussians), "num_gaussians_raw": int(out["means"].shape[0]),
+            "num_gaussians_shell": len(shell),
             "grids": self._meta.get("grids"), "input_size": [self.height, self.width],
             "mean_confidence": float(out["confidence"].mean()),
             "model": {k: self._meta.get(k) for k in ("name", "version", "sha256")},
         }
-        return Reconstruction(gaussians, timings, info, out["range_maps"], out["confidence"], out.get("matches"))
+        return Reconstruction(gaussians, timings, info, out["range_maps"], out["confidence"], out.get("matches"),
+                              len(shell))

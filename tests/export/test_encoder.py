@@ -36,7 +36,9 @@ def test_reconstruct_m3d_depth_is_metric(encoder, m3d):
     fa, fb = m3d
     rec = encoder.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w)
     g = rec.gaussians
-    assert len(g) == 2 * 2 * 64 * 192
+    shell_block = 4  # rasterizer.shell: one shell disc per 4x4 pixels of each grid
+    assert rec.shell == rec.info["num_gaussians_shell"] == 2 * 2 * (64 // shell_block) * (192 // shell_block)
+    assert len(g) == 2 * 2 * 64 * 192 + rec.shell
     g.check_finite()
     assert set(rec.timings) >= {"resample", "sweep_inputs", "onnx", "gaussians", "total"}
     assert rec.info["baseline"] == pytest.approx(1.0)
@@ -52,6 +54,12 @@ def test_reconstruct_m3d_depth_is_metric(encoder, m3d):
     # means are range x ray from the camera centre
     d = np.linalg.norm(g.means[: 64 * 192] - fa.c2w[:3, 3], axis=1)
     np.testing.assert_allclose(d, rec.range_maps[0, 0].ravel(), rtol=1e-4)
+    # the shell: opaque, twice the block-mean range from its camera (view A's Yin blocks come first)
+    shell = g.subset(np.arange(len(g) - rec.shell, len(g)))
+    assert shell.opacities.min() >= 0.99
+    blocks = rec.range_maps[0, 0].reshape(16, 4, 48, 4).mean(axis=(1, 3)).ravel()
+    d_shell = np.linalg.norm(shell.means[: 16 * 48] - fa.c2w[:3, 3], axis=1)
+    np.testing.assert_allclose(d_shell, 2.0 * blocks, rtol=1e-4)
 
 
 def test_any_2to1_size_and_dtype(encoder, m3d):
@@ -65,12 +73,12 @@ def test_any_2to1_size_and_dtype(encoder, m3d):
 
 def test_near_far_override_and_pruning(encoder, m3d):
     fa, fb = m3d
-    cut = 0.985  # opacities are 0.98 + 0.01 confidence^2 (export/config.py): drops the unconfident ones
+    cut = 0.5  # opacities are 0.3 + 0.69 confidence^2 (export/config.py): drops the unconfident ones
     rec = encoder.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w, near=1.0, far=5.0, min_opacity=cut)
     assert rec.info["near"] == 1.0 and rec.info["far"] == 5.0
     assert rec.range_maps.min() >= 1.0 - 1e-4 and rec.range_maps.max() <= 5.0 + 1e-3
-    assert len(rec.gaussians) < rec.info["num_gaussians_raw"]
-    assert rec.gaussians.opacities.min() >= cut
+    assert len(rec.gaussians) - rec.shell < rec.info["num_gaussians_raw"]
+    assert rec.gaussians.opacities.min() >= cut  # the shell (0.99) is kept whole
 
 
 @pytest.mark.parametrize("bad, match", [

@@ -1,0 +1,115 @@
+"""Environment shell: layout, geometry, coverage behind translucent surfels, and compaction's pass-through."""
+
+import numpy as np
+import pytest
+
+from rasterizer import geometry as geo
+from rasterizer.compaction import CompactionError, CompactionOptions, Provenance, compact_result
+from rasterizer.depth_gaussians import gaussians_from_depth
+from rasterizer.gaussians import Gaussians, sh_dc_to_rgb
+from rasterizer.render import render
+from rasterizer.shell import SHELL_FACTOR, SHELL_OPACITY, environment_shell, shell_block, shell_layout
+
+H, W = 16, 48  # one Yin/Yang grid
+
+
+def _pose(t):
+    c2w = np.eye(4)
+    c2w[:3, 3] = t
+    return c2w
+
+
+def _box_range(kind, c2w, half=2.0):
+    d = geo.grid_directions(kind, H, W) @ c2w[:3, :3].T
+    o = c2w[:3, 3]
+    with np.errstate(divide="ignore"):
+        t = np.where(d > 0, (half - o) / d, np.where(d < 0, (-half - o) / d, np.inf))
+    return t.min(axis=-1)
+
+
+def _scene(opacity):
+    """Two references in a box room: pixel-aligned surfels of the given opacity, ranges (2, 2, H, W), poses."""
+    poses = np.stack([_pose([0.0, 0.0, -0.3]), _pose([0.0, 0.0, 0.3])])
+    ranges = np.stack([[_box_range(k, c) for k in ("yin", "yang")] for c in poses])
+    parts = []
+    for v, c in enumerate(poses):
+        for gi, k in enumerate(("yin", "yang")):
+            p = c[:3, 3] + (geo.grid_directions(k, H, W) @ c[:3, :3].T) * ranges[v, gi][..., None]
+            colour = (0.5 + 0.4 * np.sin(3 * p)).astype(np.float32)
+            parts.append(gaussians_from_depth(colour, ranges[v, gi], c, k, surfels=True, opacity=opacity))
+    return Gaussians.concatenate(parts), ranges, poses
+
+
+def test_block_and_layout():
+    assert shell_block(16, 48) == 4 and shell_block(6, 18) == 2 and shell_block(5, 15) == 1
+    index, block = shell_layout(2, 2, H, W)
+    assert index.size == 2 * 2 * (H // 4) * (W // 4) and np.all(block == 4)
+    # [view][grid][block row][block col]: the top-left pixel of each block
+    assert index[0] == 0 and index[1] == 4 and index[W // 4] == 4 * W
+    assert index[(H // 4) * (W // 4)] == H * W  # view 0, Yang grid starts after the Yin grid
+
+
+def test_geometry_and_colour():
+    g, ranges, poses = _scene(opacity=0.3)
+    shell = environment_shell(g, ranges, poses, ("yin", "yang"))
+    assert len(shell) == 2 * 2 * (H // 4) * (W // 4)
+    shell.check_finite()
+    assert np.all(shell.opacities == np.float32(SHELL_OPACITY))
+    # view A's Yin blocks: SHELL_FACTOR x the block-mean range from camera A, along the block centre's ray
+    n = (H // 4) * (W // 4)
+    block_range = ranges[0, 0].reshape(H // 4, 4, W // 4, 4).mean(axis=(1, 3)).ravel()
+    np.testing.assert_allclose(np.linalg.norm(shell.means[:n] - poses[0, :3, 3], axis=1),
+                               SHELL_FACTOR * block_range, rtol=1e-5)
+    centre_rays = geo.grid_directions("yin", H // 4, W // 4).reshape(-1, 3)
+    np.testing.assert_allclose((shell.means[:n] - poses[0, :3, 3]) / (SHELL_FACTOR * block_range[:, None]),
+                               centre_rays, atol=1e-5)
+    # colour: the block mean of the pixel-aligned colours
+    rgb = sh_dc_to_rgb(g.sh[: H * W, 0]).reshape(H // 4, 4, W // 4, 4, 3).mean(axis=(1, 3)).reshape(-1, 3)
+    np.testing.assert_allclose(sh_dc_to_rgb(shell.sh[:n, 0]), np.clip(rgb, 0, 1), atol=1e-5)
+
+
+def test_shell_covers_behind_translucent_surfels():
+    g, ranges, poses = _scene(opacity=0.3)
+    shell = environment_shell(g, ranges, poses, ("yin", "yang"))
+    target = _pose([0.4, 0.2, 0.0])  # off the baseline
+    alone = render(g, target, projection="erp", width=96, method="direct").alpha
+    both = render(Gaussians.concatenate([g, shell]), target, projection="erp", width=96, method="direct").alpha
+    assert (alone >= 0.99).mean() < 0.5  # translucent surfels alone leave the view half see-through
+    assert (both >= 0.99).mean() >= 0.98
+    # at a reference the shell shows that reference's own colours: the render matches the surfels' own
+    ref = render(Gaussians.concatenate([g, shell]), poses[0], projection="erp", width=96, method="direct")
+    opaque = render(g.with_(opacities=np.full(len(g), 0.99, np.float32)), poses[0], projection="erp", width=96,
+                    method="direct")
+    assert np.abs(ref.colour - opaque.colour).mean() < 0.05
+
+
+def test_compaction_passes_the_shell_through():
+    g, ranges, poses = _scene(opacity=0.9)
+    shell = environment_shell(g, ranges, poses, ("yin", "yang"))
+    both = Gaussians.concatenate([g, shell])
+    prov = Provenance(("yin", "yang"), H, W, poses, shell=len(shell))
+    res = compact_result(both, prov, CompactionOptions())
+    assert res.stats["input"] == len(both) and res.stats["output"] == len(res.gaussians)
+    assert res.stats["shell"] == len(shell) and len(res.gaussians) < len(both)  # the surfels were compacted
+    tail = res.gaussians.subset(np.arange(len(res.gaussians) - len(shell), len(res.gaussians)))
+    np.testing.assert_array_equal(tail.means, shell.means)
+    index, block = shell_layout(2, 2, H, W)
+    np.testing.assert_array_equal(res.provenance.index[-len(shell):], index)
+    np.testing.assert_array_equal(res.block[-len(shell):], block)
+    with pytest.raises(CompactionError, match="shell of"):
+        compact_result(both, Provenance(("yin", "yang"), H, W, poses, shell=len(shell) + 4), CompactionOptions())
+
+
+@pytest.mark.parametrize("cap", [100, 10, 0])
+def test_cap_and_opacity_cut_count_the_shell(cap):
+    g, ranges, poses = _scene(opacity=0.9)
+    shell = environment_shell(g, ranges, poses, ("yin", "yang"))
+    both = Gaussians.concatenate([g, shell])
+    prov = Provenance(("yin", "yang"), H, W, poses, shell=len(shell))
+    res = compact_result(both, prov, CompactionOptions(max_count=cap))
+    assert len(res.gaussians) == res.stats["output"] == cap
+    assert sum(res.stats["removed"].values()) == len(both) - cap
+    assert res.block.shape == res.provenance.index.shape == (cap,)
+    # an opacity cut above the shell's opacity drops it like any other Gaussian
+    cut = compact_result(both, prov, CompactionOptions(min_opacity=0.995))
+    assert len(cut.gaussians) == 0 and cut.stats["removed"]["min_opacity"] == len(both)
