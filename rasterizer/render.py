@@ -53,8 +53,6 @@ __all__ = ["RenderOutput", "render", "render_camera", "to_uint8", "Camera", "foo
 
 #: Below this many Gaussians a second thread costs more than it saves.
 _THREAD_MIN_GAUSSIANS = 20_000
-#: footprints' default memory guard (see :func:`rasterizer.splat.footprints`).
-_MAX_CONTRIBUTIONS = 60_000_000
 
 Method = Literal["yinyang", "direct"]
 METHODS = ("yinyang", "direct")
@@ -91,7 +89,7 @@ def _premultiplied_keys(camera: Camera, pose, qcut, tables):
     built (neighbouring boxes together), so that the per-contribution reads of the
     pixel-sorted keys stay in cache: a rank -> row lookup (4 bytes) then a near read.
     """
-    key, layout, _, job_ranks = splat.sorted_keys(pose, camera, qcut, _MAX_CONTRIBUTIONS)
+    key, layout, _, job_ranks = splat.sorted_keys(pose, camera, qcut, splat.MAX_CONTRIBUTIONS)
     h, w = camera.height, camera.width
     if key is None:
         return images_from_sums(np.zeros((0, 5), np.float32), np.zeros(0, np.int64), h, w)

@@ -63,6 +63,11 @@ import numpy as np
 from . import geometry as geo
 from .camera import Camera
 
+#: Default memory guard of :func:`footprints`: refuse renders estimated above this many (Gaussian, pixel)
+#: contributions. 120M (was 60M) since the environment shell (rasterizer.shell) added large backdrop discs:
+#: a zind scene's direct 1024x512 ERP render estimates ~86M and peaks at ~3.0 GB RSS (1.4 GB without it).
+MAX_CONTRIBUTIONS = 120_000_000
+
 #: Low-pass filter added to every 2-D covariance (px^2), as in 3DGS / ODGS.
 LOW_PASS = 0.3
 #: Smallest alpha that is composited.
@@ -612,7 +617,7 @@ def opacity_cuts(opacity_bound, n: int) -> np.ndarray | None:
 
 
 def footprints(gaussians, camera: Camera, *, opacity_bound: np.ndarray | None = None,
-               factors: np.ndarray | None = None, max_contributions: int = 60_000_000,
+               factors: np.ndarray | None = None, max_contributions: int = MAX_CONTRIBUTIONS,
                camera_points: tuple[np.ndarray, np.ndarray] | None = None) -> Footprints:
     """Per-pixel, front-to-back lists of the Gaussians that can reach each pixel.
 

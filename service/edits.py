@@ -220,7 +220,8 @@ def edit_id_for(scene_id: str, request: dict) -> str:
 
 
 def _uncovered(gaussians, masks: np.ndarray, c2ws) -> dict[str, float]:
-    """Per reference: fraction of the removed object's pixels no remaining Gaussian covers (alpha < 0.5)."""
+    """Per reference: fraction of the removed object's pixels no remaining Gaussian covers (alpha < 0.5);
+    ``gaussians`` without the environment shell."""
     from rasterizer.render import render
 
     out = {}
@@ -252,6 +253,12 @@ def create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict, 
     if selected.shape != (len(g),):
         raise ServiceError("stored selection does not match the scene's Gaussians", code="store_corrupt", status=500)
     op = request["op"]
+    # the environment shell (the last ``shell`` Gaussians) goes with the selected pixels when they are
+    # removed, recoloured or moved, but is not part of an extracted object
+    shell = np.zeros(len(g), dtype=bool)
+    shell[len(g) - int(parent.get("shell", 0)):] = True
+    if op == "keep":
+        selected = selected & ~shell
     edited = edit_gaussians(g, selected, op, color=request.get("color"), offset=request.get("offset"))
     timings = {"edit": time.perf_counter() - t0}
     info = {"op": op, "selection": request["selection"], "num_selected": int(selected.sum())}
@@ -260,13 +267,14 @@ def create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict, 
     if op in ("remove", "keep"):
         keep = ~selected if op == "remove" else selected
         data = data.subset(keep)
+        shell = shell[keep]
     if op == "remove":
         t0 = time.perf_counter()
         _, c2ws = load_references(store, scene_id)
-        info["uncovered"] = _uncovered(edited, masks, c2ws)
+        info["uncovered"] = _uncovered(edited.subset(~shell), masks, c2ws)  # the backdrop is no surface
         timings["uncovered"] = time.perf_counter() - t0
     meta = {k: v for k, v in parent.items() if k not in ("id", "num_gaussians", "created_at", "links", "timings")}
-    meta.update({"parent": scene_id, "edit": {**info, "request": request, "version": EDIT_VERSION},
+    meta.update({"parent": scene_id, "shell": int(shell.sum()), "edit": {**info, "request": request, "version": EDIT_VERSION},
                  "timings": timings, "created_at": time.time()})
     artifacts = {REFERENCES_ARTIFACT: store.artifact(scene_id, REFERENCES_ARTIFACT).read_bytes(),
                  EDIT_ARTIFACT: data.to_bytes(),

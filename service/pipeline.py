@@ -94,7 +94,10 @@ def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions) -
 
     finite = finite_rows(gaussians)
     info["dropped_non_finite"] = int(len(gaussians) - finite.sum())
+    shell = int(stats.get("shell", 0))  # compaction appends the environment shell last
     if info["dropped_non_finite"]:
+        shell = int(finite[len(gaussians) - shell:].sum())
         gaussians = gaussians.subset(finite)
         edit = None if edit is None else edit.subset(finite)
+    info["shell"] = shell  # the last ``shell`` Gaussians are the backdrop (rasterizer.shell), not surfaces
     return SceneBuild(gaussians, timings, info, edit)

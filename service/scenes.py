@@ -115,6 +115,7 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
         "options": options,
         "info": build.info,
         "compaction": build.info["compaction"],
+        "shell": build.info["shell"],  # the last ``shell`` Gaussians are the environment shell (rasterizer.shell)
         "parent": None,
         "created_at": time.time(),
     }

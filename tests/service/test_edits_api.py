@@ -86,12 +86,18 @@ def test_select_mask_segments_and_edits(client, scene, live):
     assert again["id"] == removed["id"] and again["cached"] is True
     meta = client.get(f"/v1/scenes/{removed['id']}").json()
     assert meta["parent"] == scene and 0.0 <= meta["edit"]["uncovered"]["a"] <= 1.0
+    # the environment shell (last Gaussians) loses the removed pixels' blocks and stays counted
+    shell = client.get(f"/v1/scenes/{scene}").json()["shell"]
+    assert 0 < meta["shell"] < shell
     with np.load(live.store / "scenes" / removed["id"] / "edit_index.npz") as z:
         assert z["gaussian_labels"].shape == (removed["num_gaussians"],)
     for op, extra in (("keep", {}), ("recolor", {"color": [0, 1, 0]}), ("translate", {"offset": [0, 0.1, 0]})):
         r = client.post(f"/v1/scenes/{scene}/edits", json={"selection": sel["id"], "op": op, **extra})
         assert r.status_code == 201, r.text
         assert r.json()["id"] != removed["id"]
+        if op == "keep":  # an extracted object takes its surfels, not the backdrop behind them
+            kept = client.get(f"/v1/scenes/{r.json()['id']}").json()
+            assert kept["shell"] == 0 and 0 < kept["num_gaussians"] < sel["num_gaussians"]
     # an edited scene can be selected again (it kept its correspondences)
     r = client.post(f"/v1/scenes/{removed['id']}/selections", json={"view": "b", "points": [[0.2, 0.5]]})
     assert r.status_code == 201, r.text
