@@ -23,15 +23,16 @@ from rasterizer.render import render
 H, W = 12, 36  # one Yin/Yang grid
 
 
-def _pose(t):
+def pose_at(t):
+    """A camera at ``t`` looking along +z (identity rotation)."""
     c2w = np.eye(4)
     c2w[:3, 3] = t
     return c2w
 
 
-def _box_range(kind, c2w, half=2.0):
-    """Range along each grid ray from camera ``c2w`` to the inside of an axis-aligned box [-half, half]^3."""
-    d = geo.grid_directions(kind, H, W) @ c2w[:3, :3].T
+def box_range(kind, c2w, half=2.0, size=(H, W)):
+    """Range along each grid ray (grid ``size``) from camera ``c2w`` to the inside of the box [-half, half]^3."""
+    d = geo.grid_directions(kind, *size) @ c2w[:3, :3].T
     o = c2w[:3, 3]
     with np.errstate(divide="ignore"):
         t = np.where(d > 0, (half - o) / d, np.where(d < 0, (-half - o) / d, np.inf))
@@ -40,14 +41,14 @@ def _box_range(kind, c2w, half=2.0):
 
 def _colour(kind, c2w):
     d = geo.grid_directions(kind, H, W) @ c2w[:3, :3].T
-    p = c2w[:3, 3] + d * _box_range(kind, c2w)[..., None]
+    p = c2w[:3, 3] + d * box_range(kind, c2w)[..., None]
     return (0.5 + 0.4 * np.sin(3 * p)).astype(np.float32)
 
 
 def two_view_box(opacity=0.9):
     """Two references inside a box room: full [view][yin, yang][row][col] layout."""
-    poses = [_pose([0.0, 0.0, -0.3]), _pose([0.0, 0.0, 0.3])]
-    parts = [gaussians_from_depth(_colour(k, c), _box_range(k, c), c, k, scale_factor=0.75, thickness=0.1,
+    poses = [pose_at([0.0, 0.0, -0.3]), pose_at([0.0, 0.0, 0.3])]
+    parts = [gaussians_from_depth(_colour(k, c), box_range(k, c), c, k, scale_factor=0.75, thickness=0.1,
                                   opacity=opacity)
              for c in poses for k in ("yin", "yang")]
     return Gaussians.concatenate(parts), Provenance(("yin", "yang"), H, W, np.stack(poses))
@@ -115,7 +116,7 @@ def test_overlap_step_counts_match_mask():
 def test_duplicates_merge_on_a_plane_seen_by_both():
     """Two cameras 0.2 m apart facing a wall 2 m away: the wall is sampled twice, once is enough."""
     h, w = 24, 72
-    poses = [_pose([-0.1, 0.0, 0.0]), _pose([0.1, 0.0, 0.0])]
+    poses = [pose_at([-0.1, 0.0, 0.0]), pose_at([0.1, 0.0, 0.0])]
     parts = []
     for c in poses:
         for k in ("yin", "yang"):
@@ -207,7 +208,7 @@ def test_compacted_scene_renders_like_the_full_one():
     opts = CompactionOptions(resolve_overlap="split", merge_duplicates=True, duplicate_range_tol=0.1)
     out, stats = compact(g, prov, opts)
     assert stats["output"] < 0.75 * len(g)
-    target = _pose([0.05, 0.02, 0.0])
+    target = pose_at([0.05, 0.02, 0.0])
     full = render(g, target, projection="erp", width=96)
     small = render(out, target, projection="erp", width=96)
     assert psnr(small.colour, full.colour) > 25.0

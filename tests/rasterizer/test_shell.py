@@ -9,28 +9,15 @@ from rasterizer.depth_gaussians import gaussians_from_depth
 from rasterizer.gaussians import Gaussians, sh_dc_to_rgb
 from rasterizer.render import render
 from rasterizer.shell import SHELL_FACTOR, SHELL_OPACITY, environment_shell, shell_block, shell_layout
+from tests.rasterizer.test_compaction import box_range, pose_at
 
 H, W = 16, 48  # one Yin/Yang grid
 
 
-def _pose(t):
-    c2w = np.eye(4)
-    c2w[:3, 3] = t
-    return c2w
-
-
-def _box_range(kind, c2w, half=2.0):
-    d = geo.grid_directions(kind, H, W) @ c2w[:3, :3].T
-    o = c2w[:3, 3]
-    with np.errstate(divide="ignore"):
-        t = np.where(d > 0, (half - o) / d, np.where(d < 0, (-half - o) / d, np.inf))
-    return t.min(axis=-1)
-
-
 def _scene(opacity):
     """Two references in a box room: pixel-aligned surfels of the given opacity, ranges (2, 2, H, W), poses."""
-    poses = np.stack([_pose([0.0, 0.0, -0.3]), _pose([0.0, 0.0, 0.3])])
-    ranges = np.stack([[_box_range(k, c) for k in ("yin", "yang")] for c in poses])
+    poses = np.stack([pose_at([0.0, 0.0, -0.3]), pose_at([0.0, 0.0, 0.3])])
+    ranges = np.stack([[box_range(k, c, size=(H, W)) for k in ("yin", "yang")] for c in poses])
     parts = []
     for v, c in enumerate(poses):
         for gi, k in enumerate(("yin", "yang")):
@@ -71,7 +58,7 @@ def test_geometry_and_colour():
 def test_shell_covers_behind_translucent_surfels():
     g, ranges, poses = _scene(opacity=0.3)
     shell = environment_shell(g, ranges, poses, ("yin", "yang"))
-    target = _pose([0.4, 0.2, 0.0])  # off the baseline
+    target = pose_at([0.4, 0.2, 0.0])  # off the baseline
     alone = render(g, target, projection="erp", width=96, method="direct").alpha
     both = render(Gaussians.concatenate([g, shell]), target, projection="erp", width=96, method="direct").alpha
     assert (alone >= 0.99).mean() < 0.5  # translucent surfels alone leave the view half see-through
