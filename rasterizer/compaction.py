@@ -28,7 +28,10 @@ each step switchable in :class:`CompactionOptions`:
    opacity x footprint solid angle seen from their own reference.
 
 Steps 1-3 and 5 only drop Gaussians; step 4 makes new ones. The output
-comes in layout order (a merged block at its top-left pixel).
+comes in layout order (a merged block at its top-left pixel). An
+environment shell after the pixel-aligned Gaussians (``Provenance.shell``,
+:mod:`rasterizer.shell`) is kept as it is, except for steps 1 (opacity) and
+5 (the cap counts it), and comes last.
 
 The layout (which view, grid, row, column each Gaussian came from) is a
 :class:`Provenance`; the encoder's order is [view][grid][row][col].
@@ -1155,7 +1158,7 @@ def _compact_with_shell(gaussians: Gaussians, provenance: Provenance, opts: Comp
         kept = np.flatnonzero(keep)
         if kept.size > limit:
             thin = np.zeros(count, bool)
-            thin[kept[np.linspace(0, kept.size - 1, limit).astype(np.int64)]] = True if limit else False
+            thin[kept[np.linspace(0, kept.size - 1, limit).astype(np.int64)]] = True
             capped, keep = kept.size - int(thin.sum()), thin
         front_opts = replace(opts, max_count=limit - int(keep.sum()), max_bytes=None)
     res = compact_result(gaussians.subset(np.arange(n - count)), replace(provenance, shell=0), front_opts,
