@@ -146,6 +146,25 @@ def blend_weight_yin(d: np.ndarray, feather: float = 0.0) -> np.ndarray:
     return t * t * (3.0 - 2.0 * t)
 
 
+def grid_pixel(p: np.ndarray, grids: tuple[str, ...], height: int, width: int) -> np.ndarray:
+    """(...) flat index into one view's (G, H, W) grid layout of the nearest pixel of the grid that owns
+    the direction of each camera-frame point ``p`` (..., 3): Yin where its blend weight >= 0.5, as the
+    renderer's Yin-Yang merge."""
+    p = np.asarray(p, dtype=np.float64)
+    if tuple(grids) == ("erp",):
+        col, row = geo.project_to_grid("erp", p, height, width)
+        g = np.zeros(p.shape[:-1], dtype=np.int64)
+        col = np.mod(np.rint(col), width)
+    else:
+        g = (blend_weight_yin(p) < 0.5).astype(np.int64)
+        col_yin, row_yin = geo.project_to_grid("yin", p, height, width)
+        col_yang, row_yang = geo.project_to_grid("yang", p, height, width)
+        col = np.clip(np.rint(np.where(g == 1, col_yang, col_yin)), 0, width - 1)
+        row = np.where(g == 1, row_yang, row_yin)
+    row = np.clip(np.rint(row), 0, height - 1)
+    return (g * height + row.astype(np.int64)) * width + col.astype(np.int64)
+
+
 @lru_cache(maxsize=16)
 def _from_grid_maps(h: int, w: int, height: int, width: int):
     """Merged taps (P, 8) into the stacked [Yin; Yang] pixels for every ERP pixel."""

@@ -311,7 +311,7 @@ def _pipeline_options(args: argparse.Namespace):
             compaction["smooth_levels"] = args.smooth_levels
     try:
         return PipelineOptions.from_dict({"near": args.near, "far": args.far, "compaction": compaction,
-                                          "adaptive_range": args.adaptive_range})
+                                          "adaptive_range": args.adaptive_range, "sh_degree": args.sh_degree})
     except ValueError as exc:
         raise CliError(str(exc)) from None
 
@@ -536,6 +536,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--max-bytes", type=int, help="cap the PLY size in bytes")
     c.add_argument("--adaptive-range", action="store_true",
                    help="choose near/far from a coarse pass (slower: two encoder runs)")
+    c.add_argument("--sh-degree", type=int,
+                   help="1 (default): view-dependent colour, each reference sees its own image; "
+                        "0: one colour per Gaussian (smaller PLY)")
     r.set_defaults(func=cmd_reconstruct)
 
     v = sub.add_parser("render", help="Gaussian PLY + camera pose -> image",

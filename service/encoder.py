@@ -31,11 +31,12 @@ from rasterizer.sweep import (
     default_near_far,
     sweep_inputs,
 )
+from rasterizer.view_colour import DEFAULT_SH_DEGREE, SH_DEGREES, fit_view_colour
 from rasterizer.yin_yang import resize_erp
 
 from .model_files import sha256_file
 
-KNOWN_OPTIONS = ("min_opacity",)
+KNOWN_OPTIONS = ("min_opacity", "sh_degree")
 
 
 class EncoderInputError(ValueError):
@@ -173,11 +174,16 @@ class OnnxEncoder:
         near, far: sweep range in scene units (default proportional to the
         baseline b: 0.3 b and 20 b, :func:`rasterizer.sweep.default_near_far`,
         so a globally scaled scene gives the same result). options: ``min_opacity``
-        drops Gaussians below that opacity. Raises :class:`EncoderInputError`.
+        drops Gaussians below that opacity; ``sh_degree`` 1 (default) fits view-dependent colour so
+        that each reference sees its own image (:mod:`rasterizer.view_colour`), 0 keeps one colour
+        per Gaussian. Raises :class:`EncoderInputError`.
         """
         unknown = sorted(set(options) - set(KNOWN_OPTIONS))
         if unknown:
             raise EncoderInputError(f"unknown encoder option(s) {unknown}; known: {list(KNOWN_OPTIONS)}")
+        sh_degree = options.get("sh_degree", DEFAULT_SH_DEGREE)
+        if sh_degree not in SH_DEGREES or isinstance(sh_degree, bool):
+            raise EncoderInputError(f"sh_degree must be one of {list(SH_DEGREES)}, got {sh_degree!r}")
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
         img_a, img_b = _as_image(erp_a, "erp_a"), _as_image(erp_b, "erp_b")
@@ -225,6 +231,9 @@ class OnnxEncoder:
             arrays[0] = (arrays[0].astype(np.float64) + origin).astype(np.float32)
         gaussians = Gaussians(*arrays)
         shell = environment_shell(gaussians, out["range_maps"], poses, self.grids)
+        if sh_degree == 1:
+            gaussians = fit_view_colour(gaussians, out["range_maps"], poses, self.grids)
+            shell = shell.with_(sh=np.pad(shell.sh, ((0, 0), (0, 3), (0, 0))))
         min_opacity = float(options.get("min_opacity", 0.0))
         if min_opacity > 0:
             gaussians = gaussians.subset(gaussians.opacities >= min_opacity)

@@ -6,8 +6,8 @@ duplicates, transparent Gaussians, merge of smooth 2x2 blocks, optional
 cap; the scene metadata's ``compaction`` says how many each step removed),
 and a final guard that drops any non-finite Gaussian. Options come as the API's ``options`` JSON
 object; structured keys ``compaction`` and ``adaptive_range`` hold the
-step options, ``near``/``far`` go to the encoder, ``min_opacity`` is a
-compaction threshold.
+step options, ``near``/``far`` and ``sh_degree`` (view-dependent colour, 1, or one colour per
+Gaussian, 0) go to the encoder, ``min_opacity`` is a compaction threshold.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from rasterizer.compaction import CompactionOptions, Provenance, compact_result
 from rasterizer.edit.scene import EditData
 from rasterizer.gaussians import Gaussians
 from rasterizer.ply import finite_rows
+from rasterizer.view_colour import DEFAULT_SH_DEGREE, SH_DEGREES
 
 from .scene_adaptive import AdaptiveRangeOptions, reconstruct_adaptive
 
@@ -33,6 +34,7 @@ class PipelineOptions:
     far: float | None
     compaction: CompactionOptions
     adaptive_range: AdaptiveRangeOptions
+    sh_degree: int = DEFAULT_SH_DEGREE
 
     @classmethod
     def from_dict(cls, options: dict[str, Any] | None) -> "PipelineOptions":
@@ -42,6 +44,11 @@ class PipelineOptions:
         """
         opts = dict(options or {})
         near, far = opts.pop("near", None), opts.pop("far", None)
+        sh_degree = opts.pop("sh_degree", None)
+        sh_degree = DEFAULT_SH_DEGREE if sh_degree is None else sh_degree
+        if isinstance(sh_degree, bool) or sh_degree not in SH_DEGREES:
+            raise ValueError(f"options.sh_degree: expected one of {list(SH_DEGREES)} (1: view-dependent "
+                             f"colour, 0: one colour per Gaussian), got {sh_degree!r}")
         comp = opts.pop("compaction", None)
         if comp is False:
             compaction = CompactionOptions.off()
@@ -57,9 +64,9 @@ class PipelineOptions:
         if adaptive is not None and not isinstance(adaptive, dict):
             raise ValueError("options.adaptive_range: expected a JSON object or a boolean")
         if opts:
-            raise ValueError(f"unknown option(s) {sorted(opts)}; accepted: near, far, min_opacity, "
+            raise ValueError(f"unknown option(s) {sorted(opts)}; accepted: near, far, min_opacity, sh_degree, "
                              f"{', '.join(STEP_OPTION_KEYS)}")
-        return cls(near, far, compaction, AdaptiveRangeOptions.from_dict(adaptive))
+        return cls(near, far, compaction, AdaptiveRangeOptions.from_dict(adaptive), int(sh_degree))
 
 
 @dataclass(frozen=True)
@@ -76,9 +83,10 @@ def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions) -
     """Reconstruct and compact; ``info`` says what each step did (incl. ``compaction`` stats)."""
     if options.adaptive_range.enabled:  # off by default: then straight to the encoder
         rec = reconstruct_adaptive(encoder, erp_a, erp_b, c2w_a, c2w_b, options=options.adaptive_range,
-                                   near=options.near, far=options.far)
+                                   near=options.near, far=options.far, sh_degree=options.sh_degree)
     else:
-        rec = encoder.reconstruct(erp_a, erp_b, c2w_a, c2w_b, near=options.near, far=options.far)
+        rec = encoder.reconstruct(erp_a, erp_b, c2w_a, c2w_b, near=options.near, far=options.far,
+                                  sh_degree=options.sh_degree)
     timings = {str(k): float(v) for k, v in (rec.timings or {}).items()}
     info = dict(rec.info or {})
     t0 = time.perf_counter()

@@ -15,7 +15,7 @@ from functools import lru_cache
 import numpy as np
 
 from .. import geometry as geo
-from ..yin_yang import blend_weight_yin
+from ..yin_yang import grid_pixel
 
 #: Channels of the ``matches`` output, in order.
 CHANNELS = ("grid", "col", "row", "score", "status")
@@ -72,20 +72,7 @@ def grid_point_directions(grid: np.ndarray, col: np.ndarray, row: np.ndarray, he
 def erp_to_grid_pixel(grids: tuple[str, ...], height: int, width: int, erp_height: int) -> np.ndarray:
     """(He, 2 He) flat index into one view's (G, H, W) grid layout: the nearest pixel of the grid that
     owns each ERP pixel's direction (Yin where its blend weight >= 0.5, as the renderer's merge). Read-only."""
-    d = geo.grid_directions("erp", erp_height, 2 * erp_height)
-    if grids == ("erp",):
-        col, row = geo.project_to_grid("erp", d, height, width)
-        g = np.zeros(d.shape[:2], dtype=np.int64)
-        col = np.mod(np.rint(col), width)
-    else:
-        g = (blend_weight_yin(d) < 0.5).astype(np.int64)
-        col_yin, row_yin = geo.project_to_grid("yin", d, height, width)
-        col_yang, row_yang = geo.project_to_grid("yang", d, height, width)
-        col = np.where(g == 1, col_yang, col_yin)
-        row = np.where(g == 1, row_yang, row_yin)
-        col = np.clip(np.rint(col), 0, width - 1)
-    row = np.clip(np.rint(row), 0, height - 1)
-    out = (g * height + row.astype(np.int64)) * width + col.astype(np.int64)
+    out = grid_pixel(geo.grid_directions("erp", erp_height, 2 * erp_height), grids, height, width)
     out.flags.writeable = False
     return out
 

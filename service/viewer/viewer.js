@@ -92,7 +92,7 @@ async function main() {
     useBuiltInControls: true,
     selfDrivenMode: true,
     ignoreDevicePixelRatio: true,
-    sphericalHarmonicsDegree: 0,
+    sphericalHarmonicsDegree: 1, // the encoder fits degree-1 colour (rasterizer.view_colour)
     antialiased: false,
     // software GL (SwiftShader) draws a black frame with the GPU distance pre-pass
     gpuAcceleratedSort: false,

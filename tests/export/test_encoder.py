@@ -9,6 +9,7 @@ import pytest
 from export.onnx_export import export_model
 from rasterizer.geometry import grid_directions, project_to_grid
 from rasterizer.scene_folder import load_scene
+from rasterizer.sh import sh_to_rgb
 from service.encoder import EncoderInputError, OnnxEncoder
 
 
@@ -60,6 +61,15 @@ def test_reconstruct_m3d_depth_is_metric(encoder, m3d):
     blocks = rec.range_maps[0, 0].reshape(16, 4, 48, 4).mean(axis=(1, 3)).ravel()
     d_shell = np.linalg.norm(shell.means[: 16 * 48] - fa.c2w[:3, 3], axis=1)
     np.testing.assert_allclose(d_shell, 2.0 * blocks, rtol=1e-4)
+    # view-dependent colour (default sh_degree 1): each reference sees its own pixel colours
+    assert g.sh.shape == (len(g), 4, 3) and np.all(shell.sh[:, 1:] == 0)
+    one = encoder.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w, sh_degree=0).gaussians
+    assert one.sh.shape == (len(g), 1, 3)
+    n = 2 * 64 * 192
+    for v, c2w in enumerate((fa.c2w, fb.c2w)):
+        own = slice(v * n, (v + 1) * n)
+        np.testing.assert_allclose(sh_to_rgb(g.sh[own], g.means[own], c2w[:3, 3]),
+                                   sh_to_rgb(one.sh[own], one.means[own], c2w[:3, 3]), atol=1e-4)
 
 
 def test_any_2to1_size_and_dtype(encoder, m3d):
@@ -90,6 +100,8 @@ def test_near_far_override_and_pruning(encoder, m3d):
     (dict(c2w_b=np.diag([1.0, 1.0, -1.0, 1.0])), "mirror"),
     (dict(near=5.0, far=1.0), "near < far"),
     (dict(colour_mode="x"), "unknown encoder option"),
+    (dict(sh_degree=2), "sh_degree"),
+    (dict(sh_degree=True), "sh_degree"),
 ])
 def test_bad_inputs_raise_clear_errors(encoder, bad, match):
     args = dict(erp_a=np.zeros((64, 128, 3), np.float32), erp_b=np.zeros((64, 128, 3), np.float32),

@@ -128,6 +128,11 @@ def test_reconstruct_compaction_flags_map_to_options():
     assert opts("--no-compaction").merge_smooth is False
     with pytest.raises(cli.CliError, match="smooth_levels"):
         opts("--smooth-levels", "9")
+    full = cli._pipeline_options(parser.parse_args(["reconstruct", "scene"]))
+    assert full.sh_degree == 1
+    assert cli._pipeline_options(parser.parse_args(["reconstruct", "scene", "--sh-degree", "0"])).sh_degree == 0
+    with pytest.raises(cli.CliError, match="sh_degree"):
+        cli._pipeline_options(parser.parse_args(["reconstruct", "scene", "--sh-degree", "2"]))
 
 
 def test_render_argument_errors(tmp_path, capsys):

@@ -137,8 +137,10 @@ def test_options():
     assert parse_options(None, None)[0] == {}
     raw, parsed, _ = parse_options('{"near": 0.2, "far": 9}', {"near", "far"})
     assert raw == {"near": 0.2, "far": 9} and (parsed.near, parsed.far) == (0.2, 9)
+    assert parsed.sh_degree == 1 and parse_options('{"sh_degree": 0}', None)[1].sh_degree == 0
     for bad in ['{"near": -1}', '{"near": 5, "far": 1}', '[1]', '{"x": [1]}', '{"near": "a"}',
-                '{"min_opacity": "abc"}', '{"min_opacity": 1.5}', '{"near": true}']:
+                '{"min_opacity": "abc"}', '{"min_opacity": 1.5}', '{"near": true}', '{"sh_degree": 2}',
+                '{"sh_degree": 0.5}', '{"sh_degree": -1}']:
         with pytest.raises(BadInput):
             parse_options(bad, None)
     with pytest.raises(BadInput) as info:

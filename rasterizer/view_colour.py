@@ -1,0 +1,79 @@
+"""View-dependent colour: degree-1 spherical harmonics fitted so that each reference sees its own image.
+
+The two references' pixel-aligned Gaussians share one scene. Seen from reference A, a Gaussian of
+reference B that sits in front of A's surface (a depth error of B) or on it (a different sampling of
+the same surface) paints B's colour over A's pixels. With one colour per Gaussian, an ERP render at A's
+own pose then scored only 24.6 dB against A's image on m3d_bedroom and 17-18 dB on zind_room09
+(docs/experiments.md, "View-dependent colour").
+
+Each Gaussian x of view v keeps its own pixel colour c_v in the direction d_v from v's camera. Where
+the other view u sees x (x is not behind u's estimated surface by more than ``tol`` of its range), u
+saw colour c_u along the direction d_u to x: the colour of u's grid pixel that x projects to. A linear
+colour c(d) = a + G d (3x3 G: the degree-1 SH band) is fitted with c(d_v) = c_v exactly and c(d_u) =
+c_u in the ridge sense, G = (c_u - c_v) (d_u - d_v)^T / (|d_u - d_v|^2 + ridge). The ridge keeps G
+bounded, |G| <= |c_u - c_v| / (2 sqrt(ridge)), so views far from both references see at most that
+swing; where u does not see x, G = 0 (the Gaussian's single colour).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import geometry as geo
+from .gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
+from .sh import SH_C1
+from .yin_yang import grid_pixel
+
+#: Colour models a reconstruction offers: 0 = one colour per Gaussian, 1 = this module's fit.
+SH_DEGREES = (0, 1)
+DEFAULT_SH_DEGREE = 1
+#: Ridge of the fit (units of |d_u - d_v|^2, i.e. squared chord length of the two viewing directions).
+VIEW_COLOUR_RIDGE = 0.2
+#: x counts as seen by the other view when its range from that view is at most (1 + tol) times the
+#: other view's estimated range in that direction.
+VIEW_COLOUR_TOL = 0.1
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.maximum(n, 1e-30)
+
+
+def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, grids: tuple[str, ...], *,
+                    ridge: float = VIEW_COLOUR_RIDGE, tol: float = VIEW_COLOUR_TOL) -> Gaussians:
+    """``layout`` with degree-1 SH colours (module docstring).
+
+    layout: N = 2 G H W pixel-aligned Gaussians of two views in [view][grid][row][col] order, colour
+    in the SH DC band; range_maps (2, G, H, W) range from each view's camera (scene units); c2w (2, 4, 4)
+    the poses the layout's means are in; grids: the G grid kinds. Returns the same Gaussians with
+    ``sh`` (N, 4, 3).
+    """
+    v_count, g_count, h, w = np.shape(range_maps)
+    n = g_count * h * w
+    if v_count != 2 or len(layout) != 2 * n:
+        raise ValueError(f"need two views' pixel-aligned layout; got {len(layout)} Gaussians for {np.shape(range_maps)}")
+    if not ridge > 0:
+        raise ValueError(f"ridge must be > 0, got {ridge}")
+    rgb = sh_dc_to_rgb(layout.sh[:, 0, :]).astype(np.float64).reshape(2, n, 3)
+    rng = np.asarray(range_maps, dtype=np.float64).reshape(2, n)
+    means = layout.means.astype(np.float64).reshape(2, n, 3)
+    poses = np.asarray(c2w, dtype=np.float64)
+    sh = np.zeros((2, n, 4, 3), dtype=np.float32)
+    for v in range(2):  # the two views, each against the other
+        u = 1 - v
+        p = geo.world_to_camera(means[v], poses[u])
+        r = np.linalg.norm(p, axis=-1)
+        pix = grid_pixel(p, grids, h, w)
+        seen = np.isfinite(r) & (r > 0) & (r <= rng[u, pix] * (1.0 + tol))
+        d_v = _unit(means[v] - poses[v, :3, 3])
+        d_u = _unit(means[v] - poses[u, :3, 3])
+        dd = d_u - d_v
+        dc = np.where(seen[:, None], rgb[u, pix] - rgb[v], 0.0)
+        grad = dc[:, :, None] * (dd / (np.sum(dd * dd, axis=-1, keepdims=True) + ridge))[:, None, :]  # (n, rgb, xyz)
+        a = rgb[v] - np.einsum("ncx,nx->nc", grad, d_v)
+        sh[v, :, 0] = rgb_to_sh_dc(a)
+        # 3DGS degree-1 basis: -C1 y, C1 z, -C1 x (rasterizer.sh.sh_basis)
+        sh[v, :, 1] = -grad[:, :, 1] / SH_C1
+        sh[v, :, 2] = grad[:, :, 2] / SH_C1
+        sh[v, :, 3] = -grad[:, :, 0] / SH_C1
+    return layout.with_(sh=sh.reshape(2 * n, 4, 3))
