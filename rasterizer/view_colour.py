@@ -54,7 +54,7 @@ def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, 
         raise ValueError(f"need two views' pixel-aligned layout; got {len(layout)} Gaussians for {np.shape(range_maps)}")
     if not ridge > 0:
         raise ValueError(f"ridge must be > 0, got {ridge}")
-    rgb = sh_dc_to_rgb(layout.sh[:, 0, :]).astype(np.float64).reshape(2, n, 3)
+    rgb = sh_dc_to_rgb(layout.sh[:, 0, :]).reshape(2, n, 3)
     rng = np.asarray(range_maps, dtype=np.float64).reshape(2, n)
     means = layout.means.astype(np.float64).reshape(2, n, 3)
     poses = np.asarray(c2w, dtype=np.float64)
@@ -65,15 +65,13 @@ def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, 
         r = np.linalg.norm(p, axis=-1)
         pix = grid_pixel(p, grids, h, w)
         seen = np.isfinite(r) & (r > 0) & (r <= rng[u, pix] * (1.0 + tol))
-        d_v = _unit(means[v] - poses[v, :3, 3])
-        d_u = _unit(means[v] - poses[u, :3, 3])
+        d_v = _unit(means[v] - poses[v, :3, 3]).astype(np.float32)
+        d_u = _unit(means[v] - poses[u, :3, 3]).astype(np.float32)
         dd = d_u - d_v
-        dc = np.where(seen[:, None], rgb[u, pix] - rgb[v], 0.0)
-        grad = dc[:, :, None] * (dd / (np.sum(dd * dd, axis=-1, keepdims=True) + ridge))[:, None, :]  # (n, rgb, xyz)
-        a = rgb[v] - np.einsum("ncx,nx->nc", grad, d_v)
-        sh[v, :, 0] = rgb_to_sh_dc(a)
+        wt = dd / (np.sum(dd * dd, axis=-1, keepdims=True) + np.float32(ridge))  # G = dc w^T
+        dc = np.where(seen[:, None], rgb[u, pix] - rgb[v], np.float32(0.0))
+        sh[v, :, 0] = rgb_to_sh_dc(rgb[v] - dc * np.sum(wt * d_v, axis=-1, keepdims=True))  # a = c_v - G d_v
         # 3DGS degree-1 basis: -C1 y, C1 z, -C1 x (rasterizer.sh.sh_basis)
-        sh[v, :, 1] = -grad[:, :, 1] / SH_C1
-        sh[v, :, 2] = grad[:, :, 2] / SH_C1
-        sh[v, :, 3] = -grad[:, :, 0] / SH_C1
+        for k, (axis, sign) in enumerate(((1, -1.0), (2, 1.0), (0, -1.0)), start=1):
+            sh[v, :, k] = dc * (np.float32(sign / SH_C1) * wt[:, axis:axis + 1])
     return layout.with_(sh=sh.reshape(2 * n, 4, 3))
