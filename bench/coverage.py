@@ -106,10 +106,11 @@ def measure(g, scene, split, width: int = 1024, perspective: bool = True) -> dic
         frame = scene.frames[name]
         plain = render(g, frame.c2w, projection="erp", width=width, method="direct")
         rec = {"role": "reference" if name in split.references else "target", **alpha_stats(plain.alpha)}
+        gt = resize_erp(frame.image(), width // 2, width)
+        rec["psnr_plain"] = psnr(plain.colour, gt)  # at a reference: how well the scene shows its own image
         if name in split.targets:
-            gt = resize_erp(frame.image(), width // 2, width)
             va = render(g, frame.c2w, projection="erp", width=width)
-            rec.update(psnr_plain=psnr(plain.colour, gt), psnr_va=psnr(va.colour, gt),
+            rec.update(psnr_va=psnr(va.colour, gt),
                        psnr_yinyang_plain=psnr(va.colour * va.alpha[..., None], gt))
             hole = disoccluded(scene, name, split.references, width // 2, width)
             if hole is not None:
@@ -127,7 +128,8 @@ def measure(g, scene, split, width: int = 1024, perspective: bool = True) -> dic
     return out
 
 
-def run(data: list[Path], model: Path | None, threads: int = 2) -> list[dict]:
+def run(data: list[Path], model: Path | None, threads: int = 2, sh_degree: int | None = None) -> list[dict]:
+    """Measure every split of ``data``; ``sh_degree`` None = the encoder's default colour model."""
     from service.encoder import OnnxEncoder
 
     enc = OnnxEncoder(model or bench_model(512, 1024, 64, log=_log), threads=threads)
@@ -137,7 +139,8 @@ def run(data: list[Path], model: Path | None, threads: int = 2) -> list[dict]:
         for si, split in enumerate(scene.splits):
             fa, fb = (scene.frames[n] for n in split.references)
             t = time.perf_counter()
-            rec = enc.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w)
+            rec = enc.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w,
+                                  **({} if sh_degree is None else {"sh_degree": sh_degree}))
             post = time.perf_counter() - t
             prov = Provenance.from_reconstruction(rec, fa.c2w, fb.c2w)
             t = time.perf_counter()
@@ -145,6 +148,7 @@ def run(data: list[Path], model: Path | None, threads: int = 2) -> list[dict]:
             t_compact = time.perf_counter() - t
             entry = {"scene": scene.name, "split": si, "references": list(split.references),
                      "targets": list(split.targets), "model": enc.metadata.get("version"),
+                     "sh_degree": int(rec.gaussians.sh_degree),
                      "reconstruct_s": post, "compact_s": t_compact,
                      "count": len(rec.gaussians), "count_compacted": len(small),
                      "opacity_median": float(np.median(rec.gaussians.opacities)),
@@ -161,8 +165,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", type=Path, default=None, help="ONNX model (default: the shipped quality preset)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json", type=Path, default=None, help="also write the results here")
+    p.add_argument("--sh-degree", type=int, default=None,
+                   help="colour model of the scenes (default: the encoder's, view-dependent; 0: one colour)")
     args = p.parse_args(argv)
-    results = run(args.data, args.model, args.threads)
+    results = run(args.data, args.model, args.threads, args.sh_degree)
     text = json.dumps(results, indent=1)
     if args.json:
         args.json.write_text(text)
