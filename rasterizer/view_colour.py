@@ -2,9 +2,8 @@
 
 The two references' pixel-aligned Gaussians share one scene. Seen from reference A, a Gaussian of
 reference B that sits in front of A's surface (a depth error of B) or on it (a different sampling of
-the same surface) paints B's colour over A's pixels. With one colour per Gaussian, an ERP render at A's
-own pose then scored only 24.6 dB against A's image on m3d_bedroom and 17-18 dB on zind_room09
-(docs/experiments.md, "View-dependent colour").
+the same surface) paints B's colour over A's pixels: with one colour per Gaussian a render at A's own
+pose does not show A's image (measurements: docs/experiments.md, "View-dependent colour").
 
 Each Gaussian x of view v keeps its own pixel colour c_v in the direction d_v from v's camera. Where
 the other view u sees x (x is not behind u's estimated surface by more than ``tol`` of its range), u

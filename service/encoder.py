@@ -243,7 +243,7 @@ class OnnxEncoder:
         info = {
             "near": near, "far": far, "baseline": b, "num_planes": self.num_planes,
             "num_gaussians": len(gaussians), "num_gaussians_raw": int(out["means"].shape[0]),
-            "num_gaussians_shell": len(shell),
+            "num_gaussians_shell": len(shell), "sh_degree": int(sh_degree),
             "grids": self._meta.get("grids"), "input_size": [self.height, self.width],
             "mean_confidence": float(out["confidence"].mean()),
             "model": {k: self._meta.get(k) for k in ("name", "version", "sha256")},

@@ -64,7 +64,9 @@ async def create_scene(
                                                           '"adaptive_range": false}; "compaction": false keeps '
                                                           'every Gaussian; without poses: "camera_height" or '
                                                           '"baseline" (metres) sets the scale; "refine_poses": true '
-                                                          'refines given poses against the images')] = None,
+                                                          'refines given poses against the images; "sh_degree": 0 '
+                                                          'keeps one colour per Gaussian (default 1: view-dependent '
+                                                          'colour, each reference sees its own image)')] = None,
     poses: Annotated[str | None, Form(description='JSON {"convention": "opencv"|"opengl", "c2w": [A, B]}, '
                                                   "each camera-to-world 4x4 or 3x4; leave out (or c2w null) to "
                                                   "estimate them from the images (world = camera A)",

@@ -62,7 +62,7 @@ def test_reconstruct_m3d_depth_is_metric(encoder, m3d):
     d_shell = np.linalg.norm(shell.means[: 16 * 48] - fa.c2w[:3, 3], axis=1)
     np.testing.assert_allclose(d_shell, 2.0 * blocks, rtol=1e-4)
     # view-dependent colour (default sh_degree 1): each reference sees its own pixel colours
-    assert g.sh.shape == (len(g), 4, 3) and np.all(shell.sh[:, 1:] == 0)
+    assert g.sh.shape == (len(g), 4, 3) and np.all(shell.sh[:, 1:] == 0) and rec.info["sh_degree"] == 1
     one = encoder.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w, sh_degree=0).gaussians
     assert one.sh.shape == (len(g), 1, 3)
     n = 2 * 64 * 192

@@ -187,6 +187,7 @@ def test_round_trip_post_render_ply(client, live, scene_id):
     assert vertex.count == meta["num_gaussians"]
     names = [p.name for p in vertex.properties]
     assert names[:6] == ["x", "y", "z", "nx", "ny", "nz"] and names[-4:] == ["rot_0", "rot_1", "rot_2", "rot_3"]
+    assert [n for n in names if n.startswith("f_rest_")] == [f"f_rest_{i}" for i in range(9)]  # view-dependent colour
     xyz = np.stack([vertex["x"], vertex["y"], vertex["z"]], 1)
     assert np.all(np.isfinite(xyz))
     # the second download is served from the stored file, byte-identical
@@ -206,6 +207,16 @@ def test_same_inputs_same_id(client, scene_id):
     other = post_scene(client, panorama(seed=1), panorama(seed=1, shift=5), options='{"near": 0.3, "far": 10}')
     assert other.status_code == 201, other.text
     assert other.json()["id"] != scene_id
+    # one colour per Gaussian: a different scene whose PLY has no f_rest
+    import plyfile
+
+    flat = post_scene(client, panorama(seed=1), panorama(seed=1, shift=5), options='{"sh_degree": 0}')
+    assert flat.status_code == 201, flat.text
+    assert flat.json()["id"] != scene_id
+    ply = plyfile.PlyData.read(io.BytesIO(client.get(f"/v1/scenes/{flat.json()['id']}/gaussians.ply").content))
+    assert not [p.name for p in ply["vertex"].properties if p.name.startswith("f_rest_")]
+    bad = post_scene(client, panorama(seed=1), panorama(seed=1, shift=5), options='{"sh_degree": 3}')
+    assert bad.status_code == 422 and "sh_degree" in bad.json()["error"]["message"]
 
 
 def test_any_two_to_one_size_and_mixed_sizes(client):
