@@ -453,7 +453,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
     t_fp = time.perf_counter() - t0
     opts = RefineOptions(iterations=args.iterations, sh_degree=args.sh_degree, colour_reg=args.colour_reg,
                          optimise_opacity=args.optimise_opacity, opacity_lr=args.opacity_lr, patience=args.patience,
-                         cross_check=not args.no_cross_check, loss=args.loss)
+                         cross_check=not args.no_cross_check, **({} if args.loss is None else {"loss": args.loss}))
     res = refine(g, views, opts)
     write_ply(args.out, res.gaussians)
     first = res.history[0]
@@ -579,7 +579,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--patience", type=int, default=5)
     f.add_argument("--no-cross-check", action="store_true",
                    help="skip the cross-view guard (fit each reference alone, score the other; reject if worse)")
-    f.add_argument("--loss", default="l2", choices=("l2", "huber", "l1"), help="colour fit loss (l2 measured best)")
+    f.add_argument("--loss", choices=("l2", "huber", "l1"), help="colour fit loss (default: RefineOptions.loss, l1)")
     f.set_defaults(func=cmd_refine)
     e = sub.add_parser("select", help="select an object (points on a reference, or a segment) of a stored scene")
     e.add_argument("scene", help="scene id in the store")

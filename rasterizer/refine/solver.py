@@ -113,7 +113,8 @@ class RefineOptions:
     cross_check: bool = True      # colour mode: fit each reference alone, score the other (cross-view guard)
     cross_steps: int = 3          # guard: at most this many CG steps per single-reference fit
     cross_covis: float = 0.0      # guard fits only Gaussians seen by both references (>= this x mean strength); 0: all
-    loss: str = "l2"              # "l2" | "huber" | "l1": robust variants as fixed IRLS weights (initial residual)
+    loss: str = "l1"              # "l2" | "huber" | "l1": robust variants as fixed IRLS weights (initial residual);
+    # l1 measured best with view-dependent colour (docs/bench/refine.md; l2 until session 7)
     huber_delta: float = 0.1      # Huber threshold on the per-pixel colour error (RGB norm, [0, 1] units)
 
 
