@@ -29,6 +29,7 @@ from rasterizer import geometry as geo
 from rasterizer.compaction import CompactionOptions, Provenance, compact
 from rasterizer.render import render
 from rasterizer.scene_folder import load_scene
+from rasterizer.view_colour import DEFAULT_SH_DEGREE
 from rasterizer.yin_yang import resize_erp
 
 from .models import bench_model
@@ -128,8 +129,8 @@ def measure(g, scene, split, width: int = 1024, perspective: bool = True) -> dic
     return out
 
 
-def run(data: list[Path], model: Path | None, threads: int = 2, sh_degree: int | None = None) -> list[dict]:
-    """Measure every split of ``data``; ``sh_degree`` None = the encoder's default colour model."""
+def run(data: list[Path], model: Path | None, threads: int = 2, sh_degree: int = DEFAULT_SH_DEGREE) -> list[dict]:
+    """Measure every split of ``data`` with scenes of the given colour model (``sh_degree``)."""
     from service.encoder import OnnxEncoder
 
     enc = OnnxEncoder(model or bench_model(512, 1024, 64, log=_log), threads=threads)
@@ -139,8 +140,7 @@ def run(data: list[Path], model: Path | None, threads: int = 2, sh_degree: int |
         for si, split in enumerate(scene.splits):
             fa, fb = (scene.frames[n] for n in split.references)
             t = time.perf_counter()
-            rec = enc.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w,
-                                  **({} if sh_degree is None else {"sh_degree": sh_degree}))
+            rec = enc.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w, sh_degree=sh_degree)
             post = time.perf_counter() - t
             prov = Provenance.from_reconstruction(rec, fa.c2w, fb.c2w)
             t = time.perf_counter()
@@ -165,8 +165,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", type=Path, default=None, help="ONNX model (default: the shipped quality preset)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json", type=Path, default=None, help="also write the results here")
-    p.add_argument("--sh-degree", type=int, default=None,
-                   help="colour model of the scenes (default: the encoder's, view-dependent; 0: one colour)")
+    p.add_argument("--sh-degree", type=int, default=DEFAULT_SH_DEGREE,
+                   help="colour model of the scenes (default 1: view-dependent; 0: one colour)")
     args = p.parse_args(argv)
     results = run(args.data, args.model, args.threads, args.sh_degree)
     text = json.dumps(results, indent=1)

@@ -42,6 +42,11 @@ _EPS = 1e-12
 # Spherical coordinates
 # ---------------------------------------------------------------------------
 
+def unit_vectors(v: np.ndarray, floor: float) -> np.ndarray:
+    """``v`` (..., 3) scaled to unit length; lengths below ``floor`` are divided by ``floor`` (no NaN at 0)."""
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), floor)
+
+
 def direction_from_lat_lon(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
     """Unit camera-frame direction(s) for latitude/longitude, shape (..., 3)."""
     lat, lon = np.broadcast_arrays(np.asarray(lat), np.asarray(lon))

@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .geometry import unit_vectors
+
 #: Default inlier threshold on the epipolar angle (degrees).
 INLIER_DEG = 1.0
 _EPS = 1e-12
@@ -27,7 +29,7 @@ def yaw_rotation(yaw) -> np.ndarray:
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), _EPS)
+    return unit_vectors(v, _EPS)
 
 
 def epipolar_error(fa: np.ndarray, fb: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -33,9 +33,12 @@ VIEW_COLOUR_RIDGE = 0.2
 VIEW_COLOUR_TOL = 0.1
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return v / np.maximum(n, 1e-30)
+def check_sh_degree(value) -> int:
+    """``value`` as one of :data:`SH_DEGREES`; raises ValueError naming the accepted ones."""
+    if isinstance(value, bool) or value not in SH_DEGREES:
+        raise ValueError(f"sh_degree: expected one of {list(SH_DEGREES)} (1: view-dependent colour, "
+                         f"0: one colour per Gaussian), got {value!r}")
+    return int(value)
 
 
 def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, grids: tuple[str, ...], *,
@@ -64,8 +67,8 @@ def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, 
         r = np.linalg.norm(p, axis=-1)
         pix = grid_pixel(p, grids, h, w)
         seen = np.isfinite(r) & (r > 0) & (r <= rng[u, pix] * (1.0 + tol))
-        d_v = _unit(means[v] - poses[v, :3, 3]).astype(np.float32)
-        d_u = _unit(means[v] - poses[u, :3, 3]).astype(np.float32)
+        d_v = geo.unit_vectors(means[v] - poses[v, :3, 3], 1e-30).astype(np.float32)
+        d_u = geo.unit_vectors(means[v] - poses[u, :3, 3], 1e-30).astype(np.float32)
         dd = d_u - d_v
         wt = dd / (np.sum(dd * dd, axis=-1, keepdims=True) + np.float32(ridge))  # G = dc w^T
         dc = np.where(seen[:, None], rgb[u, pix] - rgb[v], np.float32(0.0))

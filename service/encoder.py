@@ -31,7 +31,7 @@ from rasterizer.sweep import (
     default_near_far,
     sweep_inputs,
 )
-from rasterizer.view_colour import DEFAULT_SH_DEGREE, SH_DEGREES, fit_view_colour
+from rasterizer.view_colour import DEFAULT_SH_DEGREE, check_sh_degree, fit_view_colour
 from rasterizer.yin_yang import resize_erp
 
 from .model_files import sha256_file
@@ -47,8 +47,9 @@ class EncoderInputError(ValueError):
 class Reconstruction:
     """Result of :meth:`OnnxEncoder.reconstruct`.
 
-    gaussians: world-space Gaussians of both views (SH DC only): the pixel-aligned ones in
-    [view][grid][row][col] order, then the ``shell`` Gaussians of :mod:`rasterizer.shell`.
+    gaussians: world-space Gaussians of both views (SH degree ``info["sh_degree"]``; the shell's band
+    is zero): the pixel-aligned ones in [view][grid][row][col] order, then the ``shell`` Gaussians of
+    :mod:`rasterizer.shell`.
     timings: seconds per stage (resample, sweep_inputs, onnx, gaussians, total).
     info: near, far, baseline, counts, model name/version/sha256.
     range_maps, confidence: (2, G, Hg, Wg) per view and grid (Yin, Yang or ERP),
@@ -181,9 +182,10 @@ class OnnxEncoder:
         unknown = sorted(set(options) - set(KNOWN_OPTIONS))
         if unknown:
             raise EncoderInputError(f"unknown encoder option(s) {unknown}; known: {list(KNOWN_OPTIONS)}")
-        sh_degree = options.get("sh_degree", DEFAULT_SH_DEGREE)
-        if sh_degree not in SH_DEGREES or isinstance(sh_degree, bool):
-            raise EncoderInputError(f"sh_degree must be one of {list(SH_DEGREES)}, got {sh_degree!r}")
+        try:
+            sh_degree = check_sh_degree(options.get("sh_degree", DEFAULT_SH_DEGREE))
+        except ValueError as exc:
+            raise EncoderInputError(str(exc)) from None
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
         img_a, img_b = _as_image(erp_a, "erp_a"), _as_image(erp_b, "erp_b")
@@ -231,9 +233,8 @@ class OnnxEncoder:
             arrays[0] = (arrays[0].astype(np.float64) + origin).astype(np.float32)
         gaussians = Gaussians(*arrays)
         shell = environment_shell(gaussians, out["range_maps"], poses, self.grids)
-        if sh_degree == 1:
+        if sh_degree == 1:  # the shell keeps one colour (concatenate pads its SH with zeros)
             gaussians = fit_view_colour(gaussians, out["range_maps"], poses, self.grids)
-            shell = shell.with_(sh=np.pad(shell.sh, ((0, 0), (0, 3), (0, 0))))
         min_opacity = float(options.get("min_opacity", 0.0))
         if min_opacity > 0:
             gaussians = gaussians.subset(gaussians.opacities >= min_opacity)
@@ -243,7 +244,7 @@ class OnnxEncoder:
         info = {
             "near": near, "far": far, "baseline": b, "num_planes": self.num_planes,
             "num_gaussians": len(gaussians), "num_gaussians_raw": int(out["means"].shape[0]),
-            "num_gaussians_shell": len(shell), "sh_degree": int(sh_degree),
+            "num_gaussians_shell": len(shell), "sh_degree": sh_degree,
             "grids": self._meta.get("grids"), "input_size": [self.height, self.width],
             "mean_confidence": float(out["confidence"].mean()),
             "model": {k: self._meta.get(k) for k in ("name", "version", "sha256")},

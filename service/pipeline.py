@@ -20,7 +20,7 @@ from rasterizer.compaction import CompactionOptions, Provenance, compact_result
 from rasterizer.edit.scene import EditData
 from rasterizer.gaussians import Gaussians
 from rasterizer.ply import finite_rows
-from rasterizer.view_colour import DEFAULT_SH_DEGREE, SH_DEGREES
+from rasterizer.view_colour import DEFAULT_SH_DEGREE, check_sh_degree
 
 from .scene_adaptive import AdaptiveRangeOptions, reconstruct_adaptive
 
@@ -45,10 +45,10 @@ class PipelineOptions:
         opts = dict(options or {})
         near, far = opts.pop("near", None), opts.pop("far", None)
         sh_degree = opts.pop("sh_degree", None)
-        sh_degree = DEFAULT_SH_DEGREE if sh_degree is None else sh_degree
-        if isinstance(sh_degree, bool) or sh_degree not in SH_DEGREES:
-            raise ValueError(f"options.sh_degree: expected one of {list(SH_DEGREES)} (1: view-dependent "
-                             f"colour, 0: one colour per Gaussian), got {sh_degree!r}")
+        try:
+            sh_degree = check_sh_degree(DEFAULT_SH_DEGREE if sh_degree is None else sh_degree)
+        except ValueError as exc:
+            raise ValueError(f"options.{exc}") from None
         comp = opts.pop("compaction", None)
         if comp is False:
             compaction = CompactionOptions.off()
@@ -66,7 +66,7 @@ class PipelineOptions:
         if opts:
             raise ValueError(f"unknown option(s) {sorted(opts)}; accepted: near, far, min_opacity, sh_degree, "
                              f"{', '.join(STEP_OPTION_KEYS)}")
-        return cls(near, far, compaction, AdaptiveRangeOptions.from_dict(adaptive), int(sh_degree))
+        return cls(near, far, compaction, AdaptiveRangeOptions.from_dict(adaptive), sh_degree)
 
 
 @dataclass(frozen=True)
