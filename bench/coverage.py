@@ -6,7 +6,8 @@ compacted Gaussians measure the accumulated alpha (mean, fraction >= 0.99)
 of direct ERP renders at both reference poses and every target, and of
 perspective views (640x480, 90 deg) at the first target, yaw 0/90/180/270;
 PSNR plain (over black, no division by alpha) and V/A (divided by alpha)
-at the targets. Where the scene has GT depth, target pixels that neither
+at the targets, plain also above the nadir cap (``bench.metrics.psnr_above_nadir``), and
+copying the nearest reference for comparison. Where the scene has GT depth, target pixels that neither
 reference sees (genuine disocclusions: the GT surface point is hidden in
 both references' GT depth) are counted and left out of a second fraction.
 
@@ -24,10 +25,12 @@ from pathlib import Path
 import numpy as np
 
 from bench import DEV_DATA
-from bench.metrics import psnr
+from bench.baselines import copy_nearest
+from bench.metrics import psnr, psnr_above_nadir
 from rasterizer import geometry as geo
 from rasterizer.compaction import CompactionOptions, Provenance, compact
 from rasterizer.render import render
+from rasterizer.rig import DEFAULT_RIG_CAP_DEG
 from rasterizer.scene_folder import load_scene
 from rasterizer.view_colour import DEFAULT_SH_DEGREE
 from rasterizer.yin_yang import resize_erp
@@ -109,7 +112,11 @@ def measure(g, scene, split, width: int = 1024, perspective: bool = True) -> dic
         rec = {"role": "reference" if name in split.references else "target", **alpha_stats(plain.alpha)}
         gt = resize_erp(frame.image(), width // 2, width)
         rec["psnr_plain"] = psnr(plain.colour, gt)  # at a reference: how well the scene shows its own image
+        rec["psnr_plain_above_nadir"] = psnr_above_nadir(plain.colour, gt)
         if name in split.targets:
+            refs = [(scene.frames[n].image(), scene.frames[n].c2w) for n in split.references]
+            copy = copy_nearest(refs, frame.c2w, width // 2, width)
+            rec.update(psnr_copy_nearest=psnr(copy, gt), psnr_copy_nearest_above_nadir=psnr_above_nadir(copy, gt))
             va = render(g, frame.c2w, projection="erp", width=width)
             rec.update(psnr_va=psnr(va.colour, gt),
                        psnr_yinyang_plain=psnr(va.colour * va.alpha[..., None], gt))
@@ -129,8 +136,9 @@ def measure(g, scene, split, width: int = 1024, perspective: bool = True) -> dic
     return out
 
 
-def run(data: list[Path], model: Path | None, threads: int = 2, sh_degree: int = DEFAULT_SH_DEGREE) -> list[dict]:
-    """Measure every split of ``data`` with scenes of the given colour model (``sh_degree``)."""
+def run(data: list[Path], model: Path | None, threads: int = 2, sh_degree: int = DEFAULT_SH_DEGREE,
+        rig_cap_deg: float = DEFAULT_RIG_CAP_DEG) -> list[dict]:
+    """Measure every split of ``data`` with scenes of the given colour model and rig cap (encoder options)."""
     from service.encoder import OnnxEncoder
 
     enc = OnnxEncoder(model or bench_model(512, 1024, 64, log=_log), threads=threads)
@@ -140,7 +148,7 @@ def run(data: list[Path], model: Path | None, threads: int = 2, sh_degree: int =
         for si, split in enumerate(scene.splits):
             fa, fb = (scene.frames[n] for n in split.references)
             t = time.perf_counter()
-            rec = enc.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w, sh_degree=sh_degree)
+            rec = enc.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w, sh_degree=sh_degree, rig_cap_deg=rig_cap_deg)
             post = time.perf_counter() - t
             prov = Provenance.from_reconstruction(rec, fa.c2w, fb.c2w)
             t = time.perf_counter()
@@ -148,7 +156,7 @@ def run(data: list[Path], model: Path | None, threads: int = 2, sh_degree: int =
             t_compact = time.perf_counter() - t
             entry = {"scene": scene.name, "split": si, "references": list(split.references),
                      "targets": list(split.targets), "model": enc.metadata.get("version"),
-                     "sh_degree": int(rec.gaussians.sh_degree),
+                     "sh_degree": int(rec.gaussians.sh_degree), "rig_cap_deg": rig_cap_deg,
                      "reconstruct_s": post, "compact_s": t_compact,
                      "count": len(rec.gaussians), "count_compacted": len(small),
                      "opacity_median": float(np.median(rec.gaussians.opacities)),
@@ -167,8 +175,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, default=None, help="also write the results here")
     p.add_argument("--sh-degree", type=int, default=DEFAULT_SH_DEGREE,
                    help="colour model of the scenes (default 1: view-dependent; 0: one colour)")
+    p.add_argument("--rig-cap-deg", type=float, default=DEFAULT_RIG_CAP_DEG,
+                   help="re-colour the pixels this many degrees around each camera's nadir (default 0: off)")
     args = p.parse_args(argv)
-    results = run(args.data, args.model, args.threads, args.sh_degree)
+    results = run(args.data, args.model, args.threads, args.sh_degree, args.rig_cap_deg)
     text = json.dumps(results, indent=1)
     if args.json:
         args.json.write_text(text)

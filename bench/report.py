@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-METRICS = ("psnr", "ssim", "ws_psnr", "psnr_alpha_normalised")
+METRICS = ("psnr", "ssim", "ws_psnr", "psnr_above_nadir", "psnr_alpha_normalised")
 STAGES = ("decode", "encoder", "gaussian_head", "render")
 
 
@@ -120,23 +120,24 @@ def markdown(summary: list[dict], machine_line: str, notes: list[str], title: st
     lines = [f"# {title}", "", f"Machine: {machine_line}", ""]
     lines += [f"- {n}" for n in notes]
     lines += ["", "## Mean over scenes (extrapolation splits excluded)", ""]
-    head = ["setting", "PSNR", "SSIM", "WS-PSNR", "decode s", "encoder s", "head s", "render s", "total s"]
+    head = ["setting", "PSNR", "SSIM", "WS-PSNR", "PSNR above nadir", "decode s", "encoder s", "head s", "render s", "total s"]
     head += [f"PSNR {g}" for g in groups] + [f"PSNR {g}" for g in extra_groups]
     lines.append("| " + " | ".join(head) + " |")
     lines.append("|" + "---|" * len(head))
     for s in summary:
         m = s["mean"] or {k: None for k in METRICS} | {"seconds": {}}
         sec = m["seconds"]
-        row = [s["name"], _fmt(m["psnr"]), _fmt(m["ssim"], 4), _fmt(m["ws_psnr"])]
+        row = [s["name"], _fmt(m["psnr"]), _fmt(m["ssim"], 4), _fmt(m["ws_psnr"]), _fmt(m["psnr_above_nadir"])]
         row += [_fmt(sec.get(k), 3) for k in (*STAGES, "total")]
         row += [_fmt(s["per_group"].get(g, {}).get("psnr")) for g in groups + extra_groups]
         lines.append("| " + " | ".join(row) + " |")
-    lines += ["", "## Per scene group", "", "| setting | group | targets | PSNR | SSIM | WS-PSNR | total s |",
-              "|---|---|---|---|---|---|---|"]
+    lines += ["", "## Per scene group", "",
+              "| setting | group | targets | PSNR | SSIM | WS-PSNR | PSNR above nadir | total s |",
+              "|---|---|---|---|---|---|---|---|"]
     for s in summary:
         for g, v in s["per_group"].items():
             lines.append(f"| {s['name']} | {g} | {v['targets']} | {_fmt(v['psnr'])} | {_fmt(v['ssim'], 4)} | "
-                         f"{_fmt(v['ws_psnr'])} | {_fmt(v['seconds']['total'], 3)} |")
+                         f"{_fmt(v['ws_psnr'])} | {_fmt(v['psnr_above_nadir'])} | {_fmt(v['seconds']['total'], 3)} |")
     return "\n".join(lines) + "\n"
 
 

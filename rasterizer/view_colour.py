@@ -42,13 +42,15 @@ def check_sh_degree(value) -> int:
 
 
 def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, grids: tuple[str, ...], *,
-                    ridge: float = VIEW_COLOUR_RIDGE, tol: float = VIEW_COLOUR_TOL) -> Gaussians:
+                    ridge: float = VIEW_COLOUR_RIDGE, tol: float = VIEW_COLOUR_TOL,
+                    hidden: np.ndarray | None = None) -> Gaussians:
     """``layout`` with degree-1 SH colours (module docstring).
 
     layout: N = 2 G H W pixel-aligned Gaussians of two views in [view][grid][row][col] order, colour
     in the SH DC band; range_maps (2, G, H, W) range from each view's camera (scene units); c2w (2, 4, 4)
-    the poses the layout's means are in; grids: the G grid kinds. Returns the same Gaussians with
-    ``sh`` (N, 4, 3).
+    the poses the layout's means are in; grids: the G grid kinds; hidden: optional (2, G, H, W) bool,
+    pixels that do not show the scene (the capture rig, :mod:`rasterizer.rig`), which see nothing.
+    Returns the same Gaussians with ``sh`` (N, 4, 3).
     """
     v_count, g_count, h, w = np.shape(range_maps)
     n = g_count * h * w
@@ -58,6 +60,7 @@ def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, 
         raise ValueError(f"ridge must be > 0, got {ridge}")
     rgb = sh_dc_to_rgb(layout.sh[:, 0, :]).reshape(2, n, 3)
     rng = np.asarray(range_maps, dtype=np.float64).reshape(2, n)
+    shows = np.ones((2, n), dtype=bool) if hidden is None else ~np.asarray(hidden, dtype=bool).reshape(2, n)
     means = layout.means.astype(np.float64).reshape(2, n, 3)
     poses = np.asarray(c2w, dtype=np.float64)
     sh = np.zeros((2, n, 4, 3), dtype=np.float32)
@@ -66,7 +69,7 @@ def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, 
         p = geo.world_to_camera(means[v], poses[u])
         r = np.linalg.norm(p, axis=-1)
         pix = grid_pixel(p, grids, h, w)
-        seen = np.isfinite(r) & (r > 0) & (r <= rng[u, pix] * (1.0 + tol))
+        seen = np.isfinite(r) & (r > 0) & (r <= rng[u, pix] * (1.0 + tol)) & shows[u, pix]
         d_v = geo.unit_vectors(means[v] - poses[v, :3, 3], 1e-30).astype(np.float32)
         d_u = geo.unit_vectors(means[v] - poses[u, :3, 3], 1e-30).astype(np.float32)
         dd = d_u - d_v

@@ -311,7 +311,8 @@ def _pipeline_options(args: argparse.Namespace):
             compaction["smooth_levels"] = args.smooth_levels
     try:
         return PipelineOptions.from_dict({"near": args.near, "far": args.far, "compaction": compaction,
-                                          "adaptive_range": args.adaptive_range, "sh_degree": args.sh_degree})
+                                          "adaptive_range": args.adaptive_range, "sh_degree": args.sh_degree,
+                                          "rig_cap_deg": args.rig_cap_deg})
     except ValueError as exc:
         raise CliError(str(exc)) from None
 
@@ -539,6 +540,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--sh-degree", type=int,
                    help="1 (default): view-dependent colour, each reference sees its own image; "
                         "0: one colour per Gaussian (smaller PLY)")
+    c.add_argument("--rig-cap-deg", type=float,
+                   help="degrees around each camera's nadir where a tripod capture shows the rig: those pixels "
+                        "take the other panorama's colour (default 0: off; 20 for ZInD-like captures)")
     r.set_defaults(func=cmd_reconstruct)
 
     v = sub.add_parser("render", help="Gaussian PLY + camera pose -> image",

@@ -18,6 +18,7 @@ import onnxruntime as ort
 
 from rasterizer.gaussians import Gaussians
 from rasterizer.geometry import PoseError, as_c2w
+from rasterizer.rig import DEFAULT_RIG_CAP_DEG, check_rig_cap, patch_rig
 from rasterizer.shell import environment_shell
 from rasterizer.sweep import (
     FAR_PER_BASELINE,
@@ -36,7 +37,7 @@ from rasterizer.yin_yang import resize_erp
 
 from .model_files import sha256_file
 
-KNOWN_OPTIONS = ("min_opacity", "sh_degree")
+KNOWN_OPTIONS = ("min_opacity", "sh_degree", "rig_cap_deg")
 
 
 class EncoderInputError(ValueError):
@@ -177,13 +178,16 @@ class OnnxEncoder:
         so a globally scaled scene gives the same result). options: ``min_opacity``
         drops Gaussians below that opacity; ``sh_degree`` 1 (default) fits view-dependent colour so
         that each reference sees its own image (:mod:`rasterizer.view_colour`), 0 keeps one colour
-        per Gaussian. Raises :class:`EncoderInputError`.
+        per Gaussian; ``rig_cap_deg`` > 0 re-colours each reference's pixels within that many degrees of
+        its nadir, where tripod captures show the rig, from the other reference (:mod:`rasterizer.rig`).
+        Raises :class:`EncoderInputError`.
         """
         unknown = sorted(set(options) - set(KNOWN_OPTIONS))
         if unknown:
             raise EncoderInputError(f"unknown encoder option(s) {unknown}; known: {list(KNOWN_OPTIONS)}")
         try:
             sh_degree = check_sh_degree(options.get("sh_degree", DEFAULT_SH_DEGREE))
+            rig_cap = check_rig_cap(options.get("rig_cap_deg", DEFAULT_RIG_CAP_DEG))
         except ValueError as exc:
             raise EncoderInputError(str(exc)) from None
         t_start = time.perf_counter()
@@ -231,10 +235,10 @@ class OnnxEncoder:
         arrays[4] = arrays[4][:, None, :]
         if origin.any():  # back to the caller's frame, offset added in float64
             arrays[0] = (arrays[0].astype(np.float64) + origin).astype(np.float32)
-        gaussians = Gaussians(*arrays)
+        gaussians, rig = patch_rig(Gaussians(*arrays), out["range_maps"], poses, self.grids, rig_cap)
         shell = environment_shell(gaussians, out["range_maps"], poses, self.grids)
         if sh_degree == 1:  # the shell keeps one colour (concatenate pads its SH with zeros)
-            gaussians = fit_view_colour(gaussians, out["range_maps"], poses, self.grids)
+            gaussians = fit_view_colour(gaussians, out["range_maps"], poses, self.grids, hidden=rig)
         min_opacity = float(options.get("min_opacity", 0.0))
         if min_opacity > 0:
             gaussians = gaussians.subset(gaussians.opacities >= min_opacity)
@@ -244,7 +248,7 @@ class OnnxEncoder:
         info = {
             "near": near, "far": far, "baseline": b, "num_planes": self.num_planes,
             "num_gaussians": len(gaussians), "num_gaussians_raw": int(out["means"].shape[0]),
-            "num_gaussians_shell": len(shell), "sh_degree": sh_degree,
+            "num_gaussians_shell": len(shell), "sh_degree": sh_degree, "rig_cap_deg": rig_cap,
             "grids": self._meta.get("grids"), "input_size": [self.height, self.width],
             "mean_confidence": float(out["confidence"].mean()),
             "model": {k: self._meta.get(k) for k in ("name", "version", "sha256")},

@@ -6,8 +6,9 @@ duplicates, transparent Gaussians, merge of smooth 2x2 blocks, optional
 cap; the scene metadata's ``compaction`` says how many each step removed),
 and a final guard that drops any non-finite Gaussian. Options come as the API's ``options`` JSON
 object; structured keys ``compaction`` and ``adaptive_range`` hold the
-step options, ``near``/``far`` and ``sh_degree`` (view-dependent colour, 1, or one colour per
-Gaussian, 0) go to the encoder, ``min_opacity`` is a compaction threshold.
+step options, ``near``/``far``, ``sh_degree`` (view-dependent colour, 1, or one colour per
+Gaussian, 0) and ``rig_cap_deg`` (degrees around each camera's nadir where a tripod capture shows
+the rig, 0 = off) go to the encoder, ``min_opacity`` is a compaction threshold.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from rasterizer.compaction import CompactionOptions, Provenance, compact_result
 from rasterizer.edit.scene import EditData
 from rasterizer.gaussians import Gaussians
 from rasterizer.ply import finite_rows
+from rasterizer.rig import DEFAULT_RIG_CAP_DEG, check_rig_cap
 from rasterizer.view_colour import DEFAULT_SH_DEGREE, check_sh_degree
 
 from .scene_adaptive import AdaptiveRangeOptions, reconstruct_adaptive
@@ -35,6 +37,7 @@ class PipelineOptions:
     compaction: CompactionOptions
     adaptive_range: AdaptiveRangeOptions
     sh_degree: int = DEFAULT_SH_DEGREE
+    rig_cap_deg: float = DEFAULT_RIG_CAP_DEG
 
     @classmethod
     def from_dict(cls, options: dict[str, Any] | None) -> "PipelineOptions":
@@ -44,9 +47,10 @@ class PipelineOptions:
         """
         opts = dict(options or {})
         near, far = opts.pop("near", None), opts.pop("far", None)
-        sh_degree = opts.pop("sh_degree", None)
+        sh_degree, rig_cap = opts.pop("sh_degree", None), opts.pop("rig_cap_deg", None)
         try:
             sh_degree = check_sh_degree(DEFAULT_SH_DEGREE if sh_degree is None else sh_degree)
+            rig_cap = check_rig_cap(DEFAULT_RIG_CAP_DEG if rig_cap is None else rig_cap)
         except ValueError as exc:
             raise ValueError(f"options.{exc}") from None
         comp = opts.pop("compaction", None)
@@ -64,9 +68,9 @@ class PipelineOptions:
         if adaptive is not None and not isinstance(adaptive, dict):
             raise ValueError("options.adaptive_range: expected a JSON object or a boolean")
         if opts:
-            raise ValueError(f"unknown option(s) {sorted(opts)}; accepted: near, far, min_opacity, sh_degree, "
+            raise ValueError(f"unknown option(s) {sorted(opts)}; accepted: near, far, min_opacity, sh_degree, rig_cap_deg, "
                              f"{', '.join(STEP_OPTION_KEYS)}")
-        return cls(near, far, compaction, AdaptiveRangeOptions.from_dict(adaptive), sh_degree)
+        return cls(near, far, compaction, AdaptiveRangeOptions.from_dict(adaptive), sh_degree, rig_cap)
 
 
 @dataclass(frozen=True)
@@ -83,10 +87,11 @@ def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions) -
     """Reconstruct and compact; ``info`` says what each step did (incl. ``compaction`` stats)."""
     if options.adaptive_range.enabled:  # off by default: then straight to the encoder
         rec = reconstruct_adaptive(encoder, erp_a, erp_b, c2w_a, c2w_b, options=options.adaptive_range,
-                                   near=options.near, far=options.far, sh_degree=options.sh_degree)
+                                   near=options.near, far=options.far, sh_degree=options.sh_degree,
+                                   rig_cap_deg=options.rig_cap_deg)
     else:
         rec = encoder.reconstruct(erp_a, erp_b, c2w_a, c2w_b, near=options.near, far=options.far,
-                                  sh_degree=options.sh_degree)
+                                  sh_degree=options.sh_degree, rig_cap_deg=options.rig_cap_deg)
     timings = {str(k): float(v) for k, v in (rec.timings or {}).items()}
     info = dict(rec.info or {})
     t0 = time.perf_counter()

@@ -66,7 +66,10 @@ async def create_scene(
                                                           '"baseline" (metres) sets the scale; "refine_poses": true '
                                                           'refines given poses against the images; "sh_degree": 0 '
                                                           'keeps one colour per Gaussian (default 1: view-dependent '
-                                                          'colour, each reference sees its own image)')] = None,
+                                                          'colour, each reference sees its own image); '
+                                                          '"rig_cap_deg": 20 re-colours the pixels within 20 deg of '
+                                                          "each camera's nadir, where tripod captures show the rig, "
+                                                          'from the other panorama (default 0: off)')] = None,
     poses: Annotated[str | None, Form(description='JSON {"convention": "opencv"|"opengl", "c2w": [A, B]}, '
                                                   "each camera-to-world 4x4 or 3x4; leave out (or c2w null) to "
                                                   "estimate them from the images (world = camera A)",

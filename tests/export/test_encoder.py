@@ -8,6 +8,7 @@ import pytest
 
 from export.onnx_export import export_model
 from rasterizer.geometry import grid_directions, project_to_grid
+from rasterizer.rig import rig_mask
 from rasterizer.scene_folder import load_scene
 from rasterizer.sh import sh_to_rgb
 from service.encoder import EncoderInputError, OnnxEncoder
@@ -70,6 +71,14 @@ def test_reconstruct_m3d_depth_is_metric(encoder, m3d):
         own = slice(v * n, (v + 1) * n)
         np.testing.assert_allclose(sh_to_rgb(g.sh[own], g.means[own], c2w[:3, 3]),
                                    sh_to_rgb(one.sh[own], one.means[own], c2w[:3, 3]), atol=1e-4)
+    # the rig cap re-colours only pixels near each camera's nadir; geometry and count stay
+    capped = encoder.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w, sh_degree=0, rig_cap_deg=20.0)
+    assert capped.info["rig_cap_deg"] == 20.0 and rec.info["rig_cap_deg"] == 0.0
+    c = capped.gaussians
+    np.testing.assert_array_equal(c.means, one.means)
+    changed = np.any(c.sh[:2 * n] != one.sh[:2 * n], axis=(1, 2))  # both views, shell excluded
+    near_nadir = np.tile(rig_mask(("yin", "yang"), 64, 192, 20.0).ravel(), 2)
+    assert changed.any() and not changed[~near_nadir].any()
 
 
 def test_any_2to1_size_and_dtype(encoder, m3d):
@@ -102,6 +111,9 @@ def test_near_far_override_and_pruning(encoder, m3d):
     (dict(colour_mode="x"), "unknown encoder option"),
     (dict(sh_degree=2), "sh_degree"),
     (dict(sh_degree=True), "sh_degree"),
+    (dict(rig_cap_deg=-1.0), "rig_cap_deg"),
+    (dict(rig_cap_deg=60.0), "rig_cap_deg"),
+    (dict(rig_cap_deg=float("nan")), "rig_cap_deg"),
 ])
 def test_bad_inputs_raise_clear_errors(encoder, bad, match):
     args = dict(erp_a=np.zeros((64, 128, 3), np.float32), erp_b=np.zeros((64, 128, 3), np.float32),

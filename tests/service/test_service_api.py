@@ -217,6 +217,13 @@ def test_same_inputs_same_id(client, scene_id):
     assert not [p.name for p in ply["vertex"].properties if p.name.startswith("f_rest_")]
     bad = post_scene(client, panorama(seed=1), panorama(seed=1, shift=5), options='{"sh_degree": 3}')
     assert bad.status_code == 422 and "sh_degree" in bad.json()["error"]["message"]
+    # the rig cap: a different scene that records its cap; a cap beyond 45 deg is refused
+    rig = post_scene(client, panorama(seed=1), panorama(seed=1, shift=5), options='{"rig_cap_deg": 20}')
+    assert rig.status_code == 201, rig.text
+    assert rig.json()["id"] not in (scene_id, flat.json()["id"])
+    assert client.get(f"/v1/scenes/{rig.json()['id']}").json()["info"]["rig_cap_deg"] == 20.0
+    bad = post_scene(client, panorama(seed=1), panorama(seed=1, shift=5), options='{"rig_cap_deg": 90}')
+    assert bad.status_code == 422 and "rig_cap_deg" in bad.json()["error"]["message"]
 
 
 def test_any_two_to_one_size_and_mixed_sizes(client):

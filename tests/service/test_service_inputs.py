@@ -138,9 +138,11 @@ def test_options():
     raw, parsed, _ = parse_options('{"near": 0.2, "far": 9}', {"near", "far"})
     assert raw == {"near": 0.2, "far": 9} and (parsed.near, parsed.far) == (0.2, 9)
     assert parsed.sh_degree == 1 and parse_options('{"sh_degree": 0}', None)[1].sh_degree == 0
+    assert parsed.rig_cap_deg == 0.0 and parse_options('{"rig_cap_deg": 20}', None)[1].rig_cap_deg == 20.0
     for bad in ['{"near": -1}', '{"near": 5, "far": 1}', '[1]', '{"x": [1]}', '{"near": "a"}',
                 '{"min_opacity": "abc"}', '{"min_opacity": 1.5}', '{"near": true}', '{"sh_degree": 2}',
-                '{"sh_degree": 0.5}', '{"sh_degree": -1}']:
+                '{"sh_degree": 0.5}', '{"sh_degree": -1}', '{"rig_cap_deg": 46}', '{"rig_cap_deg": -5}',
+                '{"rig_cap_deg": "20"}', '{"rig_cap_deg": true}']:
         with pytest.raises(BadInput):
             parse_options(bad, None)
     with pytest.raises(BadInput) as info:

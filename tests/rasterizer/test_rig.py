@@ -1,0 +1,93 @@
+"""The capture rig: pixels near each camera's nadir take the other view's colour (rasterizer.rig)."""
+
+import numpy as np
+import pytest
+
+from rasterizer.gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
+from rasterizer.geometry import grid_directions
+from rasterizer.rig import MAX_RIG_CAP_DEG, check_rig_cap, patch_rig, rig_mask
+from rasterizer.view_colour import fit_view_colour
+
+GRIDS, H, W = ("yin", "yang"), 24, 72
+LO, HI = np.array([-3.0, -2.0, -3.0]), np.array([4.0, 1.5, 3.0])  # a box room; the floor is y = 1.5 (down)
+
+
+def _box_range(centre, rays):
+    """Range from ``centre`` inside the box along unit ``rays`` (..., 3)."""
+    with np.errstate(divide="ignore"):
+        t = np.where(rays > 0, (HI - centre) / rays, (LO - centre) / rays)
+    return np.min(np.where(rays != 0, t, np.inf), axis=-1)
+
+
+def _colour(x):
+    """A smooth colour of world points (..., 3), so that both views agree on every surface."""
+    return np.clip(0.5 + 0.4 * np.sin(1.3 * x[..., [0, 1, 2]] + np.array([0.0, 1.0, 2.0])), 0, 1)
+
+
+def _layout(cap_deg):
+    """Two upright cameras 1 m apart; each one's image shows a dark rig within ``cap_deg`` of its nadir."""
+    rays = np.stack([grid_directions(g, H, W) for g in GRIDS])
+    c2w = np.stack([np.eye(4), np.eye(4)])
+    c2w[1, 0, 3] = 1.0
+    means, colours, ranges = [], [], []
+    rig = rig_mask(GRIDS, H, W, cap_deg)
+    for v in range(2):
+        r = _box_range(c2w[v, :3, 3], rays)
+        x = c2w[v, :3, 3] + r[..., None] * rays
+        col = np.where(rig[..., None], 0.05, _colour(x))
+        means.append(x.reshape(-1, 3))
+        colours.append(col.reshape(-1, 3))
+        ranges.append(r)
+    n = 2 * len(means[0])
+    g = Gaussians(np.concatenate(means).astype(np.float32), np.full((n, 3), 0.01, np.float32),
+                  np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full(n, 0.99, np.float32),
+                  rgb_to_sh_dc(np.concatenate(colours))[:, None, :].astype(np.float32))
+    return g, np.stack(ranges).astype(np.float32), c2w
+
+
+def test_rig_mask_is_the_cap_around_the_camera_nadir():
+    assert not rig_mask(GRIDS, H, W, 0.0).any()
+    for grids in (GRIDS, ("erp",)):
+        h, w = (H, W) if grids == GRIDS else (32, 64)
+        rays = np.stack([grid_directions(g, h, w) for g in grids])
+        angle = np.degrees(np.arccos(np.clip(rays[..., 1], -1, 1)))  # from camera +y (down)
+        m = rig_mask(grids, h, w, 20.0)
+        assert m.any() and np.all(angle[m] < 20.0) and np.all(angle[~m] >= 20.0)
+
+
+@pytest.mark.parametrize("bad", [-1.0, MAX_RIG_CAP_DEG + 1, float("nan"), float("inf"), True, "20", None])
+def test_check_rig_cap_refuses_what_is_not_a_cap(bad):
+    with pytest.raises(ValueError, match="rig_cap_deg"):
+        check_rig_cap(bad)
+    assert check_rig_cap(20) == 20.0 and check_rig_cap(0) == 0.0
+
+
+def test_patch_rig_takes_the_other_views_colour_under_each_camera():
+    g, rng, c2w = _layout(20.0)
+    out, rig = patch_rig(g, rng, c2w, GRIDS, 20.0)
+    n = len(g) // 2
+    cap = np.tile(rig_mask(GRIDS, H, W, 20.0).ravel(), 2)
+    np.testing.assert_array_equal(rig.reshape(-1), cap)
+    np.testing.assert_array_equal(out.sh[~cap], g.sh[~cap])  # the rest of the scene is untouched
+    np.testing.assert_array_equal(out.means, g.means)
+    truth = _colour(g.means[cap].astype(np.float64))
+    before = np.abs(sh_dc_to_rgb(g.sh[cap, 0]) - truth).mean()
+    after = np.abs(sh_dc_to_rgb(out.sh[cap, 0]) - truth).mean()
+    assert before > 0.3 and after < 0.05  # the floor under each camera, as the other camera saw it
+    # no cap: nothing changes and nothing is hidden
+    same, none = patch_rig(g, rng, c2w, GRIDS, 0.0)
+    assert same is g and not none.any() and none.size == 2 * n
+
+
+def test_hidden_rig_pixels_give_no_view_dependent_colour():
+    g, rng, c2w = _layout(20.0)
+    rig = np.stack([rig_mask(GRIDS, H, W, 20.0)] * 2)
+    plain = fit_view_colour(g, rng, c2w, GRIDS)
+    masked = fit_view_colour(g, rng, c2w, GRIDS, hidden=rig)
+    band = np.abs(masked.sh[:, 1:]).max(axis=(1, 2))
+    # a floor point under camera A that B's surfels carry is seen by A only through A's rig pixels
+    n = len(g) // 2
+    d = masked.means[n:] - c2w[0, :3, 3]
+    under_a = np.degrees(np.arccos(np.clip(d[:, 1] / np.linalg.norm(d, axis=1), -1, 1))) < 15.0
+    assert under_a.any() and np.all(band[n:][under_a] == 0)
+    assert np.abs(plain.sh[n:][under_a, 1:]).max() > 0  # without the mask they would take the rig
