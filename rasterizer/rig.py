@@ -3,7 +3,7 @@
 Every panorama of a tripod capture (the dev data's zind_room09: a dark disc with three legs below about
 -77 deg latitude) shows the rig at the camera's nadir. It is attached to the camera, so pixel-aligned
 Gaussians of those pixels paint a copy of the rig onto the floor under each reference, which every other
-viewpoint shows as a dark blob (docs/experiments.md, "The capture rig").
+viewpoint shows as a dark blob (README, "The capture rig"; docs/experiments.md).
 
 :func:`patch_rig` gives the Gaussians of reference v's pixels within ``cap_deg`` of v's nadir (camera
 +y, whatever the gravity) the colour that the other reference u saw at the same point, where u sees it
@@ -22,7 +22,7 @@ from .gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
 from .yin_yang import grid_pixel
 
 #: Off by default: scenes without a rig (synthetic renders, nadir-patched captures) lose detail under
-#: each camera that only the other, oblique view replaces (docs/experiments.md, "The capture rig").
+#: each camera that only the other, oblique view replaces (README, "The capture rig").
 DEFAULT_RIG_CAP_DEG = 0.0
 #: Largest accepted cap: a quarter of the sphere's latitude range.
 MAX_RIG_CAP_DEG = 45.0

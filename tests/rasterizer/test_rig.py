@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from rasterizer.gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
 from rasterizer.geometry import grid_directions
@@ -24,11 +26,11 @@ def _colour(x):
     return np.clip(0.5 + 0.4 * np.sin(1.3 * x[..., [0, 1, 2]] + np.array([0.0, 1.0, 2.0])), 0, 1)
 
 
-def _layout(cap_deg):
-    """Two upright cameras 1 m apart; each one's image shows a dark rig within ``cap_deg`` of its nadir."""
+def _layout(cap_deg, offset=(1.0, 0.0, 0.0)):
+    """Two upright cameras ``offset`` apart; each one's image shows a dark rig within ``cap_deg`` of its nadir."""
     rays = np.stack([grid_directions(g, H, W) for g in GRIDS])
     c2w = np.stack([np.eye(4), np.eye(4)])
-    c2w[1, 0, 3] = 1.0
+    c2w[1, :3, 3] = offset
     means, colours, ranges = [], [], []
     rig = rig_mask(GRIDS, H, W, cap_deg)
     for v in range(2):
@@ -91,3 +93,16 @@ def test_hidden_rig_pixels_give_no_view_dependent_colour():
     under_a = np.degrees(np.arccos(np.clip(d[:, 1] / np.linalg.norm(d, axis=1), -1, 1))) < 15.0
     assert under_a.any() and np.all(band[n:][under_a] == 0)
     assert np.abs(plain.sh[n:][under_a, 1:]).max() > 0  # without the mask they would take the rig
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.floats(0.0, MAX_RIG_CAP_DEG), st.tuples(*[st.floats(-1.5, 1.5)] * 3))
+def test_patch_rig_stays_in_gamut_and_off_the_cap(cap_deg, offset):
+    """Any cap and camera offset (down to coincident centres): finite colours in [0, 1], nothing else moves."""
+    g, rng, c2w = _layout(cap_deg, offset)
+    out, rig = patch_rig(g, rng, c2w, GRIDS, cap_deg)
+    cap = rig.reshape(-1)
+    rgb = sh_dc_to_rgb(out.sh[:, 0])
+    assert np.all(np.isfinite(out.sh)) and rgb.min() >= -1e-5 and rgb.max() <= 1 + 1e-5
+    np.testing.assert_array_equal(out.sh[~cap], g.sh[~cap])
+    np.testing.assert_array_equal(out.means, g.means)
