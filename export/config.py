@@ -87,6 +87,10 @@ class EncoderConfig:
     # pixels (sigma = scale_factor steps), opaque so that plain front-to-back compositing covers the
     # scene (tuning log: docs/experiments.md, "Real Gaussians").
     scale_factor: float = SURFEL_SCALE_FACTOR
+    # sigma at confidence 1, linear in confidence from scale_factor at 0: where the depth is right a
+    # narrower footprint is sharper, and the environment shell keeps the coverage (docs/experiments.md,
+    # "Confident surfels narrower"; 0.7 for all until encoder 0.9.0)
+    scale_factor_confident: float = 0.4
     ray_scale_ratio: float = 0.1
     max_stretch: float = SURFEL_MAX_STRETCH
     # opacity = min + (max - min) * confidence ** gamma. Unconfident surfels are translucent so that the
@@ -100,7 +104,7 @@ class EncoderConfig:
     near_per_baseline: float = 0.3
     far_per_baseline: float = 20.0
     name: str = "omnisplat-trainingfree"
-    version: str = "0.9.0"
+    version: str = "0.10.0"
 
     def __post_init__(self) -> None:
         if self.width != 2 * self.height:
@@ -111,6 +115,9 @@ class EncoderConfig:
         for name, choices in (("matcher", Matcher), ("readout", Readout), ("fill", Fill), ("upsample", Upsample)):
             if getattr(self, name) not in get_args(choices):
                 raise ValueError(f"{name} must be one of {get_args(choices)}, got {getattr(self, name)!r}")
+        if not 0 < self.scale_factor_confident <= self.scale_factor:
+            raise ValueError(f"need 0 < scale_factor_confident <= scale_factor, got {self.scale_factor_confident} "
+                             f"and {self.scale_factor}")
         if self.fill_plane_scale <= 0:
             raise ValueError(f"fill_plane_scale must be > 0, got {self.fill_plane_scale}")
         if self.fine_hypotheses:

@@ -125,18 +125,24 @@ def quat_left_matrix(q: torch.Tensor) -> torch.Tensor:
 class GaussianHead(nn.Module):
     """range, confidence (2, G, H, W), colour (2, G, 3, H, W), c2w (2,4,4), cam_quats (2,4)
     -> means, scales, quats, opacities, sh_dc, each (N, k) with N = 2 G H W in
-    [view][grid][row][col] order; ``cam_quats`` (w, x, y, z) are the rotations of ``c2w``."""
+    [view][grid][row][col] order; ``cam_quats`` (w, x, y, z) are the rotations of ``c2w``.
+
+    Footprint sigma: ``scale_factor`` neighbour steps at confidence 0, narrowing linearly to
+    ``scale_factor_confident`` at confidence 1 (None: ``scale_factor`` everywhere)."""
 
     def __init__(self, grids, height: int, width: int, scale_factor: float = _CFG.scale_factor,
                  ray_scale_ratio: float = _CFG.ray_scale_ratio, opacity_min: float = _CFG.opacity_min,
                  opacity_max: float = _CFG.opacity_max, opacity_gamma: float = _CFG.opacity_gamma,
-                 max_stretch: float = _CFG.max_stretch) -> None:
+                 max_stretch: float = _CFG.max_stretch, scale_factor_confident: float | None = None) -> None:
         super().__init__()
         steps = [pixel_steps(k, height, width) for k in grids]
         for i, name in enumerate(("rays", "east", "south")):
             self.register_buffer(name, torch.from_numpy(np.stack([s[i] for s in steps]).astype(np.float32)),
                                  persistent=False)
         self.scale_factor = float(scale_factor)
+        # footprint fraction dropped at confidence 1 (linear in confidence; None: one footprint for all)
+        narrow = self.scale_factor if scale_factor_confident is None else float(scale_factor_confident)
+        self.confident_shrink = 1.0 - narrow / self.scale_factor
         self.ray_scale_ratio = float(ray_scale_ratio)
         self.opacity_min = float(opacity_min)
         self.opacity_max = float(opacity_max)
@@ -154,6 +160,8 @@ class GaussianHead(nn.Module):
         axes, scales = surfel_frames(a, b, fa, fb, self.scale_factor, self.ray_scale_ratio)
         rot_b = rot.reshape(2, 1, 1, 1, 3, 3)
         c = conf.clamp(0.0, 1.0)
+        if self.confident_shrink:
+            scales = scales * (1.0 - self.confident_shrink * c).unsqueeze(-1)
         means = centre.reshape(2, 1, 1, 1, 3) + torch.matmul(rot_b, pts.unsqueeze(-1)).squeeze(-1)
         # camera-frame surfel rotation, turned to the world by the camera quaternion (one MatMul)
         quats = torch.matmul(quat_left_matrix(cam_quats).reshape(2, 1, 1, 1, 4, 4),

@@ -89,7 +89,7 @@ class OmniSplatEncoder(nn.Module):
         self.readout = DepthReadout(cfg.readout, cfg.softargmin_beta, (cfg.peak_margin_scale, fill_scale))
         self.head = GaussianHead(cfg.grids, self.full_h, self.full_w, cfg.scale_factor,
                                  cfg.ray_scale_ratio, cfg.opacity_min, cfg.opacity_max,
-                                 cfg.opacity_gamma, cfg.max_stretch)
+                                 cfg.opacity_gamma, cfg.max_stretch, cfg.scale_factor_confident)
         self.matches = Matches(cfg.grids, self.full_w if wrap else 0)
         rays = np.stack([grid_directions(k, self.feat_h, self.feat_w) for k in cfg.grids]).astype(np.float32)
         self.register_buffer("feat_rays", torch.from_numpy(rays), persistent=False)  # (G, h, w, 3)

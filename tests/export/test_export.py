@@ -184,7 +184,24 @@ def test_head_opacity_curve():
         np.testing.assert_allclose(opac, ref, atol=1e-6)
 
 
+def test_head_footprint_narrows_with_confidence():
+    """Every axis of a surfel scales by 1 - (1 - confident / scale_factor) * confidence (clamped)."""
+    h, w = 4, 12
+    conf = np.linspace(-0.2, 1.2, 2 * h * w, dtype=np.float32).reshape(2, 1, h, w)
+    t = lambda a: torch.from_numpy(np.asarray(a, dtype=np.float32))
+    args = (t(np.full((2, 1, h, w), 2.0)), t(conf), t(np.zeros((2, 1, 3, h, w))), t(np.stack([np.eye(4)] * 2)),
+            t(np.tile([1.0, 0, 0, 0], (2, 1))))
+    with torch.no_grad():
+        wide = GaussianHead(("yin",), h, w, scale_factor=0.7)(*args)[1].numpy()
+        narrow = GaussianHead(("yin",), h, w, scale_factor=0.7, scale_factor_confident=0.4)(*args)[1].numpy()
+    ratio = 1.0 - (1.0 - 0.4 / 0.7) * np.clip(conf.reshape(-1), 0, 1)
+    np.testing.assert_allclose(narrow, wide * ratio[:, None], rtol=1e-5)
+    assert np.isclose(ratio.min(), 0.4 / 0.7) and ratio.max() == 1.0
+
+
 def test_config_rejects_bad_settings():
+    with pytest.raises(ValueError, match="scale_factor_confident"):
+        make_config("fast", scale_factor_confident=0.9)
     with pytest.raises(ValueError, match="2 x height"):
         make_config("fast", height=100, width=300)
     with pytest.raises(ValueError, match="preset"):
