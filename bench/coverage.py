@@ -103,9 +103,11 @@ def alpha_stats(alpha: np.ndarray, mask: np.ndarray | None = None) -> dict:
     return {"mean_alpha": float(a.mean()), "covered": float((a >= COVERED).mean())}
 
 
-def measure(g, scene, split, width: int = 1024, perspective: bool = True) -> dict:
-    """Alpha statistics and PSNR of Gaussians ``g`` at one split's reference and target poses."""
+def measure(g, scene, split, width: int = 1024, perspective: bool = True, copy: bool = True) -> dict:
+    """Alpha statistics and PSNR of Gaussians ``g`` at one split's reference and target poses; ``copy``:
+    also copying the nearest reference at the targets (independent of ``g``)."""
     out: dict = {"erp": {}, "perspective": {}}
+    refs = [(scene.frames[n].image(), scene.frames[n].c2w) for n in split.references] if copy else None
     for name in list(split.references) + list(split.targets):
         frame = scene.frames[name]
         plain = render(g, frame.c2w, projection="erp", width=width, method="direct")
@@ -114,9 +116,10 @@ def measure(g, scene, split, width: int = 1024, perspective: bool = True) -> dic
         rec["psnr_plain"] = psnr(plain.colour, gt)  # at a reference: how well the scene shows its own image
         rec["psnr_plain_above_nadir"] = psnr_above_nadir(plain.colour, gt)
         if name in split.targets:
-            refs = [(scene.frames[n].image(), scene.frames[n].c2w) for n in split.references]
-            copy = copy_nearest(refs, frame.c2w, width // 2, width)
-            rec.update(psnr_copy_nearest=psnr(copy, gt), psnr_copy_nearest_above_nadir=psnr_above_nadir(copy, gt))
+            if copy:
+                nearest = copy_nearest(refs, frame.c2w, width // 2, width)
+                rec.update(psnr_copy_nearest=psnr(nearest, gt),
+                           psnr_copy_nearest_above_nadir=psnr_above_nadir(nearest, gt))
             va = render(g, frame.c2w, projection="erp", width=width)
             rec.update(psnr_va=psnr(va.colour, gt),
                        psnr_yinyang_plain=psnr(va.colour * va.alpha[..., None], gt))
@@ -160,8 +163,8 @@ def run(data: list[Path], model: Path | None, threads: int = 2, sh_degree: int =
                      "reconstruct_s": post, "compact_s": t_compact,
                      "count": len(rec.gaussians), "count_compacted": len(small),
                      "opacity_median": float(np.median(rec.gaussians.opacities)),
-                     "raw": measure(rec.gaussians, scene, split), "compacted": measure(small, scene, split,
-                                                                                           perspective=False)}
+                     "raw": measure(rec.gaussians, scene, split),
+                     "compacted": measure(small, scene, split, perspective=False, copy=False)}
             _log(f"{scene.name} {split.references}: {len(rec.gaussians)} -> {len(small)} Gaussians")
             results.append(entry)
     return results

@@ -18,17 +18,14 @@ from __future__ import annotations
 import numpy as np
 
 from . import geometry as geo
-from .gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
-from .yin_yang import grid_pixel
+from .gaussians import Gaussians
+from .view_colour import VIEW_COLOUR_TOL, seen_pixels
 
 #: Off by default: scenes without a rig (synthetic renders, nadir-patched captures) lose detail under
 #: each camera that only the other, oblique view replaces (README, "The capture rig").
 DEFAULT_RIG_CAP_DEG = 0.0
 #: Largest accepted cap: a quarter of the sphere's latitude range.
 MAX_RIG_CAP_DEG = 45.0
-#: x counts as seen by the other view when its range from it is at most (1 + tol) times that view's
-#: estimated range in that direction (as rasterizer.view_colour).
-RIG_SEEN_TOL = 0.1
 
 
 def check_rig_cap(value) -> float:
@@ -47,7 +44,7 @@ def rig_mask(grids: tuple[str, ...], height: int, width: int, cap_deg: float) ->
 
 
 def patch_rig(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, grids: tuple[str, ...],
-              cap_deg: float, *, tol: float = RIG_SEEN_TOL) -> tuple[Gaussians, np.ndarray]:
+              cap_deg: float, *, tol: float = VIEW_COLOUR_TOL) -> tuple[Gaussians, np.ndarray]:
     """``layout`` with its rig pixels re-coloured from the other view (module docstring), and the mask.
 
     layout: N = 2 G H W pixel-aligned Gaussians of two views in [view][grid][row][col] order, colour in
@@ -63,17 +60,13 @@ def patch_rig(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, grids:
     rig = np.stack([cap, cap])
     if not cap.any():
         return layout, rig.reshape(2, g_count, h, w)
-    rgb = sh_dc_to_rgb(layout.sh[:, 0, :]).reshape(2, n, 3)
     sh = layout.sh.copy()
     rng = np.asarray(range_maps, dtype=np.float64).reshape(2, n)
-    means = layout.means.astype(np.float64).reshape(2, n, 3)
     poses = np.asarray(c2w, dtype=np.float64)
     idx = np.flatnonzero(cap)
     for v in range(2):
         u = 1 - v
-        p = geo.world_to_camera(means[v, idx], poses[u])
-        r = np.linalg.norm(p, axis=-1)
-        pix = grid_pixel(p, grids, h, w)
-        seen = np.isfinite(r) & (r > 0) & (r <= rng[u, pix] * (1.0 + tol)) & ~cap[pix]
-        sh[v * n + idx[seen], 0, :] = rgb_to_sh_dc(rgb[u, pix[seen]])
+        pix, seen = seen_pixels(layout.means[v * n + idx], poses[u], rng[u], grids, h, w, tol)
+        seen &= ~cap[pix]
+        sh[v * n + idx[seen], 0, :] = layout.sh[u * n + pix[seen], 0, :]  # the other view's pixel colour
     return layout.with_(sh=sh), rig.reshape(2, g_count, h, w)

@@ -41,6 +41,17 @@ def check_sh_degree(value) -> int:
     return int(value)
 
 
+def seen_pixels(points: np.ndarray, c2w: np.ndarray, range_map: np.ndarray, grids: tuple[str, ...], height: int,
+                width: int, tol: float = VIEW_COLOUR_TOL) -> tuple[np.ndarray, np.ndarray]:
+    """Where another view sees world ``points`` (M, 3): (pix (M,) flat index into its (G, H, W) grid
+    layout, seen (M,) bool). ``range_map`` (G H W,) is that view's estimated range per pixel; a point
+    counts as seen when its range from that camera (``c2w``) is > 0 and at most (1 + tol) times it."""
+    p = geo.world_to_camera(np.asarray(points, dtype=np.float64), c2w)
+    r = np.linalg.norm(p, axis=-1)
+    pix = grid_pixel(p, grids, height, width)
+    return pix, np.isfinite(r) & (r > 0) & (r <= range_map[pix] * (1.0 + tol))
+
+
 def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, grids: tuple[str, ...], *,
                     ridge: float = VIEW_COLOUR_RIDGE, tol: float = VIEW_COLOUR_TOL,
                     hidden: np.ndarray | None = None) -> Gaussians:
@@ -66,10 +77,8 @@ def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, 
     sh = np.zeros((2, n, 4, 3), dtype=np.float32)
     for v in range(2):  # the two views, each against the other
         u = 1 - v
-        p = geo.world_to_camera(means[v], poses[u])
-        r = np.linalg.norm(p, axis=-1)
-        pix = grid_pixel(p, grids, h, w)
-        seen = np.isfinite(r) & (r > 0) & (r <= rng[u, pix] * (1.0 + tol)) & shows[u, pix]
+        pix, seen = seen_pixels(means[v], poses[u], rng[u], grids, h, w, tol)
+        seen &= shows[u, pix]
         d_v = geo.unit_vectors(means[v] - poses[v, :3, 3], 1e-30).astype(np.float32)
         d_u = geo.unit_vectors(means[v] - poses[u, :3, 3], 1e-30).astype(np.float32)
         dd = d_u - d_v
