@@ -3,11 +3,17 @@
 The head's surfels are opaque where matching is confident and translucent (opacity down to
 ``export.config.EncoderConfig.opacity_min``) where it is not, so that at a novel pose the two
 references' uncertain surfaces blend instead of one hiding the other in patches. Behind them, each
-reference's image is repeated on a shell of camera-facing discs at ``SHELL_FACTOR`` times the
-estimated range, one disc per ``block`` x ``block`` pixels of each grid, opacity ``SHELL_OPACITY``:
-plain front-to-back compositing then covers every pixel. Seen from its own reference the shell is
-that reference's image; from elsewhere it is a backdrop, as a copy of the nearest reference would be.
-Measurements behind the constants: docs/experiments.md, "Environment shell".
+reference's image is repeated on a sphere of camera-facing discs around that reference, one disc per
+``block`` x ``block`` pixels of each grid, opacity ``SHELL_OPACITY``: plain front-to-back compositing
+then covers every pixel. Seen from its own reference the shell is that reference's image; from
+elsewhere it is a backdrop, like an environment map of the nearest reference.
+
+The sphere's radius is ``SHELL_RADIUS_FACTOR`` times the ``SHELL_RANGE_PERCENTILE`` percentile of the
+scene's estimated ranges, so the backdrop lies beyond (almost) every surface: a backdrop must not
+hide a surface that only the other reference sees. (Until session 9 each disc sat at twice its own
+block's range, which put a near object's backdrop in front of the walls and floor behind it.)
+Measurements behind the constants: docs/experiments.md, "Environment shell" and "Shell beyond the
+scene".
 
 Layout: the shell's Gaussians come in [view][grid][block row][block column] order; each one stands
 for the ``block`` x ``block`` pixels whose top-left pixel is :func:`shell_layout`'s index (the same
@@ -21,8 +27,9 @@ import numpy as np
 from .depth_gaussians import gaussians_from_depth
 from .gaussians import Gaussians, sh_dc_to_rgb
 
-#: Shell range / estimated range.
-SHELL_FACTOR = 2.0
+#: Shell radius / the scene's SHELL_RANGE_PERCENTILE-th percentile range (both references' range maps).
+SHELL_RADIUS_FACTOR = 4.0
+SHELL_RANGE_PERCENTILE = 99.0
 #: Pixels per shell disc side (largest of 4, 2, 1 that divides the grid).
 SHELL_BLOCK = 4
 #: Disc sigma in block pitches (a lattice of sigma 0.7 pitches covers ~99%; larger for oblique views).
@@ -49,6 +56,14 @@ def shell_layout(views: int, grids: int, height: int, width: int) -> tuple[np.nd
     return index, np.full(index.size, b, dtype=np.int64)
 
 
+def shell_radius(range_maps: np.ndarray) -> float:
+    """Radius of the shell spheres (scene units): SHELL_RADIUS_FACTOR x the SHELL_RANGE_PERCENTILE-th
+    percentile of the finite positive ranges (1 if there are none)."""
+    r = np.asarray(range_maps, dtype=np.float64).ravel()
+    r = r[np.isfinite(r) & (r > 0)]
+    return SHELL_RADIUS_FACTOR * (float(np.percentile(r, SHELL_RANGE_PERCENTILE)) if r.size else 1.0)
+
+
 def environment_shell(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, grids: tuple[str, ...]) -> Gaussians:
     """The shell (module docstring) of pixel-aligned Gaussians.
 
@@ -61,9 +76,8 @@ def environment_shell(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray
         raise ValueError(f"{len(layout)} Gaussians for a layout of {v_count}x{g_count}x{h}x{w}")
     b = shell_block(h, w)
     rgb = sh_dc_to_rgb(layout.sh[:, 0, :]).reshape(v_count, g_count, h // b, b, w // b, b, 3).mean(axis=(3, 5))
-    rng = np.asarray(range_maps, dtype=np.float64).reshape(v_count, g_count, h // b, b, w // b, b).mean(axis=(3, 5))
-    rng = np.where(np.isfinite(rng) & (rng > 0), rng, 1.0) * SHELL_FACTOR  # the encoder's ranges are > 0
-    parts = [gaussians_from_depth(np.clip(rgb[v, g], 0.0, 1.0), rng[v, g], c2w[v], grid=grids[g],
+    rng = np.full((h // b, w // b), shell_radius(range_maps))
+    parts = [gaussians_from_depth(np.clip(rgb[v, g], 0.0, 1.0), rng, c2w[v], grid=grids[g],
                                   scale_factor=SHELL_SCALE, opacity=SHELL_OPACITY)
              for v in range(v_count) for g in range(g_count)]
     return Gaussians.concatenate(parts)

@@ -8,7 +8,7 @@ from rasterizer.compaction import CompactionError, CompactionOptions, Provenance
 from rasterizer.depth_gaussians import gaussians_from_depth
 from rasterizer.gaussians import Gaussians, sh_dc_to_rgb
 from rasterizer.render import render
-from rasterizer.shell import SHELL_FACTOR, SHELL_OPACITY, environment_shell, shell_block, shell_layout
+from rasterizer.shell import SHELL_OPACITY, SHELL_RADIUS_FACTOR, environment_shell, shell_block, shell_layout, shell_radius
 from tests.rasterizer.test_compaction import box_range, pose_at
 
 H, W = 16, 48  # one Yin/Yang grid
@@ -42,17 +42,34 @@ def test_geometry_and_colour():
     assert len(shell) == 2 * 2 * (H // 4) * (W // 4)
     shell.check_finite()
     assert np.all(shell.opacities == np.float32(SHELL_OPACITY))
-    # view A's Yin blocks: SHELL_FACTOR x the block-mean range from camera A, along the block centre's ray
+    # view A's Yin blocks: on the sphere of shell_radius around camera A, along each block centre's ray
     n = (H // 4) * (W // 4)
-    block_range = ranges[0, 0].reshape(H // 4, 4, W // 4, 4).mean(axis=(1, 3)).ravel()
-    np.testing.assert_allclose(np.linalg.norm(shell.means[:n] - poses[0, :3, 3], axis=1),
-                               SHELL_FACTOR * block_range, rtol=1e-5)
+    radius = shell_radius(ranges)
+    assert radius == pytest.approx(SHELL_RADIUS_FACTOR * np.percentile(ranges, 99))
+    assert radius > 2 * ranges.max()  # beyond every surface of the box
+    np.testing.assert_allclose(np.linalg.norm(shell.means[:n] - poses[0, :3, 3], axis=1), radius, rtol=1e-5)
     centre_rays = geo.grid_directions("yin", H // 4, W // 4).reshape(-1, 3)
-    np.testing.assert_allclose((shell.means[:n] - poses[0, :3, 3]) / (SHELL_FACTOR * block_range[:, None]),
-                               centre_rays, atol=1e-5)
+    np.testing.assert_allclose((shell.means[:n] - poses[0, :3, 3]) / radius, centre_rays, atol=1e-5)
     # colour: the block mean of the pixel-aligned colours
     rgb = sh_dc_to_rgb(g.sh[: H * W, 0]).reshape(H // 4, 4, W // 4, 4, 3).mean(axis=(1, 3)).reshape(-1, 3)
     np.testing.assert_allclose(sh_dc_to_rgb(shell.sh[:n, 0]), np.clip(rgb, 0, 1), atol=1e-5)
+
+
+def test_radius_ignores_invalid_ranges():
+    r = np.array([1.0, 2.0, np.nan, np.inf, -1.0, 0.0])
+    assert shell_radius(r) == pytest.approx(SHELL_RADIUS_FACTOR * np.percentile([1.0, 2.0], 99))
+    assert shell_radius(np.full(4, np.nan)) == SHELL_RADIUS_FACTOR
+
+
+def test_shell_never_hides_a_surface_only_the_other_view_sees():
+    """A near object in front of view A: A's backdrop of it must stay behind the wall that B sees."""
+    g, ranges, poses = _scene(opacity=0.99)
+    near = ranges.copy()
+    near[0] *= 0.25  # view A's ranges (a near object all round A); B keeps the box
+    shell = environment_shell(g, near, poses, ("yin", "yang"))
+    n = len(shell) // 2
+    d_a = np.linalg.norm(shell.means[:n] - poses[0, :3, 3], axis=1)
+    assert d_a.min() > ranges[1].max() + np.linalg.norm(poses[1, :3, 3] - poses[0, :3, 3])
 
 
 def test_shell_covers_behind_translucent_surfels():
