@@ -64,19 +64,21 @@ def shell_radius(range_maps: np.ndarray) -> float:
     return SHELL_RADIUS_FACTOR * (float(np.percentile(r, SHELL_RANGE_PERCENTILE)) if r.size else 1.0)
 
 
-def environment_shell(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, grids: tuple[str, ...]) -> Gaussians:
+def environment_shell(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, grids: tuple[str, ...],
+                      radius: float | None = None) -> Gaussians:
     """The shell (module docstring) of pixel-aligned Gaussians.
 
     layout: N = V G H W Gaussians in [view][grid][row][col] order (their colours are averaged per
     block); range_maps (V, G, H, W) range from each view's camera, scene units; c2w (V, 4, 4) the
-    poses those ranges are measured from; grids: the G grid kinds ("yin", "yang") or ("erp",).
+    poses those ranges are measured from; grids: the G grid kinds ("yin", "yang") or ("erp",);
+    radius: the spheres' radius, scene units (default :func:`shell_radius` of ``range_maps``).
     """
     v_count, g_count, h, w = np.shape(range_maps)
     if len(layout) != v_count * g_count * h * w:
         raise ValueError(f"{len(layout)} Gaussians for a layout of {v_count}x{g_count}x{h}x{w}")
     b = shell_block(h, w)
     rgb = sh_dc_to_rgb(layout.sh[:, 0, :]).reshape(v_count, g_count, h // b, b, w // b, b, 3).mean(axis=(3, 5))
-    rng = np.full((h // b, w // b), shell_radius(range_maps))
+    rng = np.full((h // b, w // b), shell_radius(range_maps) if radius is None else float(radius))
     parts = [gaussians_from_depth(np.clip(rgb[v, g], 0.0, 1.0), rng, c2w[v], grid=grids[g],
                                   scale_factor=SHELL_SCALE, opacity=SHELL_OPACITY)
              for v in range(v_count) for g in range(g_count)]

@@ -19,7 +19,7 @@ import onnxruntime as ort
 from rasterizer.gaussians import Gaussians
 from rasterizer.geometry import PoseError, as_c2w
 from rasterizer.rig import DEFAULT_RIG_CAP_DEG, check_rig_cap, patch_rig
-from rasterizer.shell import environment_shell
+from rasterizer.shell import environment_shell, shell_radius
 from rasterizer.sweep import (
     FAR_PER_BASELINE,
     INPUT_NAMES,
@@ -236,7 +236,8 @@ class OnnxEncoder:
         if origin.any():  # back to the caller's frame, offset added in float64
             arrays[0] = (arrays[0].astype(np.float64) + origin).astype(np.float32)
         gaussians, rig = patch_rig(Gaussians(*arrays), out["range_maps"], poses, self.grids, rig_cap)
-        shell = environment_shell(gaussians, out["range_maps"], poses, self.grids)
+        radius = shell_radius(out["range_maps"])
+        shell = environment_shell(gaussians, out["range_maps"], poses, self.grids, radius)
         if sh_degree == 1:  # the shell keeps one colour (concatenate pads its SH with zeros)
             gaussians = fit_view_colour(gaussians, out["range_maps"], poses, self.grids, hidden=rig)
         min_opacity = float(options.get("min_opacity", 0.0))
@@ -248,7 +249,7 @@ class OnnxEncoder:
         info = {
             "near": near, "far": far, "baseline": b, "num_planes": self.num_planes,
             "num_gaussians": len(gaussians), "num_gaussians_raw": int(out["means"].shape[0]),
-            "num_gaussians_shell": len(shell), "sh_degree": sh_degree, "rig_cap_deg": rig_cap,
+            "num_gaussians_shell": len(shell), "shell_radius": radius, "sh_degree": sh_degree, "rig_cap_deg": rig_cap,
             "grids": self._meta.get("grids"), "input_size": [self.height, self.width],
             "mean_confidence": float(out["confidence"].mean()),
             "model": {k: self._meta.get(k) for k in ("name", "version", "sha256")},

@@ -40,3 +40,28 @@ def test_short_quality_bench_writes_json_table_plot(tmp_path, m3d_dir, bench_mod
 def test_quality_rejects_non_scene_folder(tmp_path):
     with pytest.raises(SystemExit):
         bench_quality.main(["--data", str(tmp_path), "--short", "--out", str(tmp_path / "o")])
+
+
+def test_oracle_is_the_service_path_on_gt_depth(m3d_dir):
+    """The GT-depth oracle: one surfel per ERP pixel (holes filled), degree-1 colour, then the shell."""
+    from rasterizer.depth_gaussians import gaussians_from_depth
+    from rasterizer.render import render
+    from rasterizer.scene_folder import load_scene
+    from rasterizer.yin_yang import resize_erp
+
+    scene = load_scene(m3d_dir)
+    frames = [scene.frames[n] for n in ("00", "02")]
+    refs = [(resize_erp(f.image(), 64, 128), f.c2w) for f in frames]
+    depths = [resize_erp(f.depth(), 64, 128) for f in frames]
+    depths[0][0, :5] = 0.0  # a hole in the scan
+    g = bench_quality.oracle_gaussians(gaussians_from_depth, refs, depths)
+    g.check_finite()
+    n = 2 * 64 * 128
+    assert len(g) == n + 2 * (64 // 4) * (128 // 4) and g.sh.shape[1:] == (4, 3)
+    assert np.all(g.opacities[n:] >= 0.99) and np.all(g.sh[n:, 1:] == 0)
+    shell_range = np.linalg.norm(g.means[n: n + (len(g) - n) // 2] - frames[0].c2w[:3, 3], axis=1)  # view A's
+    assert shell_range.min() > max(d.max() for d in depths)
+    # at a reference the oracle shows that reference's image
+    out = render(g, frames[0].c2w, projection="erp", width=128, method="direct")
+    err = np.abs(out.colour - refs[0][0]).mean()
+    assert err < 0.05 and (out.alpha >= 0.99).mean() > 0.99
