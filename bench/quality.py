@@ -142,8 +142,8 @@ def oracle_gaussians(gaussians_from_depth, refs, depths):
     from rasterizer.view_colour import fit_view_colour
 
     cfg = EncoderConfig()
-    ranges = np.stack([np.where(np.isfinite(d) & (d > 0), d, np.nanmax(np.where(d > 0, d, np.nan)))[None]
-                       for d in depths])  # (2, 1, H, W)
+    valid = [np.isfinite(d) & (d > 0) for d in depths]
+    ranges = np.stack([np.where(ok, d, d[ok].max())[None] for d, ok in zip(depths, valid)])  # (2, 1, H, W)
     poses = np.stack([c2w for _, c2w in refs])
     parts = [gaussians_from_depth(img, r[0], c2w, surfels=True, scale_factor=cfg.scale_factor_confident,
                                   thickness=cfg.ray_scale_ratio, max_stretch=cfg.max_stretch,
