@@ -4,26 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from rasterizer.camera import sample_erp
 from rasterizer.geometry import grid_directions, project_to_grid
-
-
-def sample_erp(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
-    """Bilinear ERP lookup at continuous pixel coordinates (pixel centre c at c).
-
-    Longitude wraps around the seam; latitude is clamped at the poles.
-    """
-    h, w = image.shape[:2]
-    c0 = np.floor(col)
-    r0 = np.floor(row)
-    fc = (col - c0)[..., None]
-    fr = (row - r0)[..., None]
-    c0 = c0.astype(np.int64)
-    r0 = r0.astype(np.int64)
-    c_a, c_b = c0 % w, (c0 + 1) % w
-    r_a, r_b = np.clip(r0, 0, h - 1), np.clip(r0 + 1, 0, h - 1)
-    top = image[r_a, c_a] * (1 - fc) + image[r_a, c_b] * fc
-    bot = image[r_b, c_a] * (1 - fc) + image[r_b, c_b] * fc
-    return (top * (1 - fr) + bot * fr).astype(np.float32)
 
 
 def rotate_erp(image: np.ndarray, c2w_src: np.ndarray, c2w_dst: np.ndarray, height: int, width: int) -> np.ndarray:

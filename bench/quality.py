@@ -22,7 +22,9 @@ import numpy as np
 from PIL import Image
 
 from bench import metrics
+from rasterizer.geometry import grid_directions
 from rasterizer.render import to_uint8
+from rasterizer.rig import overlay_rig, rig_layer
 from rasterizer.scene_folder import SceneFolder, Split, load_scene
 
 from .baselines import copy_nearest
@@ -228,11 +230,14 @@ def run(scene_dirs: list[Path], settings: list[Setting], *, models_dir: Path, th
                     width = render_width or gt.shape[1]
                     gt = resize_erp_box(gt, width)
                     t0 = time.perf_counter()
-                    alpha = None
+                    alpha = layer = None
                     if setting.kind == "copy":
                         pred = copy_nearest(refs, frame.c2w, width // 2, width)
                     else:
                         pred, alpha = render_view(g, frame.c2w, width, setting.rasterizer, compositing)
+                        layer = rig_layer(*(resize_erp_box(img, width) for img, _ in refs)) if setting.rig else None
+                        if layer is not None:  # camera-attached: the target camera's own ERP rays
+                            pred = overlay_rig(pred, grid_directions("erp", width // 2, width), layer)
                     t_render = time.perf_counter() - t0
                     label = "" if setting.kind == "copy" else f", {COMPOSITING_LABEL[compositing]}"
                     rec = {"setting": setting.slug, "setting_name": setting.name + label, "scene": scene.name,
@@ -242,6 +247,8 @@ def run(scene_dirs: list[Path], settings: list[Setting], *, models_dir: Path, th
                            "finite": bool(np.all(np.isfinite(pred))),
                            **score(pred, gt),
                            "seconds": {"decode": decode, **stages, "render": t_render}}
+                    if setting.rig:
+                        rec["rig_detected"] = layer is not None
                     if alpha is not None:
                         rec["mean_alpha"] = float(alpha.mean())
                         rec["alpha_ge_099"] = float((alpha >= 0.99).mean())

@@ -9,6 +9,10 @@ A :class:`Setting` is one point of the error-against-run-time plot. Kinds:
   (only scenes with depth), rendered at the target: the ceiling.
 * ``"copy"``: the nearest reference, rotated into the target's orientation
   (an infinite-depth warp): the floor.
+
+A model setting with ``rig`` composites the capture rig both references show at their nadir over each
+render (``rig=true`` of the render API, :mod:`rasterizer.rig`); on a scene without a detected rig it is
+the plain render.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ class Setting:
     erp_encoder: bool = False
     rasterizer: Rasterizer = "yinyang"
     downscale: int | None = None  # feature grid = Gaussian grid / downscale; None = exporter preset
+    rig: bool = False  # composite the capture rig over the render (module docstring)
 
     @property
     def name(self) -> str:
@@ -48,7 +53,8 @@ class Setting:
             return f"GT-depth oracle, {self._raster_label()} rasterizer"
         enc = "ERP" if self.erp_encoder else "YY"
         ds = "" if self.downscale is None else f", features /{self.downscale}"
-        return f"{self.height}x{self.width}, {self.planes} planes{ds}, {enc} encoder, {self._raster_label()} rasterizer"
+        rig = ", capture rig layer" if self.rig else ""
+        return f"{self.height}x{self.width}, {self.planes} planes{ds}, {enc} encoder, {self._raster_label()} rasterizer{rig}"
 
     @property
     def slug(self) -> str:
@@ -58,7 +64,7 @@ class Setting:
             return f"oracle_{self.rasterizer}"
         enc = "erp" if self.erp_encoder else "yy"
         ds = "" if self.downscale is None else f"_d{self.downscale}"
-        return f"{self.height}x{self.width}_p{self.planes}{ds}_{enc}enc_{self.rasterizer}"
+        return f"{self.height}x{self.width}_p{self.planes}{ds}_{enc}enc_{self.rasterizer}{'_rig' if self.rig else ''}"
 
     @property
     def model_key(self) -> tuple[int, int, int, bool, int | None] | None:
@@ -96,9 +102,9 @@ def short_grid(height: int = 64, width: int = 128, planes: int = 16, downscale: 
 
 
 def parse_setting(text: str) -> Setting:
-    """Parse ``HxW:planes[:erp|yy][:yinyang|direct][:dK]``, ``oracle[:direct]`` or ``copy``.
+    """Parse ``HxW:planes[:erp|yy][:yinyang|direct][:dK][:rig]``, ``oracle[:direct]`` or ``copy``.
 
-    ``dK`` sets the feature downscale K (default: the exporter's preset).
+    ``dK`` sets the feature downscale K (default: the exporter's preset); ``rig`` the capture rig layer.
     """
     parts = text.strip().lower().split(":")
     if parts[0] == "copy":
@@ -110,6 +116,9 @@ def parse_setting(text: str) -> Setting:
         planes = int(parts[1])
     except (ValueError, IndexError):
         raise ValueError(f"bad setting {text!r}; expected e.g. '256x512:64:yy:yinyang', 'oracle' or 'copy'") from None
+    rig = len(parts) > 2 and parts[-1] == "rig"
+    if rig:
+        parts.pop()
     downscale = None
     if len(parts) > 2 and parts[-1][:1] == "d" and parts[-1][1:].isdigit():
         downscale = int(parts.pop()[1:])
@@ -123,7 +132,7 @@ def parse_setting(text: str) -> Setting:
     if len(parts) > 4:
         raise ValueError(f"bad setting {text!r}: too many fields")
     return Setting("model", h, w, planes, enc == "erp", _raster(parts[3] if len(parts) > 3 else "yinyang", text),
-                   downscale)
+                   downscale, rig)
 
 
 def _raster(value: str, text: str) -> Rasterizer:

@@ -28,6 +28,33 @@ PROJECTIONS = ("erp", "yin", "yang", "perspective")
 DEFAULT_NEAR = 1e-2
 
 
+def camera_directions(kind: str, height: int, width: int, fov_deg: float = 90.0) -> np.ndarray:
+    """Camera-frame unit ray of every pixel centre of a render, (H, W, 3): an ERP/Yin/Yang grid or a pinhole
+    with horizontal field of view ``fov_deg``."""
+    if kind == "perspective":
+        return geo.pinhole_directions(width, height, fov_deg)
+    return geo.grid_directions(kind, height, width)
+
+
+def sample_erp(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of an ERP image (H, W, C) at continuous pixel coordinates (pixel centre c at c).
+
+    Longitude wraps around the seam; latitude is clamped at the poles. Returns float32 (..., C).
+    """
+    h, w = image.shape[:2]
+    c0 = np.floor(col)
+    r0 = np.floor(row)
+    fc = (col - c0)[..., None]
+    fr = (row - r0)[..., None]
+    c0 = c0.astype(np.int64)
+    r0 = r0.astype(np.int64)
+    c_a, c_b = c0 % w, (c0 + 1) % w
+    r_a, r_b = np.clip(r0, 0, h - 1), np.clip(r0 + 1, 0, h - 1)
+    top = image[r_a, c_a] * (1 - fc) + image[r_a, c_b] * fc
+    bot = image[r_b, c_a] * (1 - fc) + image[r_b, c_b] * fc
+    return (top * (1 - fr) + bot * fr).astype(np.float32)
+
+
 @dataclass(frozen=True)
 class Camera:
     """A posed camera with a pixel grid.

@@ -11,13 +11,24 @@ viewpoint shows as a dark blob (README, "The capture rig"; docs/experiments.md).
 own cap). Their positions stay the encoder's: moving them onto a floor plane fitted around the cap was
 measured and opened holes (docs/experiments.md). Where u does not see the point the rig colour stays: a
 hole would be worse.
+
+The rig is also what a capture *from the novel pose* would show at its nadir. :func:`rig_layer` estimates
+it as a camera-attached ERP layer: within ``RIG_LAYER_CAP_DEG`` of the nadir, each reference's pixels in
+its own camera frame, kept where the two references agree (a rig moves with the camera; the floor under
+two cameras metres apart does not). :func:`overlay_rig` composites it over a render in the render's own
+camera frame. It is not part of the 3D scene (no 3DGS viewer can show camera-attached content), so
+renders take it only on request (``rig=true``; README, "The capture rig").
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+from scipy.ndimage import uniform_filter
 
 from . import geometry as geo
+from .camera import sample_erp
 from .gaussians import Gaussians
 from .view_colour import VIEW_COLOUR_TOL, seen_pixels
 
@@ -26,6 +37,20 @@ from .view_colour import VIEW_COLOUR_TOL, seen_pixels
 DEFAULT_RIG_CAP_DEG = 0.0
 #: Largest accepted cap: a quarter of the sphere's latitude range.
 MAX_RIG_CAP_DEG = 45.0
+
+
+#: A rig is detected when, within this many degrees of the nadir, the two references' images in their own
+#: camera frames differ by at most RIG_DETECT_MAX_DIFF (cos-latitude-weighted mean absolute difference,
+#: colours in [0, 1]). Measured at 512 px width: zind_room09's six pano pairs (a tripod) 0.011-0.019;
+#: m3d_bedroom's three pairs (no rig) 0.087-0.114 (docs/experiments.md, "A camera-attached rig layer").
+RIG_DETECT_CAP_DEG = 5.0
+RIG_DETECT_MAX_DIFF = 0.05
+#: The layer covers this many degrees around the nadir (zind_room09's tripod legs reach -60 deg latitude).
+RIG_LAYER_CAP_DEG = 30.0
+#: Per-pixel agreement -> layer opacity: a box mean (RIG_LAYER_BOX pixels square) of the two views'
+#: absolute difference at or below the first value is opaque rig, at or above the second is scene.
+RIG_LAYER_AGREE = (0.03, 0.08)
+RIG_LAYER_BOX = 5
 
 
 def check_rig_cap(value) -> float:
@@ -70,3 +95,75 @@ def patch_rig(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, grids:
         seen &= ~cap[pix]
         sh[v * n + idx[seen], 0, :] = layout.sh[u * n + pix[seen], 0, :]  # the other view's pixel colour
     return layout.with_(sh=sh), rig.reshape(2, g_count, h, w)
+
+
+@dataclass(frozen=True)
+class RigLayer:
+    """The capture rig as seen from the camera: an ERP layer in the camera frame.
+
+    colour (H, W, 3) float32 in [0, 1] and alpha (H, W) float32 in [0, 1] (0 outside the cap);
+    agreement: the detection statistic (see ``RIG_DETECT_MAX_DIFF``).
+    """
+
+    colour: np.ndarray
+    alpha: np.ndarray
+    agreement: float
+
+
+def _float_rgb(image: np.ndarray) -> np.ndarray:
+    a = np.asarray(image)
+    return a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32)
+
+
+def _pair(erp_a: np.ndarray, erp_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a, b = _float_rgb(erp_a), _float_rgb(erp_b)
+    if a.shape != b.shape or a.ndim != 3 or a.shape[2] != 3 or a.shape[1] != 2 * a.shape[0]:
+        raise ValueError(f"need two ERP RGB images of one size (H, 2H, 3); got {a.shape} and {b.shape}")
+    return a, b
+
+
+def _nadir_distance_deg(height: int) -> np.ndarray:
+    """(H, 1) degrees from the nadir of ERP row centres."""
+    return (np.arange(height, dtype=np.float64)[::-1, None] + 0.5) / height * 180.0
+
+
+def rig_agreement(erp_a: np.ndarray, erp_b: np.ndarray) -> float:
+    """Cos-latitude-weighted mean |a - b| within ``RIG_DETECT_CAP_DEG`` of the nadir, camera frames.
+
+    erp_a, erp_b: (H, 2H, 3) uint8 or float in [0, 1], the two references as captured.
+    """
+    a, b = _pair(erp_a, erp_b)
+    nadir = _nadir_distance_deg(a.shape[0])[:, 0]
+    rows = nadir <= max(RIG_DETECT_CAP_DEG, nadir[-1])  # at least the last row
+    weight = np.sin(np.radians(nadir[rows]))[:, None]  # cos(latitude)
+    diff = np.abs(a[rows] - b[rows]).mean(-1)
+    return float((diff * weight).sum() / (weight.sum() * a.shape[1]))
+
+
+def rig_layer(erp_a: np.ndarray, erp_b: np.ndarray) -> RigLayer | None:
+    """The rig both references show at their nadir (module docstring), or None when they show none.
+
+    erp_a, erp_b: (H, 2H, 3) uint8 or float in [0, 1]. Returns a layer of the same size: colour the two
+    views' mean, alpha from their local agreement (``RIG_LAYER_AGREE``) within ``RIG_LAYER_CAP_DEG``.
+    """
+    agreement = rig_agreement(erp_a, erp_b)
+    if not agreement <= RIG_DETECT_MAX_DIFF:
+        return None
+    a, b = _pair(erp_a, erp_b)
+    diff = uniform_filter(np.abs(a - b).mean(-1), RIG_LAYER_BOX, mode=("nearest", "wrap"))
+    lo, hi = RIG_LAYER_AGREE
+    alpha = np.clip((hi - diff) / (hi - lo), 0.0, 1.0) * (_nadir_distance_deg(a.shape[0]) <= RIG_LAYER_CAP_DEG)
+    return RigLayer(0.5 * (a + b), alpha.astype(np.float32), agreement)
+
+
+def overlay_rig(colour: np.ndarray, directions: np.ndarray, layer: RigLayer) -> np.ndarray:
+    """``colour`` (H, W, 3) with the rig layer composited over it ("over", straight alpha).
+
+    directions: (H, W, 3) camera-frame rays of the render's pixels (the rig moves with the camera, so the
+    render's pose does not enter). Returns float32 (H, W, 3).
+    """
+    d = np.asarray(directions, dtype=np.float64)
+    col, row = geo.project_to_grid("erp", d, *layer.alpha.shape)
+    rgba = sample_erp(np.concatenate([layer.colour, layer.alpha[..., None]], -1), col, row)
+    a = rgba[..., 3:]
+    return (np.asarray(colour, dtype=np.float32) * (1.0 - a) + rgba[..., :3] * a).astype(np.float32)

@@ -410,6 +410,27 @@ def _pose_from_args(args: argparse.Namespace):
         raise CliError(f"cannot read pose: {exc}") from None
 
 
+def _rig_layer_from_args(args: argparse.Namespace):
+    """The capture rig of ``--rig IMAGE_A IMAGE_B`` (rasterizer.rig), or None without the flag."""
+    if not args.rig:
+        return None
+    from rasterizer.rig import RIG_DETECT_MAX_DIFF, rig_agreement, rig_layer
+    from rasterizer.scene_folder import load_image
+
+    try:
+        images = [load_image(Path(p)) for p in args.rig]
+    except OSError as exc:
+        raise CliError(f"--rig: cannot read image: {exc}") from None
+    if images[0].shape != images[1].shape or images[0].shape[1] != 2 * images[0].shape[0]:
+        raise CliError(f"--rig: need two 2:1 panoramas of one size, got {images[0].shape[1]}x{images[0].shape[0]} "
+                       f"and {images[1].shape[1]}x{images[1].shape[0]}")
+    layer = rig_layer(*images)
+    if layer is None:
+        raise CliError(f"--rig: the two panoramas show no common capture rig at their nadir (mean difference "
+                       f"{rig_agreement(*images):.3f} > {RIG_DETECT_MAX_DIFF}); render without --rig")
+    return layer
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     c2w = _pose_from_args(args)
     from rasterizer.ply import read_ply
@@ -426,10 +447,18 @@ def cmd_render(args: argparse.Namespace) -> int:
     kwargs = {"projection": args.projection, "width": args.width, "normalize": args.compositing == "va"}
     if args.projection == "perspective":
         kwargs.update(height=args.height, fov_deg=args.fov_deg)
+    layer = _rig_layer_from_args(args)
     _say(f"rendering {len(gaussians)} Gaussians, {args.projection} {args.width} px wide")
     t0 = time.perf_counter()
     out = render(gaussians, c2w, **kwargs)
-    data = encode(to_uint8(out.colour), fmt)
+    colour = out.colour
+    if layer is not None:
+        from rasterizer.camera import camera_directions
+        from rasterizer.rig import overlay_rig
+
+        h, w = colour.shape[:2]
+        colour = overlay_rig(colour, camera_directions(args.projection, h, w, args.fov_deg), layer)
+    data = encode(to_uint8(colour), fmt)
     Path(args.output).write_bytes(data)
     _say(f"wrote {args.output} in {time.perf_counter() - t0:.2f} s")
     return 0
@@ -558,6 +587,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--compositing", default="plain", choices=["plain", "va"],
                    help="plain (default): front-to-back over black, what 3DGS viewers show of the PLY; "
                         "va: colour / accumulated alpha, the OmniSplat paper's normalisation")
+    v.add_argument("--rig", nargs=2, metavar=("IMAGE_A", "IMAGE_B"),
+                   help="the two reference panoramas: composite the capture rig (tripod) both show at their "
+                        "nadir over the render, at its camera's nadir, as a capture from that pose would show it")
     v.add_argument("-o", "--output", default="view.png", help="output .png or .jpg (default view.png)")
     v.set_defaults(func=cmd_render)
 

@@ -182,6 +182,7 @@ class RenderQuery:
     fov_deg: float
     format: str
     compositing: str = "plain"
+    rig: bool = False  # composite the capture rig both references show at their nadir (rasterizer.rig)
 
     def render_kwargs(self, *, normalize: bool) -> dict[str, Any]:
         """Keyword arguments of :func:`rasterizer.render.render` for this query (pose passed apart)."""
@@ -200,7 +201,7 @@ class RenderQuery:
 
 
 def check_render_query(c2w: str, projection: str, width: int, height: int | None, fov_deg: float, fmt: str,
-                       *, max_width: int, max_pixels: int, compositing: str = "plain") -> RenderQuery:
+                       *, max_width: int, max_pixels: int, compositing: str = "plain", rig: bool = False) -> RenderQuery:
     pose = parse_c2w_query(c2w)
     if compositing not in COMPOSITINGS:
         raise BadInput(f"compositing: expected plain or va, got {compositing!r}", code="invalid_render_query")
@@ -224,7 +225,7 @@ def check_render_query(c2w: str, projection: str, width: int, height: int | None
     if not (math.isfinite(fov_deg) and 1.0 <= fov_deg <= 170.0):
         raise BadInput(f"fov_deg: must be between 1 and 170 degrees, got {fov_deg}", code="invalid_render_query")
     query = RenderQuery(pose, projection, int(width), None if height is None else int(height), float(fov_deg), fmt,
-                        compositing)
+                        compositing, bool(rig))
     h, w = query.output_size()
     if h * w > max_pixels:
         raise BadInput(f"render size {w}x{h} exceeds the limit of {max_pixels} pixels", code="invalid_render_query")

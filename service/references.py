@@ -50,7 +50,7 @@ def load_references(store: SceneStore, scene_id: str) -> tuple[list[np.ndarray],
     path = store.artifact(scene_id, REFERENCES_ARTIFACT)
     if path is None:
         raise ReferencesMissing(f"scene {scene_id} has no stored reference images ({REFERENCES_ARTIFACT}); "
-                                "it cannot be refined")
+                                "+opt, edits and rig renders need them")
     with np.load(path, allow_pickle=False) as z:
         images = [z["image_a"], z["image_b"]]
     c2w = store.meta(scene_id)["poses"]["c2w"]

@@ -16,8 +16,9 @@ from typing import BinaryIO
 
 import numpy as np
 
-from rasterizer.camera import DEFAULT_NEAR
+from rasterizer.camera import DEFAULT_NEAR, camera_directions
 from rasterizer.render import to_uint8
+from rasterizer.rig import RIG_DETECT_CAP_DEG, RIG_DETECT_MAX_DIFF, overlay_rig, rig_agreement, rig_layer
 
 from .edits import edit_artifacts
 from .errors import BadInput, PayloadTooLarge, ServiceError, StoreUnavailable
@@ -25,7 +26,7 @@ from .images import check_header, decode_rgb, encode
 from .inputs import Poses, RenderQuery, check_sweep_range
 from .pipeline import PipelineOptions, build_scene
 from .poses import PoseOptions, poses_for_scene
-from .references import REFERENCES_ARTIFACT, references_bytes
+from .references import REFERENCES_ARTIFACT, load_references, references_bytes
 from .runtime import ModelRuntime
 from .store import SceneNotFound, SceneStore, content_id
 
@@ -116,6 +117,7 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
         "info": build.info,
         "compaction": build.info["compaction"],
         "shell": build.info["shell"],  # the last ``shell`` Gaussians are the environment shell (rasterizer.shell)
+        "rig": rig_summary(erp_a, erp_b),
         "parent": None,
         "created_at": time.time(),
     }
@@ -126,6 +128,13 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     stored = store.put(scene_id, gaussians, meta, artifacts=references)
     timings["store"] = time.perf_counter() - t0
     return stored, timings
+
+
+def rig_summary(erp_a: np.ndarray, erp_b: np.ndarray) -> dict:
+    """Whether the two references show one capture rig at their nadir (what ``rig=true`` renders need)."""
+    agreement = rig_agreement(erp_a, erp_b)
+    return {"detected": bool(agreement <= RIG_DETECT_MAX_DIFF), "agreement": round(agreement, 4),
+            "max_agreement": RIG_DETECT_MAX_DIFF}
 
 
 def check_render_cost(store: SceneStore, scene_id: str, query: RenderQuery, max_cost: float) -> float:
@@ -147,6 +156,14 @@ def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[
     t0 = time.perf_counter()
     gaussians = store.gaussians(scene_id)
     sweep_near = (store.meta(scene_id).get("info") or {}).get("near")
+    layer = None
+    if query.rig:  # before the render: a scene without a rig fails fast
+        images, _ = load_references(store, scene_id)
+        layer = rig_layer(*images)
+        if layer is None:
+            raise BadInput(f"rig=true: this scene's references show no common capture rig at their nadir "
+                           f"(mean difference {rig_agreement(*images):.3f} > {RIG_DETECT_MAX_DIFF} within "
+                           f"{RIG_DETECT_CAP_DEG:g} deg of it); render without rig", code="no_rig")
     timings["load"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     # plain (default): what every 3DGS viewer shows of the PLY; va: the paper's colour / alpha
@@ -154,10 +171,13 @@ def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[
     if isinstance(sweep_near, (int, float)) and sweep_near > 0:  # cull scaled to the scene (mm baselines)
         kwargs["near"] = min(DEFAULT_NEAR, NEAR_CULL_PER_SWEEP_NEAR * float(sweep_near))
     out = render(gaussians, query.c2w, **kwargs)
+    h, w = query.output_size()
+    colour = out.colour
+    if layer is not None:
+        colour = overlay_rig(colour, camera_directions(query.projection, h, w, query.fov_deg), layer)
     timings["render"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    rgb = to_uint8(out.colour)
-    h, w = query.output_size()
+    rgb = to_uint8(colour)
     if rgb.shape[:2] != (h, w):
         raise ServiceError(f"renderer returned {rgb.shape[:2]}, expected {(h, w)}", code="render_failed",
                            status=500)

@@ -38,11 +38,16 @@ _COMPOSITING_DOC = ("`plain` (default): front-to-back alpha compositing over a b
                     "OmniSplat paper's normalisation), which fills thinly covered pixels with the surface colour "
                     "instead of darkening them. Applies to every projection (ERP through the Yin-Yang merge, "
                     "yin, yang, perspective).")
+_RIG_DOC = ("`true`: composite the capture rig (a tripod) that both references show at their nadir over the render, "
+            "at the render camera's own nadir, as a capture from that pose would show it. Camera-attached, so not "
+            "part of the 3D scene or the PLY; the scene metadata's `rig.detected` says whether the references "
+            "show one (otherwise 422). Default `false`: the scene alone, what 3DGS viewers show.")
 
 
 def _require_scene(store, scene_id: str) -> None:
     if not store.exists(scene_id):
         raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
+
 
 
 @router.post(
@@ -122,10 +127,11 @@ async def render_scene(
     fov_deg: Annotated[float, Query(description="perspective only: horizontal field of view")] = 90.0,
     format: Annotated[ImageFormat, Query()] = "png",
     compositing: Annotated[Compositing, Query(description=_COMPOSITING_DOC)] = "plain",
+    rig: Annotated[bool, Query(description=_RIG_DOC)] = False,
 ) -> Response:
     query = check_render_query(c2w, projection, width, height, fov_deg, format,
                                max_width=settings.max_render_width, max_pixels=settings.max_render_pixels,
-                               compositing=compositing)
+                               compositing=compositing, rig=rig)
     _require_scene(store, scene_id)
     cost = work.check_render_cost(store, scene_id, query, settings.max_render_cost)
     if cost > settings.heavy_render_cost:  # big renders queue with reconstructions: their peaks never add
@@ -133,7 +139,7 @@ async def render_scene(
     data, timings = await gate.run(work.render_scene, store, scene_id, query)
     metrics.observe_stages({f"render_{k}": v for k, v in timings.items()})
     etag = hashlib.sha256(f"{scene_id}|{query.c2w.round(9).tolist()}|{projection}|{width}|{height}|"
-                          f"{fov_deg}|{format}|{compositing}".encode()).hexdigest()[:32]
+                          f"{fov_deg}|{format}|{compositing}|{rig}".encode()).hexdigest()[:32]
     return Response(data, media_type=MEDIA_TYPES[format],
                     headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{etag}"',
                              "Server-Timing": ", ".join(f"{k};dur={v * 1000:.1f}" for k, v in timings.items())})

@@ -12,7 +12,7 @@ from bench.baselines import copy_nearest, rotate_erp
 from bench.machine import machine_info, machine_line
 from bench.quality import is_extrapolation, resize_erp_box
 from bench.report import aggregate, markdown, plot, write_json
-from bench.settings import full_grid, parse_setting, short_grid
+from bench.settings import Setting, full_grid, parse_setting, short_grid
 from bench.synthetic import SyntheticScene, camera, random_rotation, similarity
 from rasterizer.geometry import grid_directions, project_to_grid
 from rasterizer.scene_folder import load_scene
@@ -42,8 +42,17 @@ def test_parse_setting_round_trips(setting):
     assert parse_setting(text) == setting
 
 
+def test_parse_setting_rig_layer():
+    s = parse_setting("512x1024:64:yy:yinyang:rig")
+    assert s.rig and s == Setting("model", 512, 1024, 64, rig=True)
+    assert parse_setting("256x512:64:yy:direct:d2:rig") == Setting("model", 256, 512, 64, False, "direct", 2, True)
+    assert s.slug.endswith("_rig") and s.name.endswith("capture rig layer")
+    assert s.model_key == parse_setting("512x1024:64").model_key  # the same ONNX model
+    assert not parse_setting("512x1024:64").rig
+
+
 @pytest.mark.parametrize("bad", ["256x500:64", "256x512", "256x512:64:foo", "256x512:64:yy:raytrace", "oracle:foo",
-                                 "256x512:64:yy:yinyang:x"])
+                                 "256x512:64:yy:yinyang:x", "256x512:64:yy:yinyang:rig:rig"])
 def test_parse_setting_rejects_bad_text(bad):
     with pytest.raises(ValueError):
         parse_setting(bad)

@@ -5,9 +5,22 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from rasterizer.camera import camera_directions
 from rasterizer.gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
 from rasterizer.geometry import grid_directions
-from rasterizer.rig import MAX_RIG_CAP_DEG, check_rig_cap, patch_rig, rig_mask
+from rasterizer.rig import (
+    MAX_RIG_CAP_DEG,
+    RIG_DETECT_MAX_DIFF,
+    RIG_LAYER_CAP_DEG,
+    RigLayer,
+    check_rig_cap,
+    overlay_rig,
+    patch_rig,
+    rig_agreement,
+    rig_layer,
+    rig_mask,
+)
+from rasterizer.scene_folder import load_scene
 from rasterizer.view_colour import fit_view_colour
 
 GRIDS, H, W = ("yin", "yang"), 24, 72
@@ -106,3 +119,95 @@ def test_patch_rig_stays_in_gamut_and_off_the_cap(cap_deg, offset):
     assert np.all(np.isfinite(out.sh)) and rgb.min() >= -1e-5 and rgb.max() <= 1 + 1e-5
     np.testing.assert_array_equal(out.sh[~cap], g.sh[~cap])
     np.testing.assert_array_equal(out.means, g.means)
+
+
+# -- the camera-attached rig layer -------------------------------------------------------------
+
+RIG_RGB = np.float32([0.1, 0.08, 0.06])
+
+
+def _nadir_deg(h, w):
+    return np.degrees(np.arccos(np.clip(camera_directions("erp", h, w)[..., 1], -1, 1)))  # angle from +y
+
+
+def _captures(seed_a, seed_b, disc_deg, h=64):
+    """Two ERP captures with independent textures; both show a dark disc within ``disc_deg`` of the nadir."""
+    imgs = [np.random.default_rng(s).uniform(0.2, 0.9, (h, 2 * h, 3)).astype(np.float32) for s in (seed_a, seed_b)]
+    disc = _nadir_deg(h, 2 * h) < disc_deg
+    for img in imgs:
+        img[disc] = RIG_RGB
+    return imgs
+
+
+def test_rig_agreement_and_detection():
+    a, b = _captures(1, 2, 15.0)
+    assert rig_agreement(a, a) == 0.0
+    assert rig_agreement(a, b) < 1e-6  # the disc covers the whole detection cap
+    layer = rig_layer(a, b)
+    assert layer is not None and layer.colour.shape == a.shape and layer.alpha.shape == a.shape[:2]
+    bare_a, bare_b = _captures(1, 2, 0.0)  # no rig: independent textures under both cameras
+    assert rig_agreement(bare_a, bare_b) > RIG_DETECT_MAX_DIFF
+    assert rig_layer(bare_a, bare_b) is None
+    u8 = [(np.clip(x, 0, 1) * 255).round().astype(np.uint8) for x in (a, b)]
+    assert abs(rig_agreement(*u8) - rig_agreement(a, b)) < 0.01  # uint8 captures read as [0, 1]
+    with pytest.raises(ValueError, match="one size"):
+        rig_layer(a, b[:32, :64])
+
+
+def test_rig_layer_is_the_rig_where_the_views_agree_and_nothing_above_its_cap():
+    a, b = _captures(3, 4, 20.0)
+    layer = rig_layer(a, b)
+    nadir = _nadir_deg(*a.shape[:2])
+    inner = nadir < 20.0 - 3 * 180 / a.shape[0]  # more than half a box (2 rows) inside the disc's edge
+    assert np.all(layer.alpha[inner] == 1.0)
+    np.testing.assert_allclose(layer.colour[inner], np.broadcast_to(RIG_RGB, layer.colour[inner].shape), atol=1e-6)
+    assert np.all(layer.alpha[nadir > RIG_LAYER_CAP_DEG + 3.0] == 0.0)
+    assert layer.alpha[(nadir > 25.0)].mean() < 0.05  # independent textures outside the disc disagree
+
+
+@pytest.mark.parametrize("kind, h, w, fov", [("erp", 48, 96, 90.0), ("yang", 32, 96, 90.0),
+                                            ("perspective", 41, 41, 170.0)])
+def test_overlay_rig_paints_the_rig_at_the_render_cameras_own_nadir(kind, h, w, fov):
+    layer = rig_layer(*_captures(5, 6, 20.0))  # opaque within ~11 deg: a box and a bilinear tap inside
+    render = np.random.default_rng(7).uniform(0.3, 1.0, (h, w, 3)).astype(np.float32)
+    d = camera_directions(kind, h, w, fov)
+    out = overlay_rig(render, d, layer)
+    from_nadir = np.degrees(np.arccos(np.clip(d[..., 1], -1, 1)))
+    near, far = from_nadir < 8.0, from_nadir > RIG_LAYER_CAP_DEG + 5.0
+    assert near.any() and far.any()
+    np.testing.assert_allclose(out[near], np.broadcast_to(RIG_RGB, out[near].shape), atol=1e-5)
+    np.testing.assert_array_equal(out[far], render[far])
+
+
+def test_overlay_rig_leaves_a_forward_view_alone():
+    layer = rig_layer(*_captures(5, 6, 15.0))
+    render = np.random.default_rng(8).uniform(0, 1, (30, 40, 3)).astype(np.float32)
+    out = overlay_rig(render, camera_directions("perspective", 30, 40, 90.0), layer)
+    np.testing.assert_array_equal(out, render)  # the pinhole's lowest ray is 40+ deg above the rig's cap
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.floats(0.0, 1.0), st.floats(0.0, 1.0), st.floats(0.0, 1.0))
+def test_overlay_rig_is_a_convex_blend(alpha, layer_value, render_value):
+    h, w = 8, 16
+    layer = RigLayer(np.full((h, w, 3), layer_value, np.float32), np.full((h, w), alpha, np.float32), 0.0)
+    render = np.full((5, 7, 3), render_value, np.float32)
+    d = np.random.default_rng(0).normal(size=(5, 7, 3))
+    out = overlay_rig(render, d / np.linalg.norm(d, axis=-1, keepdims=True), layer)
+    assert np.all(np.isfinite(out))
+    np.testing.assert_allclose(out, render_value * (1 - alpha) + layer_value * alpha, atol=1e-5)
+
+
+def _pairs(scene_dir):
+    scene = load_scene(scene_dir)
+    return [(scene.frames[a].image(), scene.frames[b].image()) for a, b in (s.references for s in scene.splits)]
+
+
+def test_dev_captures_tripod_is_detected_and_the_synthetic_scene_has_none(zind_dir, m3d_dir):
+    """zind_room09 (a tripod under every pano) detects a rig at both splits; m3d_bedroom (rendered) none."""
+    for a, b in _pairs(zind_dir):
+        assert rig_agreement(a, b) < 0.5 * RIG_DETECT_MAX_DIFF
+        layer = rig_layer(a, b)
+        assert layer is not None and layer.alpha[_nadir_deg(*a.shape[:2]) < 3.0].mean() > 0.9
+    for a, b in _pairs(m3d_dir):
+        assert rig_agreement(a, b) > 1.5 * RIG_DETECT_MAX_DIFF and rig_layer(a, b) is None
