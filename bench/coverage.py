@@ -30,7 +30,6 @@ from bench.metrics import psnr, psnr_above_nadir
 from rasterizer import geometry as geo
 from rasterizer.compaction import CompactionOptions, Provenance, compact
 from rasterizer.render import render
-from rasterizer.rig import DEFAULT_RIG_CAP_DEG
 from rasterizer.scene_folder import load_scene
 from rasterizer.view_colour import DEFAULT_SH_DEGREE
 from rasterizer.yin_yang import resize_erp
@@ -140,7 +139,7 @@ def measure(g, scene, split, width: int = 1024, perspective: bool = True, copy: 
 
 
 def run(data: list[Path], model: Path | None, threads: int = 2, sh_degree: int = DEFAULT_SH_DEGREE,
-        rig_cap_deg: float = DEFAULT_RIG_CAP_DEG) -> list[dict]:
+        rig_cap_deg: float | None = None) -> list[dict]:
     """Measure every split of ``data`` with scenes of the given colour model and rig cap (encoder options)."""
     from service.encoder import OnnxEncoder
 
@@ -159,7 +158,7 @@ def run(data: list[Path], model: Path | None, threads: int = 2, sh_degree: int =
             t_compact = time.perf_counter() - t
             entry = {"scene": scene.name, "split": si, "references": list(split.references),
                      "targets": list(split.targets), "model": enc.metadata.get("version"),
-                     "sh_degree": int(rec.gaussians.sh_degree), "rig_cap_deg": rig_cap_deg,
+                     "sh_degree": int(rec.gaussians.sh_degree), "rig_cap_deg": rec.info["rig_cap_deg"],
                      "reconstruct_s": post, "compact_s": t_compact,
                      "count": len(rec.gaussians), "count_compacted": len(small),
                      "opacity_median": float(np.median(rec.gaussians.opacities)),
@@ -178,8 +177,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, default=None, help="also write the results here")
     p.add_argument("--sh-degree", type=int, default=DEFAULT_SH_DEGREE,
                    help="colour model of the scenes (default 1: view-dependent; 0: one colour)")
-    p.add_argument("--rig-cap-deg", type=float, default=DEFAULT_RIG_CAP_DEG,
-                   help="re-colour the pixels this many degrees around each camera's nadir (default 0: off)")
+    p.add_argument("--rig-cap-deg", type=float, default=None,
+                   help="re-colour the pixels this many degrees around each camera's nadir (default: the "
+                        "service's automatic cap, 20 where both references show a rig, else 0)")
     args = p.parse_args(argv)
     results = run(args.data, args.model, args.threads, args.sh_degree, args.rig_cap_deg)
     text = json.dumps(results, indent=1)

@@ -80,6 +80,9 @@ class EncoderConfig:
     layout_strength: float = 3.0
     layout_elevation: tuple[float, float] = (0.2, 0.5)
     layout_tol: float = 0.08
+    # no floor prior within layout_nadir_deg of straight down: under each camera stands its own rig or
+    # whatever it was set over (m3d 00: a low object at 0.91 m that the plane put at 1.36 m)
+    layout_nadir_deg: float = 15.0
     upsample: Upsample = "guided"
     upsample_radius: int = 2
     upsample_eps: float = 1e-3
@@ -104,7 +107,7 @@ class EncoderConfig:
     near_per_baseline: float = 0.3
     far_per_baseline: float = 20.0
     name: str = "omnisplat-trainingfree"
-    version: str = "0.10.0"
+    version: str = "0.11.0"
 
     def __post_init__(self) -> None:
         if self.width != 2 * self.height:
@@ -126,9 +129,11 @@ class EncoderConfig:
             if full_h % self.fine_downscale or full_w % self.fine_downscale:
                 raise ValueError(f"grid size {full_h}x{full_w} is not divisible by fine_downscale={self.fine_downscale}")
         lo, hi = self.layout_elevation
-        if self.layout_strength < 0 or not 0 <= lo < hi <= 1 or self.layout_tol <= 0:
-            raise ValueError("need layout_strength >= 0, 0 <= layout_elevation[0] < [1] <= 1 and layout_tol > 0; "
-                             f"got {self.layout_strength}, {self.layout_elevation}, {self.layout_tol}")
+        if self.layout_strength < 0 or not 0 <= lo < hi <= 1 or self.layout_tol <= 0 \
+                or not 0 <= self.layout_nadir_deg < 90:
+            raise ValueError("need layout_strength >= 0, 0 <= layout_elevation[0] < [1] <= 1, layout_tol > 0 and "
+                             f"0 <= layout_nadir_deg < 90; got {self.layout_strength}, {self.layout_elevation}, "
+                             f"{self.layout_tol}, {self.layout_nadir_deg}")
         if self.num_planes < 3:
             raise ValueError(f"num_planes must be >= 3, got {self.num_planes}")
 

@@ -13,7 +13,8 @@ This stage gives the fill a geometric fallback instead (issue 16, "an indoor lay
    geometric-mean range of the confident points;
 3. each pixel's plane inverse range (floor below the horizon, ceiling above), with a weight that
    ramps with |sin elevation| from ``elevation[0]`` to ``elevation[1]`` (the horizon is walls and
-   furniture) and is gated by agreement: the confidence-weighted share of nearby confident pixels
+   furniture), is zero within ``nadir_deg`` of straight down (under a camera stands its own rig or
+   what it was set over, not the floor) and is gated by agreement: the confidence-weighted share of nearby confident pixels
    (a push-pull pyramid) within ``tol`` of the plane, squared. So a bed or table whose confident
    edges sit off the floor keeps its own fill, while an empty floor between confident floor
    pixels takes the plane;
@@ -85,8 +86,9 @@ def fit_planes(rays: torch.Tensor, inv: torch.Tensor, weight: torch.Tensor, c2w:
     return gravity, floor - height, height - ceiling, upright
 
 
-def plane_prior(planes, rays: torch.Tensor, c2w: torch.Tensor, elevation: tuple[float, float]):
-    """Plane inverse range and ramp weight (2G, 1, h, w) for camera-frame rays (G, h, w, 3)."""
+def plane_prior(planes, rays: torch.Tensor, c2w: torch.Tensor, elevation: tuple[float, float], nadir_deg: float = 0.0):
+    """Plane inverse range and ramp weight (2G, 1, h, w) for camera-frame rays (G, h, w, 3); no weight
+    within ``nadir_deg`` degrees of straight down."""
     gravity, floor, ceiling, upright = planes
     g_count, h, w = rays.shape[:3]
     sin_el = _sin_elevation(rays, c2w[:, :3, :3], gravity)
@@ -94,6 +96,8 @@ def plane_prior(planes, rays: torch.Tensor, c2w: torch.Tensor, elevation: tuple[
     inv = sin_el.abs() / dist.clamp(min=1e-6)
     lo, hi = elevation
     ramp = ((sin_el.abs() - lo) / (hi - lo)).clamp(0.0, 1.0) * upright * (dist > 0).to(inv.dtype)
+    if nadir_deg > 0:
+        ramp = ramp * (sin_el < math.cos(math.radians(nadir_deg))).to(inv.dtype)
     return inv.reshape(2 * g_count, 1, h, w), ramp.reshape(2 * g_count, 1, h, w)
 
 

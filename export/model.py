@@ -182,7 +182,7 @@ class OmniSplatEncoder(nn.Module):
         """The fill's (value, weight) with the layout planes added (:func:`export.layout.with_plane_prior`)."""
         if planes is None:
             return inv, weight
-        plane_inv, ramp = plane_prior(planes, rays, c2w, self.cfg.layout_elevation)
+        plane_inv, ramp = plane_prior(planes, rays, c2w, self.cfg.layout_elevation, self.cfg.layout_nadir_deg)
         return with_plane_prior(inv, weight, plane_inv, ramp, levels, self.cfg.layout_strength, self.cfg.layout_tol)
 
     def cascade(self, inv, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes):

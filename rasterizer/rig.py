@@ -32,12 +32,13 @@ from .camera import sample_erp
 from .gaussians import Gaussians
 from .view_colour import VIEW_COLOUR_TOL, seen_pixels
 
-#: Off by default: scenes without a rig (synthetic renders, nadir-patched captures) lose detail under
-#: each camera that only the other, oblique view replaces (README, "The capture rig").
-DEFAULT_RIG_CAP_DEG = 0.0
+#: The cap a scene gets when the caller sets none and :func:`rig_summary` detects a rig: the ZInD rig's
+#: disc and most of its legs. Without a detected rig the cap is 0: scenes without one (synthetic
+#: renders, nadir-patched captures) would lose detail under each camera that only the other, oblique
+#: view replaces (README, "The capture rig").
+AUTO_RIG_CAP_DEG = 20.0
 #: Largest accepted cap: a quarter of the sphere's latitude range.
 MAX_RIG_CAP_DEG = 45.0
-
 
 #: A rig is detected when, within this many degrees of the nadir, the two references' images in their own
 #: camera frames differ by at most RIG_DETECT_MAX_DIFF (cos-latitude-weighted mean absolute difference,
@@ -45,27 +46,36 @@ MAX_RIG_CAP_DEG = 45.0
 #: m3d_bedroom's three pairs (no rig) 0.087-0.114 (docs/experiments.md, "A camera-attached rig layer").
 RIG_DETECT_CAP_DEG = 5.0
 RIG_DETECT_MAX_DIFF = 0.05
-#: The layer covers this many degrees around the nadir (zind_room09's tripod legs reach -60 deg latitude).
-RIG_LAYER_CAP_DEG = 30.0
+#: The layer covers this many degrees around the nadir: zind_room09's tripod disc reaches 12.5 deg from
+#: it; its thin legs, up to 24 deg, sit where the floor differs too, and a wider cap cost the scene
+#: (caps 13-30 deg: docs/experiments.md, "A camera-attached rig layer").
+RIG_LAYER_CAP_DEG = 15.0
 #: Per-pixel agreement -> layer opacity: a box mean (RIG_LAYER_BOX pixels square) of the two views'
 #: absolute difference at or below the first value is opaque rig, at or above the second is scene.
 RIG_LAYER_AGREE = (0.03, 0.08)
 RIG_LAYER_BOX = 5
 
 
-def check_rig_cap(value) -> float:
-    """``value`` as a cap in degrees within [0, MAX_RIG_CAP_DEG]; raises ValueError naming the range."""
+def check_rig_cap(value) -> float | None:
+    """``value`` as a cap in degrees within [0, MAX_RIG_CAP_DEG], None (automatic: ``AUTO_RIG_CAP_DEG``
+    where a rig is detected, else 0) as None; raises ValueError naming the range."""
+    if value is None:
+        return None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) \
             or not 0.0 <= value <= MAX_RIG_CAP_DEG:
         raise ValueError(f"rig_cap_deg: expected degrees from the nadir in [0, {MAX_RIG_CAP_DEG:g}] "
-                         f"(0 = off), got {value!r}")
+                         f"(0 = off; absent or null = {AUTO_RIG_CAP_DEG:g} where both references show a rig, "
+                         f"else 0), got {value!r}")
     return float(value)
 
 
 def rig_mask(grids: tuple[str, ...], height: int, width: int, cap_deg: float) -> np.ndarray:
     """(G, H, W) bool: grid pixels whose camera-frame ray lies within ``cap_deg`` of the nadir (+y)."""
+    cap = check_rig_cap(cap_deg)
+    if cap is None:
+        raise ValueError("rig_mask needs a cap in degrees, not the automatic None")
     down = np.stack([geo.grid_directions(g, height, width)[..., 1] for g in grids])
-    return down > np.cos(np.radians(check_rig_cap(cap_deg)))
+    return down > np.cos(np.radians(cap))
 
 
 def patch_rig(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, grids: tuple[str, ...],
@@ -138,6 +148,19 @@ def rig_agreement(erp_a: np.ndarray, erp_b: np.ndarray) -> float:
     weight = np.sin(np.radians(nadir[rows]))[:, None]  # cos(latitude)
     diff = np.abs(a[rows] - b[rows]).mean(-1)
     return float((diff * weight).sum() / (weight.sum() * a.shape[1]))
+
+
+def rig_summary(erp_a: np.ndarray, erp_b: np.ndarray) -> dict:
+    """{"detected", "agreement", "max_agreement"}: whether the two references show one rig at their nadir."""
+    agreement = rig_agreement(erp_a, erp_b)
+    return {"detected": bool(agreement <= RIG_DETECT_MAX_DIFF), "agreement": round(agreement, 4),
+            "max_agreement": RIG_DETECT_MAX_DIFF}
+
+
+def resolve_rig_cap(cap_deg: float | None, detected: bool) -> float:
+    """The cap a scene gets: the caller's, or automatic (``AUTO_RIG_CAP_DEG`` with a detected rig, else 0)."""
+    cap = check_rig_cap(cap_deg)
+    return (AUTO_RIG_CAP_DEG if detected else 0.0) if cap is None else cap
 
 
 def rig_layer(erp_a: np.ndarray, erp_b: np.ndarray) -> RigLayer | None:

@@ -571,7 +571,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "0: one colour per Gaussian (smaller PLY)")
     c.add_argument("--rig-cap-deg", type=float,
                    help="degrees around each camera's nadir where a tripod capture shows the rig: those pixels "
-                        "take the other panorama's colour (default 0: off; 20 for ZInD-like captures)")
+                        "take the other panorama's colour (0: off; default: 20 where both panoramas show a rig at "
+                        "their nadir, else 0)")
     r.set_defaults(func=cmd_reconstruct)
 
     v = sub.add_parser("render", help="Gaussian PLY + camera pose -> image",

@@ -18,7 +18,7 @@ import onnxruntime as ort
 
 from rasterizer.gaussians import Gaussians
 from rasterizer.geometry import PoseError, as_c2w
-from rasterizer.rig import DEFAULT_RIG_CAP_DEG, check_rig_cap, patch_rig
+from rasterizer.rig import check_rig_cap, patch_rig, resolve_rig_cap, rig_summary
 from rasterizer.shell import environment_shell, shell_radius
 from rasterizer.sweep import (
     FAR_PER_BASELINE,
@@ -179,7 +179,8 @@ class OnnxEncoder:
         drops Gaussians below that opacity; ``sh_degree`` 1 (default) fits view-dependent colour so
         that each reference sees its own image (:mod:`rasterizer.view_colour`), 0 keeps one colour
         per Gaussian; ``rig_cap_deg`` > 0 re-colours each reference's pixels within that many degrees of
-        its nadir, where tripod captures show the rig, from the other reference (:mod:`rasterizer.rig`).
+        its nadir, where tripod captures show the rig, from the other reference (:mod:`rasterizer.rig`);
+        absent or None: ``AUTO_RIG_CAP_DEG`` where both references show a rig, else 0.
         Raises :class:`EncoderInputError`.
         """
         unknown = sorted(set(options) - set(KNOWN_OPTIONS))
@@ -187,7 +188,7 @@ class OnnxEncoder:
             raise EncoderInputError(f"unknown encoder option(s) {unknown}; known: {list(KNOWN_OPTIONS)}")
         try:
             sh_degree = check_sh_degree(options.get("sh_degree", DEFAULT_SH_DEGREE))
-            rig_cap = check_rig_cap(options.get("rig_cap_deg", DEFAULT_RIG_CAP_DEG))
+            rig_cap = check_rig_cap(options.get("rig_cap_deg"))
         except ValueError as exc:
             raise EncoderInputError(str(exc)) from None
         t_start = time.perf_counter()
@@ -219,6 +220,8 @@ class OnnxEncoder:
         t = time.perf_counter()
         chw = [self._to_chw(im) for im in (img_a, img_b)]
         timings["resample"] = time.perf_counter() - t
+        rig_info = rig_summary(*(c[0].transpose(1, 2, 0) for c in chw))  # the images the model sees
+        rig_cap = resolve_rig_cap(rig_cap, rig_info["detected"])
 
         t = time.perf_counter()
         feeds = sweep_inputs(pa, pb, near=near, far=far, num_planes=self.num_planes,
@@ -250,6 +253,7 @@ class OnnxEncoder:
             "near": near, "far": far, "baseline": b, "num_planes": self.num_planes,
             "num_gaussians": len(gaussians), "num_gaussians_raw": int(out["means"].shape[0]),
             "num_gaussians_shell": len(shell), "shell_radius": radius, "sh_degree": sh_degree, "rig_cap_deg": rig_cap,
+            "rig": rig_info,
             "grids": self._meta.get("grids"), "input_size": [self.height, self.width],
             "mean_confidence": float(out["confidence"].mean()),
             "model": {k: self._meta.get(k) for k in ("name", "version", "sha256")},

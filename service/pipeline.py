@@ -8,7 +8,8 @@ and a final guard that drops any non-finite Gaussian. Options come as the API's 
 object; structured keys ``compaction`` and ``adaptive_range`` hold the
 step options, ``near``/``far``, ``sh_degree`` (view-dependent colour, 1, or one colour per
 Gaussian, 0) and ``rig_cap_deg`` (degrees around each camera's nadir where a tripod capture shows
-the rig, 0 = off) go to the encoder, ``min_opacity`` is a compaction threshold.
+the rig, 0 = off; absent = automatic, 20 where both references show a rig) go to the encoder,
+``min_opacity`` is a compaction threshold.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from rasterizer.compaction import CompactionOptions, Provenance, compact_result
 from rasterizer.edit.scene import EditData
 from rasterizer.gaussians import Gaussians
 from rasterizer.ply import finite_rows
-from rasterizer.rig import DEFAULT_RIG_CAP_DEG, check_rig_cap
+from rasterizer.rig import check_rig_cap
 from rasterizer.view_colour import DEFAULT_SH_DEGREE, check_sh_degree
 
 from .scene_adaptive import AdaptiveRangeOptions, reconstruct_adaptive
@@ -37,7 +38,7 @@ class PipelineOptions:
     compaction: CompactionOptions
     adaptive_range: AdaptiveRangeOptions
     sh_degree: int = DEFAULT_SH_DEGREE
-    rig_cap_deg: float = DEFAULT_RIG_CAP_DEG
+    rig_cap_deg: float | None = None  # None: automatic (rasterizer.rig.resolve_rig_cap)
 
     @classmethod
     def from_dict(cls, options: dict[str, Any] | None) -> "PipelineOptions":
@@ -50,7 +51,7 @@ class PipelineOptions:
         sh_degree, rig_cap = opts.pop("sh_degree", None), opts.pop("rig_cap_deg", None)
         try:
             sh_degree = check_sh_degree(DEFAULT_SH_DEGREE if sh_degree is None else sh_degree)
-            rig_cap = check_rig_cap(DEFAULT_RIG_CAP_DEG if rig_cap is None else rig_cap)
+            rig_cap = check_rig_cap(rig_cap)
         except ValueError as exc:
             raise ValueError(f"options.{exc}") from None
         comp = opts.pop("compaction", None)

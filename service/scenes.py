@@ -117,7 +117,7 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
         "info": build.info,
         "compaction": build.info["compaction"],
         "shell": build.info["shell"],  # the last ``shell`` Gaussians are the environment shell (rasterizer.shell)
-        "rig": rig_summary(erp_a, erp_b),
+        "rig": build.info["rig"],  # whether the references show a capture rig (rasterizer.rig)
         "parent": None,
         "created_at": time.time(),
     }
@@ -128,13 +128,6 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     stored = store.put(scene_id, gaussians, meta, artifacts=references)
     timings["store"] = time.perf_counter() - t0
     return stored, timings
-
-
-def rig_summary(erp_a: np.ndarray, erp_b: np.ndarray) -> dict:
-    """Whether the two references show one capture rig at their nadir (what ``rig=true`` renders need)."""
-    agreement = rig_agreement(erp_a, erp_b)
-    return {"detected": bool(agreement <= RIG_DETECT_MAX_DIFF), "agreement": round(agreement, 4),
-            "max_agreement": RIG_DETECT_MAX_DIFF}
 
 
 def check_render_cost(store: SceneStore, scene_id: str, query: RenderQuery, max_cost: float) -> float:

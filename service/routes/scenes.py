@@ -74,7 +74,9 @@ async def create_scene(
                                                           'colour, each reference sees its own image); '
                                                           '"rig_cap_deg": 20 re-colours the pixels within 20 deg of '
                                                           "each camera's nadir, where tripod captures show the rig, "
-                                                          'from the other panorama (default 0: off)')] = None,
+                                                          'from the other panorama (0: off; default: 20 where both '
+                                                          "references show a rig at their nadir, the metadata's "
+                                                          '"rig", else 0)')] = None,
     poses: Annotated[str | None, Form(description='JSON {"convention": "opencv"|"opengl", "c2w": [A, B]}, '
                                                   "each camera-to-world 4x4 or 3x4; leave out (or c2w null) to "
                                                   "estimate them from the images (world = camera A)",

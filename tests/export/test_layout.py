@@ -86,6 +86,23 @@ def test_fit_planes_recovers_floor_and_ceiling(up):
     assert on.float().sum() >= 0.6 * steep.float().sum()
 
 
+@pytest.mark.parametrize("nadir_deg", [5.0, 15.0, 40.0])
+def test_no_floor_prior_straight_under_the_cameras(nadir_deg):
+    """Within nadir_deg of straight down the ramp is 0 (each camera's rig or what it stands over); elsewhere,
+    ceiling included, it is the ramp without the cut."""
+    rays, inv, c2w = _room()
+    planes = fit_planes(rays, inv, torch.ones_like(inv), c2w)
+    _, full = plane_prior(planes, rays, c2w, (0.2, 0.5))
+    _, cut = plane_prior(planes, rays, c2w, (0.2, 0.5), nadir_deg)
+    gravity = planes[0].double()
+    down = torch.stack([rays.double() @ c2w[v, :3, :3].double().T @ gravity for v in range(2)])  # (view, grid, h, w)
+    down = down.reshape(cut.shape)  # cos of each ray's angle to gravity, in plane_prior's [view][grid] order
+    under = down > np.cos(np.radians(nadir_deg))
+    assert under.any() and (~under & (full > 0)).any()
+    assert float(cut[under].abs().max()) == 0.0
+    assert torch.equal(cut[~under], full[~under])
+
+
 def test_tilted_cameras_get_no_prior():
     rays, inv, c2w = _room()
     tilt = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.866, -0.5], [0.0, 0.5, 0.866]])  # 30 deg about x
@@ -126,3 +143,11 @@ def test_agreement_gates_the_prior():
             torch.testing.assert_close(value[gap], plane_inv[gap])
         else:
             assert float(added.max()) < 1e-3
+
+
+@pytest.mark.parametrize("bad", [-1.0, 90.0, 120.0])
+def test_config_refuses_a_nadir_cut_outside_0_to_90(bad):
+    from export.config import make_config
+
+    with pytest.raises(ValueError, match="layout_nadir_deg"):
+        make_config("quality", layout_nadir_deg=bad)

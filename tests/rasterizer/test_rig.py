@@ -9,6 +9,7 @@ from rasterizer.camera import camera_directions
 from rasterizer.gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
 from rasterizer.geometry import grid_directions
 from rasterizer.rig import (
+    AUTO_RIG_CAP_DEG,
     MAX_RIG_CAP_DEG,
     RIG_DETECT_MAX_DIFF,
     RIG_LAYER_CAP_DEG,
@@ -16,9 +17,11 @@ from rasterizer.rig import (
     check_rig_cap,
     overlay_rig,
     patch_rig,
+    resolve_rig_cap,
     rig_agreement,
     rig_layer,
     rig_mask,
+    rig_summary,
 )
 from rasterizer.scene_folder import load_scene
 from rasterizer.view_colour import fit_view_colour
@@ -70,11 +73,18 @@ def test_rig_mask_is_the_cap_around_the_camera_nadir():
         assert m.any() and np.all(angle[m] < 20.0) and np.all(angle[~m] >= 20.0)
 
 
-@pytest.mark.parametrize("bad", [-1.0, MAX_RIG_CAP_DEG + 1, float("nan"), float("inf"), True, "20", None])
+@pytest.mark.parametrize("bad", [-1.0, MAX_RIG_CAP_DEG + 1, float("nan"), float("inf"), True, "20", "auto"])
 def test_check_rig_cap_refuses_what_is_not_a_cap(bad):
     with pytest.raises(ValueError, match="rig_cap_deg"):
         check_rig_cap(bad)
-    assert check_rig_cap(20) == 20.0 and check_rig_cap(0) == 0.0
+    assert check_rig_cap(20) == 20.0 and check_rig_cap(0) == 0.0 and check_rig_cap(None) is None
+
+
+def test_resolve_rig_cap_is_automatic_only_when_unset():
+    assert resolve_rig_cap(None, True) == AUTO_RIG_CAP_DEG and resolve_rig_cap(None, False) == 0.0
+    assert resolve_rig_cap(0, True) == 0.0 and resolve_rig_cap(12.5, False) == 12.5
+    with pytest.raises(ValueError, match="automatic"):
+        rig_mask(GRIDS, H, W, None)
 
 
 def test_patch_rig_takes_the_other_views_colour_under_each_camera():
@@ -211,3 +221,4 @@ def test_dev_captures_tripod_is_detected_and_the_synthetic_scene_has_none(zind_d
         assert layer is not None and layer.alpha[_nadir_deg(*a.shape[:2]) < 3.0].mean() > 0.9
     for a, b in _pairs(m3d_dir):
         assert rig_agreement(a, b) > 1.5 * RIG_DETECT_MAX_DIFF and rig_layer(a, b) is None
+        assert rig_summary(a, b)["detected"] is False

@@ -133,7 +133,7 @@ def test_reconstruct_compaction_flags_map_to_options():
     assert cli._pipeline_options(parser.parse_args(["reconstruct", "scene", "--sh-degree", "0"])).sh_degree == 0
     with pytest.raises(cli.CliError, match="sh_degree"):
         cli._pipeline_options(parser.parse_args(["reconstruct", "scene", "--sh-degree", "2"]))
-    assert full.rig_cap_deg == 0.0
+    assert full.rig_cap_deg is None  # automatic (rasterizer.rig.resolve_rig_cap)
     assert cli._pipeline_options(parser.parse_args(["reconstruct", "scene", "--rig-cap-deg", "20"])).rig_cap_deg == 20.0
     with pytest.raises(cli.CliError, match="rig_cap_deg"):
         cli._pipeline_options(parser.parse_args(["reconstruct", "scene", "--rig-cap-deg", "50"]))

@@ -10,6 +10,7 @@ import pytest
 from PIL import Image
 
 from rasterizer.camera import camera_directions
+from rasterizer.rig import AUTO_RIG_CAP_DEG
 from service import cli
 
 from ._support import IDENTITY, LiveServer, make_settings, panorama, post_scene, small_model
@@ -54,10 +55,14 @@ def served(tmp_path_factory):
 
 def test_scene_metadata_says_whether_the_references_show_a_rig(served):
     client, rigged, bare, _ = served
-    rig = client.get(f"/v1/scenes/{rigged}").json()["rig"]
+    meta = client.get(f"/v1/scenes/{rigged}").json()
+    rig = meta["rig"]
     assert rig["detected"] is True and rig["agreement"] <= rig["max_agreement"]
-    rig = client.get(f"/v1/scenes/{bare}").json()["rig"]
+    assert meta["info"]["rig_cap_deg"] == AUTO_RIG_CAP_DEG  # the rig's pixels take the other view's colour
+    meta = client.get(f"/v1/scenes/{bare}").json()
+    rig = meta["rig"]
     assert rig["detected"] is False and rig["agreement"] > rig["max_agreement"]
+    assert meta["info"]["rig_cap_deg"] == 0.0
 
 
 @pytest.mark.parametrize("params, kind", [({"projection": "erp", "width": 128}, "erp"),

@@ -138,7 +138,9 @@ def test_options():
     raw, parsed, _ = parse_options('{"near": 0.2, "far": 9}', {"near", "far"})
     assert raw == {"near": 0.2, "far": 9} and (parsed.near, parsed.far) == (0.2, 9)
     assert parsed.sh_degree == 1 and parse_options('{"sh_degree": 0}', None)[1].sh_degree == 0
-    assert parsed.rig_cap_deg == 0.0 and parse_options('{"rig_cap_deg": 20}', None)[1].rig_cap_deg == 20.0
+    assert parsed.rig_cap_deg is None  # automatic: the encoder resolves it (rasterizer.rig.resolve_rig_cap)
+    assert parse_options('{"rig_cap_deg": null}', None)[1].rig_cap_deg is None
+    assert parse_options('{"rig_cap_deg": 20}', None)[1].rig_cap_deg == 20.0
     for bad in ['{"near": -1}', '{"near": 5, "far": 1}', '[1]', '{"x": [1]}', '{"near": "a"}',
                 '{"min_opacity": "abc"}', '{"min_opacity": 1.5}', '{"near": true}', '{"sh_degree": 2}',
                 '{"sh_degree": 0.5}', '{"sh_degree": -1}', '{"rig_cap_deg": 46}', '{"rig_cap_deg": -5}',
