@@ -314,7 +314,11 @@ NOTES = [
     "JSON also gives the direct render divided by its alpha (same render, no extra time).",
     f"PSNR above nadir = PSNR over the rows more than {metrics.NADIR_CAP_DEG:g} deg above the nadir: real captures "
     "show the camera-attached capture rig there (every zind_room09 panorama: a tripod disc below about -77 deg), "
-    "which no novel view can predict and copying a reference gets for free. A diagnostic beside PSNR, not instead.",
+    "which no reconstruction of the scene shows and copying a reference gets for free. A diagnostic beside PSNR, "
+    "not instead.",
+    "capture rig layer = the same render with the rig both references show at their nadir composited at the "
+    "target camera's nadir (the render API's `rig=true`, not its default: it is camera-attached, so no 3DGS "
+    "viewer shows it; rasterizer.rig). Scenes whose references show no common rig (m3d_bedroom) render as plain.",
     "copy nearest reference = the nearest reference rotated into the target's orientation (depth at infinity). "
     "GT-depth oracle = the ground-truth depth of both references through the service's Gaussian path at full "
     "confidence: the head's surfels, view-dependent colour and environment shell (scenes with depth only, so "
