@@ -49,7 +49,6 @@ def _require_scene(store, scene_id: str) -> None:
         raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
 
 
-
 @router.post(
     "", status_code=201, response_model=SceneCreated, summary="Reconstruct a scene from two ERP panoramas",
     responses=error_responses(400, 408, 413, 422, 503, 507),
