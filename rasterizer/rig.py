@@ -137,17 +137,20 @@ def _nadir_distance_deg(height: int) -> np.ndarray:
     return (np.arange(height, dtype=np.float64)[::-1, None] + 0.5) / height * 180.0
 
 
-def rig_agreement(erp_a: np.ndarray, erp_b: np.ndarray) -> float:
-    """Cos-latitude-weighted mean |a - b| within ``RIG_DETECT_CAP_DEG`` of the nadir, camera frames.
-
-    erp_a, erp_b: (H, 2H, 3) uint8 or float in [0, 1], the two references as captured.
-    """
-    a, b = _pair(erp_a, erp_b)
+def _agreement(a: np.ndarray, b: np.ndarray) -> float:
     nadir = _nadir_distance_deg(a.shape[0])[:, 0]
     rows = nadir <= max(RIG_DETECT_CAP_DEG, nadir[-1])  # at least the last row
     weight = np.sin(np.radians(nadir[rows]))[:, None]  # cos(latitude)
     diff = np.abs(a[rows] - b[rows]).mean(-1)
     return float((diff * weight).sum() / (weight.sum() * a.shape[1]))
+
+
+def rig_agreement(erp_a: np.ndarray, erp_b: np.ndarray) -> float:
+    """Cos-latitude-weighted mean |a - b| within ``RIG_DETECT_CAP_DEG`` of the nadir, camera frames.
+
+    erp_a, erp_b: (H, 2H, 3) uint8 or float in [0, 1], the two references as captured.
+    """
+    return _agreement(*_pair(erp_a, erp_b))
 
 
 def rig_summary(erp_a: np.ndarray, erp_b: np.ndarray) -> dict:
@@ -163,20 +166,33 @@ def resolve_rig_cap(cap_deg: float | None, detected: bool) -> float:
     return (AUTO_RIG_CAP_DEG if detected else 0.0) if cap is None else cap
 
 
-def rig_layer(erp_a: np.ndarray, erp_b: np.ndarray) -> RigLayer | None:
-    """The rig both references show at their nadir (module docstring), or None when they show none.
+class NoRigError(ValueError):
+    """The two references show no common rig at their nadir; the message gives the statistic."""
+
+
+def require_rig_layer(erp_a: np.ndarray, erp_b: np.ndarray) -> RigLayer:
+    """The rig both references show at their nadir (module docstring); :class:`NoRigError` when none.
 
     erp_a, erp_b: (H, 2H, 3) uint8 or float in [0, 1]. Returns a layer of the same size: colour the two
     views' mean, alpha from their local agreement (``RIG_LAYER_AGREE``) within ``RIG_LAYER_CAP_DEG``.
     """
-    agreement = rig_agreement(erp_a, erp_b)
-    if not agreement <= RIG_DETECT_MAX_DIFF:
-        return None
     a, b = _pair(erp_a, erp_b)
+    agreement = _agreement(a, b)
+    if not agreement <= RIG_DETECT_MAX_DIFF:
+        raise NoRigError(f"the two references show no common capture rig at their nadir (mean difference "
+                         f"{agreement:.3f} > {RIG_DETECT_MAX_DIFF} within {RIG_DETECT_CAP_DEG:g} deg of it)")
     diff = uniform_filter(np.abs(a - b).mean(-1), RIG_LAYER_BOX, mode=("nearest", "wrap"))
     lo, hi = RIG_LAYER_AGREE
     alpha = np.clip((hi - diff) / (hi - lo), 0.0, 1.0) * (_nadir_distance_deg(a.shape[0]) <= RIG_LAYER_CAP_DEG)
     return RigLayer(0.5 * (a + b), alpha.astype(np.float32), agreement)
+
+
+def rig_layer(erp_a: np.ndarray, erp_b: np.ndarray) -> RigLayer | None:
+    """:func:`require_rig_layer`, or None when the references show no common rig."""
+    try:
+        return require_rig_layer(erp_a, erp_b)
+    except NoRigError:
+        return None
 
 
 def overlay_rig(colour: np.ndarray, directions: np.ndarray, layer: RigLayer) -> np.ndarray:

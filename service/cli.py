@@ -414,7 +414,7 @@ def _rig_layer_from_args(args: argparse.Namespace):
     """The capture rig of ``--rig IMAGE_A IMAGE_B`` (rasterizer.rig), or None without the flag."""
     if not args.rig:
         return None
-    from rasterizer.rig import RIG_DETECT_MAX_DIFF, rig_agreement, rig_layer
+    from rasterizer.rig import NoRigError, require_rig_layer
     from rasterizer.scene_folder import load_image
 
     try:
@@ -424,11 +424,10 @@ def _rig_layer_from_args(args: argparse.Namespace):
     if images[0].shape != images[1].shape or images[0].shape[1] != 2 * images[0].shape[0]:
         raise CliError(f"--rig: need two 2:1 panoramas of one size, got {images[0].shape[1]}x{images[0].shape[0]} "
                        f"and {images[1].shape[1]}x{images[1].shape[0]}")
-    layer = rig_layer(*images)
-    if layer is None:
-        raise CliError(f"--rig: the two panoramas show no common capture rig at their nadir (mean difference "
-                       f"{rig_agreement(*images):.3f} > {RIG_DETECT_MAX_DIFF}); render without --rig")
-    return layer
+    try:
+        return require_rig_layer(*images)
+    except NoRigError as exc:
+        raise CliError(f"--rig: {exc}; render without --rig") from None
 
 
 def cmd_render(args: argparse.Namespace) -> int:

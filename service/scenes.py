@@ -18,7 +18,7 @@ import numpy as np
 
 from rasterizer.camera import DEFAULT_NEAR, camera_directions
 from rasterizer.render import to_uint8
-from rasterizer.rig import RIG_DETECT_CAP_DEG, RIG_DETECT_MAX_DIFF, overlay_rig, rig_agreement, rig_layer
+from rasterizer.rig import NoRigError, overlay_rig, require_rig_layer
 
 from .edits import edit_artifacts
 from .errors import BadInput, PayloadTooLarge, ServiceError, StoreUnavailable
@@ -152,11 +152,10 @@ def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[
     layer = None
     if query.rig:  # before the render: a scene without a rig fails fast
         images, _ = load_references(store, scene_id)
-        layer = rig_layer(*images)
-        if layer is None:
-            raise BadInput(f"rig=true: this scene's references show no common capture rig at their nadir "
-                           f"(mean difference {rig_agreement(*images):.3f} > {RIG_DETECT_MAX_DIFF} within "
-                           f"{RIG_DETECT_CAP_DEG:g} deg of it); render without rig", code="no_rig")
+        try:
+            layer = require_rig_layer(*images)
+        except NoRigError as exc:
+            raise BadInput(f"rig=true: {exc}; render without rig", code="no_rig") from None
     timings["load"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     # plain (default): what every 3DGS viewer shows of the PLY; va: the paper's colour / alpha

@@ -13,10 +13,12 @@ from rasterizer.rig import (
     MAX_RIG_CAP_DEG,
     RIG_DETECT_MAX_DIFF,
     RIG_LAYER_CAP_DEG,
+    NoRigError,
     RigLayer,
     check_rig_cap,
     overlay_rig,
     patch_rig,
+    require_rig_layer,
     resolve_rig_cap,
     rig_agreement,
     rig_layer,
@@ -158,6 +160,8 @@ def test_rig_agreement_and_detection():
     bare_a, bare_b = _captures(1, 2, 0.0)  # no rig: independent textures under both cameras
     assert rig_agreement(bare_a, bare_b) > RIG_DETECT_MAX_DIFF
     assert rig_layer(bare_a, bare_b) is None
+    with pytest.raises(NoRigError, match=r"no common capture rig .*mean difference 0\.\d+ > 0\.05"):
+        require_rig_layer(bare_a, bare_b)
     u8 = [(np.clip(x, 0, 1) * 255).round().astype(np.uint8) for x in (a, b)]
     assert abs(rig_agreement(*u8) - rig_agreement(a, b)) < 0.01  # uint8 captures read as [0, 1]
     with pytest.raises(ValueError, match="one size"):
