@@ -57,13 +57,13 @@ class EncoderConfig:
     # None = peak_margin_scale), a gentle one gives the output confidence / opacity
     peak_margin_scale: float = 0.2
     fill_margin_scale: float | None = 0.01
-    lr_tol_planes: float = 1.5
+    lr_tol_planes: float = 2.0
     # fill of unconfident pixels (export/aggregation.py): plain weighted pyramid, pyramid of local
     # linear models in the grey guide (eps = fill_eps), local linear models of inverse range in the ray
     # direction (exact for planes; eps = fill_plane_scale^2 feature pixels^2), or both together
     fill: Fill = "planar_guided"
     fill_eps: float = 1e-2
-    fill_plane_scale: float = 4.0
+    fill_plane_scale: float = 3.0
     fill_min_weight: float = 0.05
     # cascade stage (export/fine_sweep.py): fine_hypotheses per pixel (0 = off) on a grid
     # fine_downscale times smaller than the Gaussians', fine_step coarse plane steps apart; with
@@ -79,7 +79,7 @@ class EncoderConfig:
     # layout_elevation, agreement within layout_tol of the plane's inverse range (0 = off)
     layout_strength: float = 3.0
     layout_elevation: tuple[float, float] = (0.2, 0.5)
-    layout_tol: float = 0.08
+    layout_tol: float = 0.16
     # no floor prior within layout_nadir_deg of straight down: under each camera stands its own rig or
     # whatever it was set over (m3d 00: a low object at 0.91 m that the plane put at 1.36 m)
     layout_nadir_deg: float = 15.0
@@ -107,7 +107,7 @@ class EncoderConfig:
     near_per_baseline: float = 0.3
     far_per_baseline: float = 20.0
     name: str = "omnisplat-trainingfree"
-    version: str = "0.11.0"
+    version: str = "0.12.0"
 
     def __post_init__(self) -> None:
         if self.width != 2 * self.height:
