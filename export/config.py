@@ -57,7 +57,7 @@ class EncoderConfig:
     # None = peak_margin_scale), a gentle one gives the output confidence / opacity
     peak_margin_scale: float = 0.2
     fill_margin_scale: float | None = 0.01
-    lr_tol_planes: float = 2.0
+    lr_tol_planes: float = 1.5
     # fill of unconfident pixels (export/aggregation.py): plain weighted pyramid, pyramid of local
     # linear models in the grey guide (eps = fill_eps), local linear models of inverse range in the ray
     # direction (exact for planes; eps = fill_plane_scale^2 feature pixels^2), or both together
