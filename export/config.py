@@ -107,7 +107,7 @@ class EncoderConfig:
     near_per_baseline: float = 0.3
     far_per_baseline: float = 20.0
     name: str = "omnisplat-trainingfree"
-    version: str = "0.12.0"
+    version: str = "0.13.0"
 
     def __post_init__(self) -> None:
         if self.width != 2 * self.height:

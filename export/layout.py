@@ -8,9 +8,12 @@ This stage gives the fill a geometric fallback instead (issue 16, "an indoor lay
    cameras are not both upright (down axes more than ``UPRIGHT_DEG`` apart) get no prior;
 2. the world heights along gravity of both views' confident points, below and above the cameras
    (|sin elevation| > ``ELEVATION_FIT``), go into one confidence-weighted log-distance histogram
-   each; its mode is the floor (ceiling) distance from the mean camera height, refined by the
-   weighted mean of the points within 1.5 bins. Scale-free: distances are in units of the
-   geometric-mean range of the confident points;
+   each. The ceiling is its mode; the floor is the farthest peak below the cameras that holds at
+   least ``FLOOR_PEAK_SHARE`` of the mode's weight, since bed, table and dresser tops are nearer
+   and often heavier (on m3d the mode switched between the floor and the furniture tops when
+   the sweep's range moved by a few percent, docs/experiments.md, "Floor or furniture"). Each is
+   refined by the weighted mean of the points within 1.5 bins. Scale-free: distances are in units
+   of the geometric-mean range of the confident points;
 3. each pixel's plane inverse range (floor below the horizon, ceiling above), with a weight that
    ramps with |sin elevation| from ``elevation[0]`` to ``elevation[1]`` (the horizon is walls and
    furniture), is zero within ``nadir_deg`` of straight down (under a camera stands its own rig or
@@ -40,16 +43,31 @@ ELEVATION_FIT = 0.25
 #: Histogram of log(plane distance / scale): bins over [log 0.05, log 5].
 HIST_BINS = 96
 HIST_RANGE = (math.log(0.05), math.log(5.0))
+#: The floor is the farthest histogram peak holding at least this share of the heaviest peak's weight.
+FLOOR_PEAK_SHARE = 0.5
 
 
-def _mode_distance(dist: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """Weighted mode of positive distances (N,) on the log histogram, refined within 1.5 bins; scalar."""
+def _level_distance(dist: torch.Tensor, weight: torch.Tensor, farthest_share: float | None = None) -> torch.Tensor:
+    """One level's distance from weighted positive distances (N,); scalar.
+
+    The log histogram's mode, or with ``farthest_share`` the farthest local peak of its 3-bin sums
+    (a level's whole weight, however the bins split it) of at least that share of the heaviest;
+    refined by the weighted mean within 1.5 bins.
+    """
     lo, hi = HIST_RANGE
     step = (hi - lo) / (HIST_BINS - 1)
     centres = torch.linspace(lo, hi, HIST_BINS, dtype=dist.dtype)
     x = torch.log(dist.clamp(min=1e-3))
     hist = (F.relu(1.0 - (x.unsqueeze(1) - centres).abs() / step) * weight.unsqueeze(1)).sum(0)
-    k = torch.argmax(hist)
+    if farthest_share is None:
+        k = torch.argmax(hist)
+    else:
+        padded = F.pad(hist, (1, 1))
+        mass = padded[:-2] + hist + padded[2:]
+        padded = F.pad(mass, (1, 1))
+        peak = (mass >= padded[:-2]) & (mass > padded[2:]) & (mass >= farthest_share * mass.max())
+        bins = torch.arange(HIST_BINS)
+        k = torch.where(peak, bins, torch.zeros_like(bins)).max()  # the heaviest is a peak: never empty
     near = ((x - centres[k]).abs() <= 1.5 * step).to(dist.dtype) * weight
     return torch.exp((near * x).sum() / near.sum().clamp(min=1e-6))
 
@@ -81,8 +99,8 @@ def fit_planes(rays: torch.Tensor, inv: torch.Tensor, weight: torch.Tensor, c2w:
     scale = torch.exp((w * torch.log(rng)).sum() / w.sum().clamp(min=1e-6))
     below = (sin_el > ELEVATION_FIT).to(inv.dtype)
     above = (sin_el < -ELEVATION_FIT).to(inv.dtype)
-    floor = h_mean + scale * _mode_distance(level / scale, w * below)
-    ceiling = h_mean - scale * _mode_distance(-level / scale, w * above)
+    floor = h_mean + scale * _level_distance(level / scale, w * below, FLOOR_PEAK_SHARE)
+    ceiling = h_mean - scale * _level_distance(-level / scale, w * above)
     return gravity, floor - height, height - ceiling, upright
 
 
