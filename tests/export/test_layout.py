@@ -95,14 +95,13 @@ def test_floor_is_the_farthest_heavy_level_not_a_heavier_table_top(table_weight,
     The fit returns the floor while the floor holds at least FLOOR_PEAK_SHARE of the table's
     weight (here 0.84 and 0.66), and the table below that (0.42); the ceiling either way."""
     rays, inv, c2w = _room()
-    table = TABLE
     sin_el = torch.stack([(rays.reshape(-1, 3) @ c2w[v, :3, :3].T)[:, 1] for v in range(2)]).reshape(inv.shape)
-    top = (sin_el > 0.7) & (table / sin_el.clamp(min=1e-6) < 1.0 / inv)
-    inv = torch.where(top, sin_el / table, inv)
+    top = (sin_el > 0.7) & (TABLE / sin_el.clamp(min=1e-6) < 1.0 / inv)
+    inv = torch.where(top, sin_el / TABLE, inv)
     weight = torch.where(top, torch.full_like(inv, table_weight), torch.ones_like(inv))
     on_floor = (sin_el > 0.25) & ~top & ((inv * FLOOR - sin_el).abs() < 0.01)
     assert float(weight[top].sum()) > float(weight[on_floor].sum()) > 0  # the mode would pick the table
-    _, floor, ceiling, upright = fit_planes(rays, inv, weight, c2w)
+    _, floor, ceiling, _ = fit_planes(rays, inv, weight, c2w)
     np.testing.assert_allclose(floor.numpy(), [expect, expect], rtol=0.02)
     np.testing.assert_allclose(ceiling.numpy(), [CEILING, CEILING], rtol=0.02)
 
