@@ -58,6 +58,7 @@ def bench_model(height: int, width: int, planes: int, erp_encoder: bool = False,
         kwargs["downscale"] = int(downscale)
     if not layout:
         kwargs["layout_strength"] = 0.0
+        kwargs["floor_clamp"] = False
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO_ROOT), os.environ.get("PYTHONPATH", "")])}
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-c", _EXPORT_SNIPPET.format(threads=int(threads)), json.dumps(kwargs)],

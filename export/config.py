@@ -83,6 +83,11 @@ class EncoderConfig:
     # no floor prior within layout_nadir_deg of straight down: under each camera stands its own rig or
     # whatever it was set over (m3d 00: a low object at 0.91 m that the plane put at 1.36 m)
     layout_nadir_deg: float = 15.0
+    # nothing below the floor (floor_clamp): a ray below the horizon keeps at most (1 + floor_clamp_tol) x
+    # the fitted floor's range, after the coarse fill and on the final map (docs/experiments.md,
+    # "Nothing below the floor")
+    floor_clamp: bool = True
+    floor_clamp_tol: float = 0.1
     upsample: Upsample = "guided"
     upsample_radius: int = 2
     upsample_eps: float = 1e-3
@@ -107,7 +112,7 @@ class EncoderConfig:
     near_per_baseline: float = 0.3
     far_per_baseline: float = 20.0
     name: str = "omnisplat-trainingfree"
-    version: str = "0.13.0"
+    version: str = "0.14.0"
 
     def __post_init__(self) -> None:
         if self.width != 2 * self.height:
@@ -134,6 +139,8 @@ class EncoderConfig:
             raise ValueError("need layout_strength >= 0, 0 <= layout_elevation[0] < [1] <= 1, layout_tol > 0 and "
                              f"0 <= layout_nadir_deg < 90; got {self.layout_strength}, {self.layout_elevation}, "
                              f"{self.layout_tol}, {self.layout_nadir_deg}")
+        if not self.floor_clamp_tol >= 0:
+            raise ValueError(f"floor_clamp_tol must be >= 0, got {self.floor_clamp_tol}")
         if self.num_planes < 3:
             raise ValueError(f"num_planes must be >= 3, got {self.num_planes}")
 

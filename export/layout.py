@@ -9,7 +9,7 @@ This stage gives the fill a geometric fallback instead (issue 16, "an indoor lay
 2. the world heights along gravity of both views' confident points, below and above the cameras
    (|sin elevation| > ``ELEVATION_FIT``), go into one confidence-weighted log-distance histogram
    each. The ceiling is its mode; the floor is the farthest peak below the cameras that holds at
-   least ``FLOOR_PEAK_SHARE`` of the mode's weight, since bed, table and dresser tops are nearer
+   least ``FLOOR_PEAK_SHARE`` of the heaviest one's weight (3-bin sums), since bed, table and dresser tops are nearer
    and often heavier (on m3d the mode switched between the floor and the furniture tops when
    the sweep's range moved by a few percent, docs/experiments.md, "Floor or furniture"). Each is
    refined by the weighted mean of the points within 1.5 bins. Scale-free: distances are in units
@@ -22,7 +22,13 @@ This stage gives the fill a geometric fallback instead (issue 16, "an indoor lay
    edges sit off the floor keeps its own fill, while an empty floor between confident floor
    pixels takes the plane;
 4. the fill sees (w v + s p m) / (w + s m) with weight w + s m, where w, v are its own weight and
-   inverse range, p, m the plane's inverse range and gated weight, and s = ``strength``.
+   inverse range, p, m the plane's inverse range and gated weight, and s = ``strength``;
+5. nothing lies below the floor: after the coarse fill and on the final map, a ray below the horizon
+   keeps at most (1 + ``tol``) times the floor's range along it (:func:`clamp_below_floor`). The
+   fill extrapolates textureless floor from far confident pixels and sinks it; surfels under the
+   floor then show through it from every viewpoint (on zind_room09 10-12% of the coarse pixels,
+   drawn as dark stains on the floor between the cameras; docs/experiments.md, "Nothing below the
+   floor").
 
 Measurements behind the defaults: docs/experiments.md, "Layout prior".
 """
@@ -45,6 +51,8 @@ HIST_BINS = 96
 HIST_RANGE = (math.log(0.05), math.log(5.0))
 #: The floor is the farthest histogram peak holding at least this share of the heaviest peak's weight.
 FLOOR_PEAK_SHARE = 0.5
+#: Rays with sin(elevation below the horizon) under this are left to the walls (floor range > 20 x height).
+CLAMP_MIN_SIN = 0.05
 
 
 def _level_distance(dist: torch.Tensor, weight: torch.Tensor, farthest_share: float | None = None) -> torch.Tensor:
@@ -127,3 +135,18 @@ def with_plane_prior(inv: torch.Tensor, weight: torch.Tensor, plane_inv: torch.T
     prior = strength * ramp * agree * agree
     total = weight + prior
     return (weight * inv + prior * plane_inv) / total.clamp(min=1e-9), total
+
+
+def clamp_below_floor(planes, inv: torch.Tensor, rays: torch.Tensor, c2w: torch.Tensor, tol: float) -> torch.Tensor:
+    """Inverse range (2G, 1, h, w) with no point beyond (1 + tol) x the floor's range along its ray.
+
+    rays (G, h, w, 3) camera-frame unit rays of ``inv``'s grid; applies below the horizon
+    (sin elevation > ``CLAMP_MIN_SIN``) of upright captures with a floor below the cameras.
+    """
+    gravity, floor, _, upright = planes
+    g_count, h, w = rays.shape[:3]
+    sin_el = _sin_elevation(rays, c2w[:, :3, :3], gravity)  # (2, G h w)
+    dist = floor.reshape(2, 1)
+    on = (sin_el > CLAMP_MIN_SIN).to(inv.dtype) * (dist > 0).to(inv.dtype) * upright
+    floor_inv = on * sin_el / (dist.clamp(min=1e-6) * (1.0 + tol))
+    return torch.maximum(inv, floor_inv.reshape(2 * g_count, 1, h, w))

@@ -14,7 +14,8 @@ refinement can replace a stage without touching the geometry):
    one weights the fill, a gentle one becomes the output confidence);
 7. left-right check (A->B vs B->A) by warping, inside the graph;
 8. :mod:`export.layout`: floor and ceiling planes fitted to both views' confident points,
-   fed to the fills below as weak observations where nearby confident pixels agree with them;
+   fed to the fills below as weak observations where nearby confident pixels agree with them,
+   and a floor nothing may lie below (after the coarse fill and on the final map);
    fill of unreliable pixels (``linear_push_pull``: pyramid of local linear
    models of inverse range in the ray direction and grey level - exact for
    planes; or ``guided_push_pull`` in the grey level only, or plain
@@ -59,7 +60,7 @@ from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, dom
 from .features import LUMA, GreyFeatures, TrainingFreeFeatures
 from .fine_sweep import FineSweep
 from .gaussian_head import GaussianHead
-from .layout import fit_planes, plane_prior, with_plane_prior
+from .layout import clamp_below_floor, fit_planes, plane_prior, with_plane_prior
 from .matches import Matches
 from .readout import DepthReadout, index_to_inverse
 from .yin_yang_sampling import YinYangSampler
@@ -180,10 +181,16 @@ class OmniSplatEncoder(nn.Module):
 
     def layout(self, planes, inv, weight, rays, c2w, levels):
         """The fill's (value, weight) with the layout planes added (:func:`export.layout.with_plane_prior`)."""
-        if planes is None:
+        if planes is None or self.cfg.layout_strength == 0:
             return inv, weight
         plane_inv, ramp = plane_prior(planes, rays, c2w, self.cfg.layout_elevation, self.cfg.layout_nadir_deg)
         return with_plane_prior(inv, weight, plane_inv, ramp, levels, self.cfg.layout_strength, self.cfg.layout_tol)
+
+    def floor_clamp(self, planes, inv, rays, c2w):
+        """``inv`` (2G, 1, h, w) with nothing below the floor (:func:`export.layout.clamp_below_floor`)."""
+        if planes is None or not self.cfg.floor_clamp:
+            return inv
+        return clamp_below_floor(planes, inv, rays, c2w, self.cfg.floor_clamp_tol)
 
     def cascade(self, inv, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes):
         """Coarse inverse range (2G, 1, h, w) -> refined on the fine grid, with that grid's grey guide.
@@ -239,7 +246,8 @@ class OmniSplatEncoder(nn.Module):
         # seen (the mean inverse depth, ~0.6 baselines, put opaque floaters between the cameras)
         fallback = inv_depths[0]
         fill_weight = conf_fill * reliable
-        planes = fit_planes(self.feat_rays, inv, fill_weight, c2w) if cfg.layout_strength > 0 else None
+        use_planes = cfg.layout_strength > 0 or cfg.floor_clamp
+        planes = fit_planes(self.feat_rays, inv, fill_weight, c2w) if use_planes else None
         value, value_w = self.layout(planes, inv, fill_weight, self.feat_rays, c2w, self.levels)
         if cfg.fill == "guided":
             filled = guided_push_pull(value, value_w, grey_low, self.levels, fallback, cfg.fill_eps)
@@ -252,6 +260,7 @@ class OmniSplatEncoder(nn.Module):
         else:
             filled = push_pull(value, value_w, self.levels, fallback)
         filled = guided_filter(grey_low, filled, 1, cfg.upsample_eps, wrap)
+        filled = self.floor_clamp(planes, filled, self.feat_rays, c2w)
 
         size = (self.full_h, self.full_w)
         if self.fine is not None:
@@ -262,6 +271,7 @@ class OmniSplatEncoder(nn.Module):
             inv_full = F.interpolate(filled, size=size, mode="bilinear", align_corners=False)
         else:
             inv_full = filled
+        inv_full = self.floor_clamp(planes, inv_full, self.head.rays, c2w)
         inv_full = inv_full.clamp(min=inv_depths[0], max=inv_depths[d_count - 1])
         rng = (1.0 / inv_full).reshape(2, g_count, *size)
         conf_full = weight if cfg.downscale == 1 else F.interpolate(weight, size=size, mode="bilinear", align_corners=False)

@@ -1,11 +1,12 @@
-"""Layout prior (export/layout.py): plane fit on a synthetic room, upright gate, agreement gating."""
+"""Layout prior (export/layout.py): plane fit on a synthetic room, upright gate, agreement gating,
+nothing below the floor."""
 
 import numpy as np
 import pytest
 import torch
 
 from export.aggregation import pyramid_levels
-from export.layout import fit_planes, plane_prior, with_plane_prior
+from export.layout import CLAMP_MIN_SIN, clamp_below_floor, fit_planes, plane_prior, with_plane_prior
 from rasterizer.geometry import grid_directions
 
 H, W = 32, 96  # one Yin/Yang feature grid
@@ -171,3 +172,44 @@ def test_config_refuses_a_nadir_cut_outside_0_to_90(bad):
 
     with pytest.raises(ValueError, match="layout_nadir_deg"):
         make_config("quality", layout_nadir_deg=bad)
+
+
+def _sin_below(rays, c2w, gravity):
+    """(2G, 1, h, w) sine of each ray's elevation below the horizon, in the maps' [view][grid] order."""
+    return torch.stack([rays.reshape(-1, 3) @ c2w[v, :3, :3].T @ gravity for v in range(2)]).reshape(4, 1, H, W)
+
+
+@pytest.mark.parametrize("tol", [0.0, 0.1, 0.3])
+def test_nothing_below_the_floor(tol):
+    """Points sunk below the floor (the fill's smear) come up to (1 + tol) x the floor's range; points
+    above it (furniture, walls), rays near or above the horizon and the true room stay as they are."""
+    rays, inv, c2w = _room()
+    planes = fit_planes(rays, inv, torch.ones_like(inv), c2w)
+    floor = planes[1].reshape(2, 1, 1, 1).repeat_interleave(2, 0)  # per map
+    sin_el = _sin_below(rays, c2w, planes[0])
+    # the room itself: untouched, up to the fit's error in the floor height (< 1%) at tol 0
+    torch.testing.assert_close(clamp_below_floor(planes, inv, rays, c2w, tol), inv, rtol=0.01, atol=0.0)
+    sunk = inv * 0.5  # every point twice as far
+    out = clamp_below_floor(planes, sunk, rays, c2w, tol)
+    below = (sin_el > CLAMP_MIN_SIN) & (sunk < sin_el / (floor * (1 + tol)))
+    assert below.float().mean() > 0.2
+    torch.testing.assert_close(out[below], (sin_el / (floor * (1 + tol)))[below])
+    assert torch.equal(out[~below], sunk[~below])
+    assert bool((out[sin_el <= CLAMP_MIN_SIN] == sunk[sin_el <= CLAMP_MIN_SIN]).all())
+
+
+def test_no_floor_clamp_for_tilted_cameras_or_a_floor_above_them():
+    rays, inv, c2w = _room()
+    sunk = inv * 0.5
+    planes = fit_planes(rays, inv, torch.ones_like(inv), c2w)
+    gravity, floor, ceiling, _ = planes
+    assert torch.equal(clamp_below_floor((gravity, floor, ceiling, torch.zeros(())), sunk, rays, c2w, 0.1), sunk)
+    assert torch.equal(clamp_below_floor((gravity, -floor, ceiling, planes[3]), sunk, rays, c2w, 0.1), sunk)
+
+
+@pytest.mark.parametrize("bad", [-0.1, float("nan")])
+def test_config_refuses_a_negative_floor_tolerance(bad):
+    from export.config import make_config
+
+    with pytest.raises(ValueError, match="floor_clamp_tol"):
+        make_config("quality", floor_clamp_tol=bad)
