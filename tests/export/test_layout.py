@@ -213,3 +213,42 @@ def test_config_refuses_a_negative_floor_tolerance(bad):
 
     with pytest.raises(ValueError, match="floor_clamp_tol"):
         make_config("quality", floor_clamp_tol=bad)
+
+
+@pytest.mark.parametrize("clamp", [True, False], ids=["floor_clamp", "no_clamp"])
+def test_encoder_keeps_every_point_above_the_floor(zind_dir, monkeypatch, clamp):
+    """The whole graph on zind_room09's widest pair (4.25 m, where the fill sinks the carpet): with the
+    rule, no final range lies beyond (1 + floor_clamp_tol) x the fitted floor's range along its ray;
+    without it, some do (so this test sees the rule's wiring, not only the function)."""
+    import export.model as model_module
+    from export.config import make_config
+    from export.model import OmniSplatEncoder
+    from rasterizer.scene_folder import load_scene
+    from rasterizer.sweep import INPUT_NAMES, OUTPUT_NAMES, default_near_far, sweep_inputs
+    from rasterizer.yin_yang import resize_erp
+
+    fits = []
+    monkeypatch.setattr(model_module, "fit_planes", lambda *a: fits.append(fit_planes(*a)) or fits[-1])
+    cfg = make_config("quality", height=128, width=256, num_planes=16, floor_clamp=clamp)
+    scene = load_scene(zind_dir)
+    fa, fb = scene.frames["pano_2"], scene.frames["pano_6"]
+    near, far = default_near_far(fa.c2w, fb.c2w)
+    si = sweep_inputs(fa.c2w, fb.c2w, near=near, far=far, num_planes=cfg.num_planes, feature_size=cfg.feature_size)
+    img = lambda f: np.ascontiguousarray(resize_erp(f.image(), cfg.height, cfg.width).transpose(2, 0, 1)[None])
+    feeds = {"erp_a": img(fa), "erp_b": img(fb), **{k: np.array(si[k]) for k in INPUT_NAMES[2:]}}
+    with torch.no_grad():
+        out = OmniSplatEncoder(cfg).eval()(*[torch.from_numpy(feeds[k]) for k in INPUT_NAMES])
+    rng = dict(zip(OUTPUT_NAMES, out))["range_maps"].double()  # (2, G, H, W)
+    (gravity, floor, _, upright), = fits
+    assert float(upright) == 1.0 and bool((floor > 0.5).all())  # an upright capture with a floor below
+    rays = torch.from_numpy(np.stack([grid_directions(k, *rng.shape[-2:]) for k in cfg.grids]))
+    c2w = torch.from_numpy(np.stack([fa.c2w, fb.c2w]))
+    sin_el = torch.stack([rays @ c2w[v, :3, :3].T @ gravity.double() for v in range(2)])  # (2, G, H, W)
+    below = sin_el > CLAMP_MIN_SIN
+    depth = (rng * sin_el)[below]  # metres below the camera along gravity
+    limit = (floor.double().reshape(2, 1, 1, 1).expand_as(rng) * (1 + cfg.floor_clamp_tol))[below]
+    sunk = float((depth > limit * (1 + 1e-4)).double().mean())
+    if clamp:
+        assert sunk == 0.0
+    else:
+        assert sunk > 0.01, sunk
