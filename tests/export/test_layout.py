@@ -175,8 +175,8 @@ def test_config_refuses_a_nadir_cut_outside_0_to_90(bad):
 
 
 def _sin_below(rays, c2w, gravity):
-    """(2G, 1, h, w) sine of each ray's elevation below the horizon, in the maps' [view][grid] order."""
-    return torch.stack([rays.reshape(-1, 3) @ c2w[v, :3, :3].T @ gravity for v in range(2)]).reshape(4, 1, H, W)
+    """(2, G, h, w) sine of each camera-frame ray's (G, h, w, 3) elevation below the horizon, per view."""
+    return torch.stack([rays @ c2w[v, :3, :3].T @ gravity for v in range(2)])
 
 
 @pytest.mark.parametrize("tol", [0.0, 0.1, 0.3])
@@ -186,7 +186,7 @@ def test_nothing_below_the_floor(tol):
     rays, inv, c2w = _room()
     planes = fit_planes(rays, inv, torch.ones_like(inv), c2w)
     floor = planes[1].reshape(2, 1, 1, 1).repeat_interleave(2, 0)  # per map
-    sin_el = _sin_below(rays, c2w, planes[0])
+    sin_el = _sin_below(rays, c2w, planes[0]).reshape(inv.shape)  # the maps' [view][grid] order
     # the room itself: untouched, up to the fit's error in the floor height (< 1%) at tol 0
     torch.testing.assert_close(clamp_below_floor(planes, inv, rays, c2w, tol), inv, rtol=0.01, atol=0.0)
     sunk = inv * 0.5  # every point twice as far
@@ -242,8 +242,7 @@ def test_encoder_keeps_every_point_above_the_floor(zind_dir, monkeypatch, clamp)
     (gravity, floor, _, upright), = fits
     assert float(upright) == 1.0 and bool((floor > 0.5).all())  # an upright capture with a floor below
     rays = torch.from_numpy(np.stack([grid_directions(k, *rng.shape[-2:]) for k in cfg.grids]))
-    c2w = torch.from_numpy(np.stack([fa.c2w, fb.c2w]))
-    sin_el = torch.stack([rays @ c2w[v, :3, :3].T @ gravity.double() for v in range(2)])  # (2, G, H, W)
+    sin_el = _sin_below(rays, torch.from_numpy(np.stack([fa.c2w, fb.c2w])), gravity.double())  # (2, G, H, W)
     below = sin_el > CLAMP_MIN_SIN
     depth = (rng * sin_el)[below]  # metres below the camera along gravity
     limit = (floor.double().reshape(2, 1, 1, 1).expand_as(rng) * (1 + cfg.floor_clamp_tol))[below]
