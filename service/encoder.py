@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from rasterizer.colour_fit import COLOUR_FIT_STRENGTH, check_colour_fit, fit_reference_colours
 from rasterizer.gaussians import Gaussians
 from rasterizer.geometry import PoseError, as_c2w
 from rasterizer.rig import check_rig_cap, patch_rig, resolve_rig_cap, rig_summary
@@ -37,7 +38,7 @@ from rasterizer.yin_yang import resize_erp
 
 from .model_files import sha256_file
 
-KNOWN_OPTIONS = ("min_opacity", "sh_degree", "rig_cap_deg")
+KNOWN_OPTIONS = ("min_opacity", "sh_degree", "rig_cap_deg", "colour_fit")
 
 
 class EncoderInputError(ValueError):
@@ -180,7 +181,9 @@ class OnnxEncoder:
         that each reference sees its own image (:mod:`rasterizer.view_colour`), 0 keeps one colour
         per Gaussian; ``rig_cap_deg`` > 0 re-colours each reference's pixels within that many degrees of
         its nadir, where tripod captures show the rig, from the other reference (:mod:`rasterizer.rig`);
-        absent or None: ``AUTO_RIG_CAP_DEG`` where both references show a rig, else 0.
+        absent or None: ``AUTO_RIG_CAP_DEG`` where both references show a rig, else 0; ``colour_fit``: the
+        strength of the closed-form colour-fit step (:mod:`rasterizer.colour_fit`; default
+        ``COLOUR_FIT_STRENGTH``, 0 leaves the pixel colours as they are).
         Raises :class:`EncoderInputError`.
         """
         unknown = sorted(set(options) - set(KNOWN_OPTIONS))
@@ -189,6 +192,7 @@ class OnnxEncoder:
         try:
             sh_degree = check_sh_degree(options.get("sh_degree", DEFAULT_SH_DEGREE))
             rig_cap = check_rig_cap(options.get("rig_cap_deg"))
+            colour_fit = check_colour_fit(options.get("colour_fit", COLOUR_FIT_STRENGTH))
         except ValueError as exc:
             raise EncoderInputError(str(exc)) from None
         t_start = time.perf_counter()
@@ -241,6 +245,9 @@ class OnnxEncoder:
         gaussians, rig = patch_rig(Gaussians(*arrays), out["range_maps"], poses, self.grids, rig_cap)
         radius = shell_radius(out["range_maps"])
         shell = environment_shell(gaussians, out["range_maps"], poses, self.grids, radius)
+        t_fit = time.perf_counter()
+        gaussians = fit_reference_colours(gaussians, out["confidence"], poses, self.grids, strength=colour_fit)
+        timings["colour_fit"] = time.perf_counter() - t_fit  # part of "gaussians"
         if sh_degree == 1:  # the shell keeps one colour (concatenate pads its SH with zeros)
             gaussians = fit_view_colour(gaussians, out["range_maps"], poses, self.grids, hidden=rig)
         min_opacity = float(options.get("min_opacity", 0.0))
@@ -253,6 +260,7 @@ class OnnxEncoder:
             "near": near, "far": far, "baseline": b, "num_planes": self.num_planes,
             "num_gaussians": len(gaussians), "num_gaussians_raw": int(out["means"].shape[0]),
             "num_gaussians_shell": len(shell), "shell_radius": radius, "sh_degree": sh_degree, "rig_cap_deg": rig_cap,
+            "colour_fit": colour_fit,
             "rig": rig_info,
             "grids": self._meta.get("grids"), "input_size": [self.height, self.width],
             "mean_confidence": float(out["confidence"].mean()),

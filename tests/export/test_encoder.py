@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from export.onnx_export import export_model
+from rasterizer.colour_fit import COLOUR_FIT_STRENGTH
 from rasterizer.geometry import grid_directions, project_to_grid
 from rasterizer.rig import rig_mask
 from rasterizer.scene_folder import load_scene
@@ -73,12 +74,21 @@ def test_reconstruct_m3d_depth_is_metric(encoder, m3d):
         own = slice(v * n, (v + 1) * n)
         np.testing.assert_allclose(sh_to_rgb(g.sh[own], g.means[own], c2w[:3, 3]),
                                    sh_to_rgb(one.sh[own], one.means[own], c2w[:3, 3]), atol=1e-4)
+    # the colour-fit step (rasterizer.colour_fit) moves colours only: geometry, opacity and count stay
+    plain = encoder.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w, sh_degree=0, colour_fit=0).gaussians
+    assert rec.info["colour_fit"] == COLOUR_FIT_STRENGTH > 0
+    np.testing.assert_array_equal(plain.means, one.means)
+    np.testing.assert_array_equal(plain.opacities, one.opacities)
+    assert np.abs(plain.sh[:2 * n] - one.sh[:2 * n]).max() > 0.05
+    with pytest.raises(EncoderInputError, match="colour_fit"):
+        encoder.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w, colour_fit=-1)
     # the rig cap re-colours only pixels near each camera's nadir; geometry and count stay
-    capped = encoder.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w, sh_degree=0, rig_cap_deg=20.0)
+    capped = encoder.reconstruct(fa.image(), fb.image(), fa.c2w, fb.c2w, sh_degree=0, rig_cap_deg=20.0,
+                                 colour_fit=0)
     assert capped.info["rig_cap_deg"] == 20.0 and rec.info["rig_cap_deg"] == 0.0
     c = capped.gaussians
-    np.testing.assert_array_equal(c.means, one.means)
-    changed = np.any(c.sh[:2 * n] != one.sh[:2 * n], axis=(1, 2))  # both views, shell excluded
+    np.testing.assert_array_equal(c.means, plain.means)
+    changed = np.any(c.sh[:2 * n] != plain.sh[:2 * n], axis=(1, 2))  # both views, shell excluded
     near_nadir = np.tile(rig_mask(("yin", "yang"), 64, 192, 20.0).ravel(), 2)
     assert changed.any() and not changed[~near_nadir].any()
 

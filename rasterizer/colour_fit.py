@@ -1,0 +1,170 @@
+"""Pixel colours that reproduce each reference through the compositor: one closed-form colour-fit step.
+
+A reference's pixel-aligned surfels overlap their grid neighbours (0.4-0.7 pixel pitches wide, so that
+plain compositing closes the surface), so a render at the reference's own pose shows its image blurred
+by the footprints, and so does every nearby view. Refinement (+opt, :mod:`rasterizer.refine`) undoes
+that by gradient steps over full renders, seconds per scene. This module takes one Jacobi step of the
+same fit at the cost of a few image-sized array passes:
+
+* :func:`own_view_render` composites each pixel of reference v's grid from the K x K grid neighbours'
+  own Gaussians only: their projected ellipses (:func:`rasterizer.splat.project`, with the render's
+  low-pass), alpha = min(0.99, opacity g), front to back in range order, as
+  :mod:`rasterizer.composite` does. Footprints beyond the window and the other reference's Gaussians
+  are left out: the step fits each view's own blur, not the blend of two views.
+* :func:`fit_reference_colours` adds ``strength * confidence * (c - render)`` to the pixel colours c,
+  clipped to [0, 1]. Where the window's coverage alpha is below 1 the rest is taken as c itself (what
+  lies behind is not known here). The confidence weight keeps the step off Gaussians whose depth is a
+  guess, where a sharper colour at the wrong place costs the novel views more than the blur does
+  (docs/experiments.md, "A colour-fit step in the POST").
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from .camera import DEFAULT_NEAR, Camera
+from .composite import ALPHA_MAX, ALPHA_MIN
+from .gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
+from .splat import project
+
+#: Step size of the fit (x the Gaussian's confidence): 1 would be a plain Jacobi step, more
+#: over-relaxes it; chosen on the dev scenes (docs/experiments.md, "A colour-fit step in the POST").
+COLOUR_FIT_STRENGTH = 1.5
+#: Window of grid neighbours composited per pixel (odd): 3 x 3 covers footprints up to ~1 pitch.
+COLOUR_FIT_TAPS = 3
+#: Gaussians nearer their camera than this fraction of the baseline are left out of the composite (the
+#: encoder's sweep starts at 0.3 baselines). A near plane at the scene's own scale gives a scene scaled
+#: by any factor the same colours; a fixed one would cull a millimetre-scale scene.
+NEAR_PER_BASELINE = 1e-3
+#: Worker threads of :func:`fit_reference_colours` (the machine's two cores).
+_THREADS = 2
+
+
+def check_colour_fit(value) -> float:
+    """``value`` as a fit strength (a finite number >= 0); raises ValueError saying what was sent."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not (np.isfinite(value) and value >= 0):
+        raise ValueError(f"colour_fit: expected a finite number >= 0 (0 turns the colour-fit step off), got {value!r}")
+    return float(value)
+
+
+def _grid_composite(part: Gaussians, colours: np.ndarray, c2w: np.ndarray, kind: str, height: int, width: int,
+                    taps: int, near: float) -> tuple[np.ndarray, np.ndarray]:
+    """One grid of :func:`own_view_render`: (colour (H W, 3), coverage alpha (H W,)) float32."""
+    r = taps // 2
+    proj = project(part, Camera(kind, width, height, c2w, near=near))
+    # per pixel-aligned Gaussian: centre offset from its own pixel (px), conic, opacity; its range
+    # (float64, the rasterizer's sort key, ties in index order as there); culled ones (behind, too near,
+    # outside the domain) keep opacity 0 and an infinite range
+    k = proj.index
+    par = np.zeros((height + 2 * r, width + 2 * r, 6), dtype=np.float32)
+    dist = np.full((height + 2 * r, width + 2 * r), np.inf)
+    rows, cols = r + k // width, r + k % width
+    par[rows, cols, 0] = proj.mean[:, 0] - k % width
+    par[rows, cols, 1] = proj.mean[:, 1] - k // width
+    par[rows, cols, 2:5] = proj.conic
+    par[rows, cols, 5] = part.opacities[k]
+    dist[rows, cols] = proj.ranges
+    col = np.zeros((height + 2 * r, width + 2 * r, 3), dtype=np.float32)
+    col[r:r + height, r:r + width] = np.asarray(colours, dtype=np.float32).reshape(height, width, 3)
+    offsets = [(di, dj) for di in range(-r, r + 1) for dj in range(-r, r + 1)]
+    windows = [(slice(r + di, r + di + height), slice(r + dj, r + dj + width)) for di, dj in offsets]
+    alpha = np.empty((height, width, len(offsets)), dtype=np.float32)
+    rng = np.empty(alpha.shape, dtype=np.float64)
+    for t, ((di, dj), win) in enumerate(zip(offsets, windows)):
+        q = par[win]
+        dx = -dj - q[..., 0]  # pixel centre minus the neighbour's projected centre
+        dy = -di - q[..., 1]
+        a = q[..., 2] * dx * dx
+        a += 2 * q[..., 3] * dx * dy
+        a += q[..., 4] * dy * dy
+        a *= np.float32(-0.5)
+        np.exp(a, out=a)
+        a *= q[..., 5]
+        np.minimum(a, ALPHA_MAX, out=a)
+        a[~(a >= ALPHA_MIN)] = 0.0  # skipped, as the compositor does (and NaN-safe)
+        alpha[..., t] = a
+        rng[..., t] = dist[win]
+    order = np.argsort(rng, axis=-1, kind="stable")  # front to back
+    front = np.take_along_axis(alpha, order, axis=-1)
+    trans = np.cumprod(1.0 - front, axis=-1)
+    front[..., 1:] *= trans[..., :-1]  # alpha x transmittance before it
+    weight = np.empty_like(front)
+    np.put_along_axis(weight, order, front, axis=-1)  # back to window order
+    out = np.zeros((height, width, 3), dtype=np.float32)
+    for t, win in enumerate(windows):
+        out += weight[..., t, None] * col[win]
+    return out.reshape(-1, 3), (1.0 - trans[..., -1]).reshape(-1)
+
+
+def _check_taps(taps: int) -> None:
+    if isinstance(taps, bool) or not isinstance(taps, (int, np.integer)) or taps < 1 or taps % 2 == 0:
+        raise ValueError(f"taps must be a positive odd integer, got {taps!r}")
+
+
+def own_view_render(gaussians: Gaussians, colours: np.ndarray, c2w: np.ndarray, grids: tuple[str, ...],
+                    height: int, width: int, taps: int = COLOUR_FIT_TAPS, near: float = DEFAULT_NEAR
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """One reference's pixel-aligned Gaussians composited at its own pose, each pixel from its grid
+    neighbours (module docstring); Gaussians nearer the camera than ``near`` are left out, as in a render.
+
+    gaussians: N = G H W Gaussians in [grid][row][col] order, placed by the reference at ``c2w`` (4x4
+    OpenCV camera-to-world); colours (N, 3) their colour seen from it; grids: the G grid kinds
+    (:data:`rasterizer.camera.PROJECTIONS` names), each ``height`` x ``width`` pixels; taps: odd window
+    size. Returns (colour (N, 3) float32 composited over black, alpha (N,) float32 coverage).
+    """
+    _check_taps(taps)
+    n1 = height * width
+    if len(gaussians) != len(grids) * n1 or np.shape(colours) != (len(gaussians), 3):
+        raise ValueError(f"need {len(grids)} x {height} x {width} Gaussians and (N, 3) colours; got "
+                         f"{len(gaussians)} and {np.shape(colours)}")
+    parts = [_grid_composite(gaussians.subset(slice(gi * n1, (gi + 1) * n1)), colours[gi * n1:(gi + 1) * n1],
+                             c2w, kind, height, width, taps, near) for gi, kind in enumerate(grids)]
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+def fit_reference_colours(layout: Gaussians, confidence: np.ndarray, c2w: np.ndarray, grids: tuple[str, ...], *,
+                          strength: float = COLOUR_FIT_STRENGTH, taps: int = COLOUR_FIT_TAPS) -> Gaussians:
+    """``layout`` with pixel colours moved one fit step towards reproducing each reference (module docstring).
+
+    layout: N = 2 G H W pixel-aligned Gaussians of two views in [view][grid][row][col] order, colour in
+    the SH DC band (higher bands are left as they are); confidence (2, G, H, W) in [0, 1]; c2w (2, 4, 4)
+    the poses the layout's means are in; grids: the G grid kinds. strength 0 returns ``layout``.
+    """
+    v_count, g_count, h, w = np.shape(confidence)
+    n = g_count * h * w
+    if v_count != 2 or len(layout) != 2 * n or len(grids) != g_count:
+        raise ValueError(f"need two views' pixel-aligned layout; got {len(layout)} Gaussians and grids {grids} "
+                         f"for confidence {np.shape(confidence)}")
+    strength = check_colour_fit(strength)
+    _check_taps(taps)
+    if strength == 0:
+        return layout
+    rgb = sh_dc_to_rgb(layout.sh[:, 0, :]).astype(np.float32)
+    weight = np.float32(strength) * np.clip(np.asarray(confidence, dtype=np.float32), 0.0, 1.0).reshape(-1, 1)
+    poses = np.asarray(c2w, dtype=np.float64)
+    baseline = float(np.linalg.norm(poses[0, :3, 3] - poses[1, :3, 3]))
+    if not (np.isfinite(baseline) and baseline > 0):
+        raise ValueError(f"the two camera centres must differ, got a baseline of {baseline}")
+    n1 = h * w
+    jobs = [(v, gi, kind) for v in range(2) for gi, kind in enumerate(grids)]
+
+    def one(job):
+        v, gi, kind = job
+        part = slice((v * g_count + gi) * n1, (v * g_count + gi + 1) * n1)
+        render, cover = _grid_composite(layout.subset(part), rgb[part], poses[v], kind, h, w, taps,
+                                        NEAR_PER_BASELINE * baseline)
+        residual = cover[:, None] * rgb[part] - render  # c - (render + (1 - cover) c)
+        return part, np.clip(rgb[part] + weight[part] * residual, 0.0, 1.0)
+
+    # numpy releases the GIL in its array passes: the four grids run two at a time
+    with ThreadPoolExecutor(max_workers=_THREADS) as pool:
+        done = list(pool.map(one, jobs))
+    new = rgb.copy()
+    for part, colours in done:
+        new[part] = colours
+    sh = layout.sh.copy()
+    sh[:, 0, :] = rgb_to_sh_dc(new)
+    return layout.with_(sh=sh)
