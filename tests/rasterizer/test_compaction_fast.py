@@ -10,7 +10,7 @@ import pytest
 
 from rasterizer import compaction as cp
 from rasterizer import geometry as geo
-from rasterizer.compaction import CompactionOptions, Provenance, compact_result, smooth_merge_blocks
+from rasterizer.compaction import CompactionOptions, Provenance, compact_result, maths, merge, smooth_merge_blocks, steps
 from rasterizer.depth_gaussians import gaussians_from_depth
 from rasterizer.gaussians import SH_C0, Gaussians, quat_to_rotmat, rotmat_to_quat, scale_rotation_from_covariance
 
@@ -18,7 +18,7 @@ _DEFAULTS = CompactionOptions()
 
 
 def _reference_plane_ok(u_w, mu, m2, plane_tol: float, cos_incidence: float) -> np.ndarray:
-    """Array-form plane test, the reference for ``compaction._plane_ok_c``: blocks whose centres lie
+    """Array-form plane test, the reference for ``rasterizer.compaction.maths.plane_ok_c``: blocks whose centres lie
     on a plane seen at most at the incidence limit.
 
     Residual = rms distance from the best plane (smallest eigenvalue of the
@@ -27,9 +27,9 @@ def _reference_plane_ok(u_w, mu, m2, plane_tol: float, cos_incidence: float) -> 
     limit also rejects depth steps: a block whose pixels jump in range fits
     a plane almost parallel to the rays.
     """
-    lam, normal, ok = cp._smallest_eigenpair(m2 / u_w[:, None])
-    rng = np.sqrt(cp._sum3(mu * mu))
-    cos_inc = np.abs(cp._sum3(normal * mu)) / np.where(rng > 0, rng, 1.0)
+    lam, normal, ok = maths.smallest_eigenpair(m2 / u_w[:, None])
+    rng = np.sqrt(maths.sum3(mu * mu))
+    cos_inc = np.abs(maths.sum3(normal * mu)) / np.where(rng > 0, rng, 1.0)
     return ok & (rng > 0) & (lam <= (plane_tol * rng) ** 2) & (cos_inc >= cos_incidence)
 
 
@@ -43,7 +43,7 @@ def _reference_level1(g: Gaussians, prov: Provenance, alive, colour_tol=_DEFAULT
     cam_of_plane = np.repeat(prov.c2w[:, :3, 3], len(prov.grids), axis=0)
     slot = np.full(prov.full_count, -1, dtype=np.int64)
     slot[flat[alive]] = np.flatnonzero(alive)
-    blocks = cp._blocks(slot.reshape(-1, h, w))
+    blocks = merge._blocks(slot.reshape(-1, h, w))
     shape = blocks.shape[:3]
     blocks = blocks.reshape(-1, 4)
     cand = np.flatnonzero(np.all(blocks >= 0, axis=1))
@@ -53,7 +53,7 @@ def _reference_level1(g: Gaussians, prov: Provenance, alive, colour_tol=_DEFAULT
     dc = g.sh[:, 0, :]
     c = [dc[members[:, k]] for k in range(4)]
     cmin, cmax = np.minimum.reduce(c), np.maximum.reduce(c)
-    ok = cp._max3(cmax - cmin) <= np.float32(colour_tol / SH_C0)
+    ok = maths.max3(cmax - cmin) <= np.float32(colour_tol / SH_C0)
     o = [g.opacities[members[:, k]] for k in range(4)]
     amin, amax = np.minimum.reduce(o), np.maximum.reduce(o)
     ok &= amax - amin <= np.float32(opacity_tol)
@@ -62,22 +62,22 @@ def _reference_level1(g: Gaussians, prov: Provenance, alive, colour_tol=_DEFAULT
     a, area, pos = [], [], []
     for k in range(4):
         sc = g.scales[m[:, k]].astype(np.float64)
-        area.append(sc[:, 0] * sc[:, 1] * sc[:, 2] / np.maximum(cp._min3(sc), 1e-300))
+        area.append(sc[:, 0] * sc[:, 1] * sc[:, 2] / np.maximum(maths.min3(sc), 1e-300))
         a.append(g.opacities[m[:, k]].astype(np.float64))
         pos.append(g.means[m[:, k]].astype(np.float64) - cam)
     wk = [a[k] * area[k] for k in range(4)]
     wt = sum(wk)
     wsafe = np.where(wt > 0, wt, 1.0)
     mu = sum(wk[k][:, None] * pos[k] for k in range(4)) / wsafe[:, None]
-    m2 = sum(cp._outer6(pos[k] - mu, wk[k]) for k in range(4))
+    m2 = sum(maths.outer6(pos[k] - mu, wk[k]) for k in range(4))
     sel = np.flatnonzero((wt > 0) & _reference_plane_ok(wsafe, mu, m2, plane_tol, cos_inc))
     sub = g.subset(m[sel].T.ravel())
     rot = quat_to_rotmat(sub.quats)
     rs = rot * (sub.scales.astype(np.float64) ** 2)[:, None, :]
-    cov_all = np.stack([cp._sum3(rs[:, i, :] * rot[:, j, :]) for i, j in cp._SYM], axis=1)
+    cov_all = np.stack([maths.sum3(rs[:, i, :] * rot[:, j, :]) for i, j in maths.SYM], axis=1)
     w_all = np.concatenate([wk[k][sel] for k in range(4)])
-    rng_all = np.sqrt(np.concatenate([cp._sum3(pos[k][sel] ** 2) for k in range(4)]))
-    depth_all = (cp._render_area(sub.scales.astype(np.float64), rng_all * pitch)
+    rng_all = np.sqrt(np.concatenate([maths.sum3(pos[k][sel] ** 2) for k in range(4)]))
+    depth_all = (merge._render_area(sub.scales.astype(np.float64), rng_all * pitch)
                  * cp.opacity_depth(sub.opacities.astype(np.float64)))
 
     def per_block(x):
@@ -87,18 +87,18 @@ def _reference_level1(g: Gaussians, prov: Provenance, alive, colour_tol=_DEFAULT
     covb = per_block(w_all[:, None] * cov_all)
     shb = per_block(w_all[:, None, None] * sub.sh.astype(np.float64))
     depth = per_block(depth_all)
-    cov = cp._sym_full((covb + m2b) / wb[:, None])
+    cov = maths.sym_full((covb + m2b) / wb[:, None])
     # in-plane widening to MIN_OVERLAP of the 2x2 block's size (plane normal = smallest axis of the spread)
-    spread = cp._sym_full(m2b / wb[:, None])
+    spread = maths.sym_full(m2b / wb[:, None])
     nrm = np.linalg.eigh(spread)[1][:, :, 0]
     along = lambda c: np.einsum("ni,nij,nj->n", nrm, c, nrm)  # noqa: E731
     inplane = lambda c: np.trace(c, axis1=1, axis2=2) - along(c)  # noqa: E731
     delta = np.maximum(cp.MIN_OVERLAP**2 * 12.0 * 4 / 3 * inplane(spread) - inplane(cov), 0.0) / 2
     cov = cov + delta[:, None, None] * (np.eye(3) - np.einsum("ni,nj->nij", nrm, nrm))
-    rngb = np.sqrt(cp._sum3(mub * mub))
+    rngb = np.sqrt(maths.sum3(mub * mub))
     scales, quats = scale_rotation_from_covariance(cov, min_scale=1e-12)
     scales = np.maximum(scales, 1e-9 * rngb[:, None])
-    need = depth / np.maximum(cp._render_area(scales, rngb * pitch), 1e-300)
+    need = depth / np.maximum(merge._render_area(scales, rngb * pitch), 1e-300)
     merged = Gaussians(mub + cam[sel], scales, quats, cp.opacity_for_depth(need), shb / wb[:, None, None])
     chosen = cand[idx[sel]]
     plane, pix = np.divmod(chosen, shape[1] * shape[2])
@@ -183,20 +183,20 @@ def test_footprint_and_ranges_match_plain_formulas():
     s = np.sort(g.scales.astype(np.float64), axis=1)
     np.testing.assert_array_equal(cp.footprint(g), np.sqrt(s[:, 1] * s[:, 2]))
     view = prov.decode(len(g))[0]
-    np.testing.assert_array_equal(cp._view_of(prov, len(g)), view)
-    np.testing.assert_array_equal(cp._ranges_from_own_camera(g, view, prov.c2w),
+    np.testing.assert_array_equal(steps._view_of(prov, len(g)), view)
+    np.testing.assert_array_equal(steps._ranges_from_own_camera(g, view, prov.c2w),
                                   np.linalg.norm(g.means.astype(np.float64) - prov.c2w[view, :3, 3], axis=1))
 
 
 def test_quaternion_helpers_match_gaussians_module():
     rng = np.random.default_rng(6)
     a = rng.standard_normal((500, 3, 3))
-    cov6 = np.stack([(a @ a.transpose(0, 2, 1))[:, i, j] for i, j in cp._SYM], axis=1)
+    cov6 = np.stack([(a @ a.transpose(0, 2, 1))[:, i, j] for i, j in maths.SYM], axis=1)
     cov6[:5, 3:] = 0.0  # diagonal ones (the quaternion's other branches)
     cov6[5:10, :3] = 1.0
-    s_ref, q_ref = scale_rotation_from_covariance(cp._sym_full(cov6))
-    s, q = cp._scale_rotation6(cov6, 1e-12)
+    s_ref, q_ref = scale_rotation_from_covariance(maths.sym_full(cov6))
+    s, q = maths.scale_rotation6(cov6, 1e-12)
     np.testing.assert_array_equal(s, s_ref)
     np.testing.assert_array_equal(q, q_ref)
     rot = quat_to_rotmat(rng.standard_normal((500, 4)))
-    np.testing.assert_array_equal(cp._rotmat_to_quat(rot), rotmat_to_quat(rot))
+    np.testing.assert_array_equal(maths.rotmat_to_quat(rot), rotmat_to_quat(rot))

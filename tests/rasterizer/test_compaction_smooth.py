@@ -12,6 +12,7 @@ from rasterizer.compaction import (
     Provenance,
     compact,
     compact_result,
+    merge,
     opacity_depth,
     opacity_for_depth,
     smooth_merge_blocks,
@@ -132,7 +133,7 @@ def test_merged_gaussian_moments_and_opacity():
     # optical depth (render area x Li2(opacity)) of the four is kept by the widened one
     pitch = (np.pi if prov.grids[0] == "erp" else 2 * geo.YIN_LAT_MAX) / prov.height
     cam = prov.c2w[0, :3, 3]
-    depth = lambda x: cp._render_area(x.scales.astype(np.float64), np.linalg.norm(x.means - cam, axis=1) * pitch) \
+    depth = lambda x: merge._render_area(x.scales.astype(np.float64), np.linalg.norm(x.means - cam, axis=1) * pitch) \
         * cp.opacity_depth(x.opacities.astype(np.float64))  # noqa: E731
     assert float(depth(one)[0]) == pytest.approx(float(depth(m).sum()), rel=1e-3)
     assert 0.0 < one.opacities[0] <= 0.99

@@ -1,0 +1,121 @@
+"""Compaction options (which steps run, their thresholds) and the Gaussian count a PLY size allows."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+
+from ..gaussians import Gaussians
+from ..ply import ply_bytes
+
+OVERLAP_MODES = ("split", "yin", "off")
+#: Largest block side of the smooth-region merge is 2**MAX_SMOOTH_LEVELS pixels.
+MAX_SMOOTH_LEVELS = 4
+
+
+class CompactionError(ValueError):
+    """Bad options, or Gaussians that do not match their provenance."""
+
+
+@dataclass(frozen=True)
+class CompactionOptions:
+    """Which compaction steps run, and their thresholds (every step can be turned off).
+
+    min_opacity: drop opacity below this (0 = off). min_confidence: drop
+    confidence below this (0 = off; needs per-Gaussian confidence).
+    resolve_overlap: "split" | "yin" | "off". merge_duplicates: on/off, with
+    duplicate_range_tol (relative range difference that is "the same surface")
+    and duplicate_footprint_ratio (largest footprint ratio that is "similar").
+    merge_smooth: on/off, with smooth_levels (1: 2x2 blocks, 2: also 4x4, ...
+    up to 2**4), smooth_colour_tol (largest max - min of each DC colour
+    channel in a block), smooth_opacity_tol (max - min opacity),
+    smooth_plane_tol (rms distance from the block's plane / range) and
+    smooth_max_incidence_deg (largest angle between the plane's normal and
+    the ray; also what rejects depth steps). max_count, max_bytes: optional cap (None = off); max_bytes counts the PLY.
+    """
+
+    min_opacity: float = 1.0 / 255.0
+    min_confidence: float = 0.0
+    # Off by default since encoder 0.5.0 (Gaussians of 0.5 pixel pitches): on the dev splits the overlap
+    # step cost up to 0.52 dB (zind pano_5) and the duplicate step 0.66 dB (m3d) at the targets, while
+    # the smooth merge alone stays within 0.02 dB (docs/bench/compaction.md).
+    resolve_overlap: str = "off"
+    merge_duplicates: bool = False
+    duplicate_range_tol: float = 0.05  # 0.1 cost 0.56 dB on m3d with encoder 0.2.0; 0.05 stayed within 0.2 dB then
+    duplicate_footprint_ratio: float = 4.0
+    merge_smooth: bool = True
+    # 2x2 blocks only. 2 (also 4x4) left 3-16% fewer Gaussians on the dev scenes, but rendered 1-5 dB
+    # further from the uncompacted scene (within 0.03 dB of 1 against the target images).
+    smooth_levels: int = 1
+    # colour 0.06 and incidence 55 deg (were 0.04 / 45, tuned on encoder 0.3.0): with encoder 0.5.0,
+    # Gaussians fewer on m3d / zind 2+6 / zind 4+5 37.7 / 30.7 / 45.7% -> 49.2 / 40.5 / 54.2%, target PSNR
+    # change worst -0.013 -> -0.069 dB, PSNR against the uncompacted render >= 43 dB; incidence 60 deg
+    # made 52 / 46 / 57% but zind pano_6 fell to 34 dB against the uncompacted render.
+    smooth_colour_tol: float = 0.06
+    smooth_opacity_tol: float = 0.1
+    smooth_plane_tol: float = 0.002
+    smooth_max_incidence_deg: float = 55.0
+    max_count: int | None = None
+    max_bytes: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.resolve_overlap not in OVERLAP_MODES:
+            raise CompactionError(f"resolve_overlap must be one of {OVERLAP_MODES}, got {self.resolve_overlap!r}")
+        for name in ("min_opacity", "min_confidence", "duplicate_range_tol", "smooth_colour_tol",
+                     "smooth_opacity_tol", "smooth_plane_tol"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise CompactionError(f"{name} must be a finite number >= 0, got {v!r}")
+        if not (np.isfinite(self.duplicate_footprint_ratio) and self.duplicate_footprint_ratio >= 1):
+            raise CompactionError(f"duplicate_footprint_ratio must be >= 1, got {self.duplicate_footprint_ratio!r}")
+        if not (isinstance(self.smooth_levels, (int, np.integer)) and not isinstance(self.smooth_levels, bool)
+                and 1 <= self.smooth_levels <= MAX_SMOOTH_LEVELS):
+            raise CompactionError(f"smooth_levels must be an integer in 1..{MAX_SMOOTH_LEVELS}, "
+                                  f"got {self.smooth_levels!r}")
+        if not (np.isfinite(self.smooth_max_incidence_deg) and 0 <= self.smooth_max_incidence_deg <= 90):
+            raise CompactionError(f"smooth_max_incidence_deg must be in [0, 90], got {self.smooth_max_incidence_deg!r}")
+        for name in ("max_count", "max_bytes"):
+            v = getattr(self, name)
+            if v is not None and (int(v) != v or v < 0):
+                raise CompactionError(f"{name} must be a non-negative integer or null, got {v!r}")
+
+    @classmethod
+    def off(cls) -> "CompactionOptions":
+        """Every step disabled (compact() then returns its input unchanged)."""
+        return cls(min_opacity=0.0, min_confidence=0.0, resolve_overlap="off", merge_duplicates=False,
+                   merge_smooth=False)
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "CompactionOptions":
+        """Options from a JSON object (API ``options.compaction``); unknown keys raise."""
+        d = dict(d or {})
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise CompactionError(f"unknown compaction option(s) {unknown}; known: {sorted(names)}")
+        if "resolve_overlap" in d and d["resolve_overlap"] in (False, None):
+            d["resolve_overlap"] = "off"
+        elif d.get("resolve_overlap") is True:
+            d["resolve_overlap"] = "split"
+        return cls(**d)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def ply_count_for_bytes(max_bytes: int, sh_coeffs: int) -> int:
+    """Largest Gaussian count whose PLY (header included) fits in ``max_bytes``."""
+    header = len(ply_bytes(Gaussians.empty(int(round(np.sqrt(sh_coeffs))) - 1)))
+    per = 4 * (17 + 3 * (sh_coeffs - 1))
+    # the header's vertex count has more digits for larger counts; allow 12
+    return max(0, (int(max_bytes) - header - 12) // per)
+
+
+def count_limit(opts: CompactionOptions, sh_coeffs: int) -> int | None:
+    """The Gaussian count ``max_count`` / ``max_bytes`` allow (None: no cap)."""
+    limit = None if opts.max_count is None else int(opts.max_count)
+    if opts.max_bytes is not None:
+        by_bytes = ply_count_for_bytes(int(opts.max_bytes), sh_coeffs)
+        limit = by_bytes if limit is None else min(limit, by_bytes)
+    return limit

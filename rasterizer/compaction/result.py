@@ -1,0 +1,225 @@
+"""The compaction driver: run the enabled steps in order and assemble the output in layout order."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+from ..gaussians import Gaussians
+from ..shell import shell_layout
+from .merge import SmoothMerge, smooth_merge_blocks
+from .options import CompactionError, CompactionOptions, count_limit
+from .provenance import Provenance
+from .steps import cap_keep_mask, duplicate_drop_mask, overlap_keep_mask
+
+
+@dataclass(frozen=True)
+class CompactionResult:
+    """What :func:`compact_result` returns.
+
+    gaussians: the output (kept inputs and merged blocks, in layout order);
+    provenance: its layout positions (a merged block's is its top-left
+    pixel); block: (M,) side of the pixel block each output Gaussian stands
+    for (1 = an input kept as it is); index: input indices of the inputs kept
+    as they are (ascending); stats: see :func:`compact`.
+    """
+
+    gaussians: Gaussians
+    provenance: Provenance
+    block: np.ndarray
+    index: np.ndarray
+    stats: dict
+
+
+def _interleave(gaussians: Gaussians, index: np.ndarray, pos: np.ndarray, merged: SmoothMerge):
+    """Kept inputs ``gaussians[index]`` (layout positions ``pos``) and the merged blocks, in layout order.
+
+    The same as concatenating both and a stable argsort by position; when both position lists are
+    already ascending (the usual case) each output row is written once, at its merged place.
+    """
+    m_pos = merged.index
+    if not (np.all(pos[1:] > pos[:-1]) and np.all(m_pos[1:] > m_pos[:-1])):
+        out_g = Gaussians.concatenate([gaussians.subset(index), merged.gaussians])
+        out_pos = np.concatenate([pos, m_pos])
+        out_block = np.concatenate([np.ones(index.size, dtype=np.int64), merged.block])
+        order = np.argsort(out_pos, kind="stable")
+        return out_g.subset(order), out_pos[order], out_block[order]
+    total = index.size + m_pos.size
+    m_slot = np.searchsorted(pos, m_pos, side="right") + np.arange(m_pos.size)  # inputs first on equal positions
+    is_m = np.zeros(total, dtype=bool)
+    is_m[m_slot] = True
+    in_slot = np.flatnonzero(~is_m)
+    mg = merged.gaussians
+    cols = []
+    for f in fields(Gaussians):
+        src, add = getattr(gaussians, f.name), getattr(mg, f.name)
+        if f.name == "sh" and add.shape[1] != src.shape[1]:
+            k = max(add.shape[1], src.shape[1])
+            src = np.pad(src, ((0, 0), (0, k - src.shape[1]), (0, 0)))
+            add = np.pad(add, ((0, 0), (0, k - add.shape[1]), (0, 0)))
+        out = np.empty((total,) + src.shape[1:], dtype=np.float32)
+        out[in_slot] = np.take(src, index, axis=0)
+        out[m_slot] = add
+        cols.append(out)
+    out_pos = np.empty(total, dtype=np.int64)
+    out_pos[in_slot] = pos
+    out_pos[m_slot] = m_pos
+    out_block = np.ones(total, dtype=np.int64)
+    out_block[m_slot] = merged.block
+    return Gaussians(*cols), out_pos, out_block
+
+
+def compact_result(gaussians: Gaussians, provenance: Provenance, options: CompactionOptions | None = None, *,
+                   confidence: np.ndarray | None = None) -> CompactionResult:
+    """Run the enabled steps in order (see the module docstring)."""
+    opts = options or CompactionOptions()
+    if provenance.shell:
+        return _compact_with_shell(gaussians, provenance, opts, confidence)
+    n = len(gaussians)
+    flat = provenance.flat_index(n)  # validates the count
+    alive = np.ones(n, dtype=bool)
+    removed: dict[str, int] = {}
+    seconds: dict[str, float] = {}
+
+    def step(name: str, keep: np.ndarray | None, t0: float) -> None:
+        before = int(alive.sum())
+        if keep is not None:
+            alive[:] &= keep
+        removed[name] = before - int(alive.sum())
+        seconds[name] = round(time.perf_counter() - t0, 4)
+
+    t0 = time.perf_counter()
+    keep = gaussians.opacities >= np.float32(opts.min_opacity) if opts.min_opacity > 0 else None
+    if opts.min_confidence > 0:
+        if confidence is None:
+            raise CompactionError("min_confidence needs per-Gaussian confidence")
+        conf = np.asarray(confidence, dtype=np.float32).reshape(-1)
+        if conf.size == provenance.full_count and conf.size != n:
+            conf = conf[flat]
+        if conf.shape != (n,):
+            raise CompactionError(f"confidence has {conf.size} values for {n} Gaussians")
+        sure = conf >= np.float32(opts.min_confidence)
+        keep = sure if keep is None else keep & sure
+    step("min_opacity", keep, t0)
+
+    t0 = time.perf_counter()
+    if opts.resolve_overlap != "off" and tuple(provenance.grids) == ("yin", "yang"):
+        grids, h, w = tuple(provenance.grids), provenance.height, provenance.width
+        local = flat % (len(grids) * h * w)
+        keep = overlap_keep_mask(grids, h, w, opts.resolve_overlap).reshape(-1)[local]
+        step("resolve_overlap", keep, t0)
+    else:
+        step("resolve_overlap", None, t0)
+
+    t0 = time.perf_counter()
+    if opts.merge_duplicates and provenance.views > 1:
+        drop = duplicate_drop_mask(gaussians, provenance, alive, range_tol=opts.duplicate_range_tol,
+                                   footprint_ratio=opts.duplicate_footprint_ratio)
+        step("merge_duplicates", ~drop, t0)
+    else:
+        step("merge_duplicates", None, t0)
+
+    t0 = time.perf_counter()
+    smooth_stats = {"merged": 0, "added": 0, "blocks": {}}
+    merged = None
+    if opts.merge_smooth:
+        sm = smooth_merge_blocks(gaussians, provenance, alive, levels=opts.smooth_levels,
+                                 colour_tol=opts.smooth_colour_tol, opacity_tol=opts.smooth_opacity_tol,
+                                 plane_tol=opts.smooth_plane_tol, max_incidence_deg=opts.smooth_max_incidence_deg)
+        alive &= ~sm.drop
+        merged = sm
+        smooth_stats = {"merged": int(sm.drop.sum()), "added": len(sm.gaussians),
+                        "blocks": {str(k): v for k, v in sm.blocks.items()}}
+    removed["merge_smooth"] = smooth_stats["merged"] - smooth_stats["added"]
+    seconds["merge_smooth"] = round(time.perf_counter() - t0, 4)
+
+    t0 = time.perf_counter()
+    index = np.flatnonzero(alive)
+    out_pos = flat[index]
+    if merged is not None and len(merged.gaussians):
+        out_g, out_pos, out_block = _interleave(gaussians, index, out_pos, merged)
+    else:
+        out_g = gaussians.subset(index)
+        out_block = np.ones(index.size, dtype=np.int64)
+    out_prov = Provenance(provenance.grids, provenance.height, provenance.width, provenance.c2w, out_pos)
+    seconds["assemble"] = round(time.perf_counter() - t0, 4)
+
+    t0 = time.perf_counter()
+    limit = count_limit(opts, gaussians.sh.shape[1])
+    removed["cap"] = 0
+    if limit is not None and limit < len(out_g):
+        kept = np.flatnonzero(cap_keep_mask(out_g, out_prov, np.ones(len(out_g), bool), limit))
+        removed["cap"] = len(out_g) - kept.size
+        kept_inputs = out_block[kept] == 1
+        index = index[np.isin(flat[index], out_pos[kept][kept_inputs])]
+        out_g, out_pos, out_block = out_g.subset(kept), out_pos[kept], out_block[kept]
+        out_prov = Provenance(provenance.grids, provenance.height, provenance.width, provenance.c2w, out_pos)
+    seconds["cap"] = round(time.perf_counter() - t0, 4)
+
+    stats = {"input": n, "output": len(out_g), "removed": removed, "merge_smooth": smooth_stats,
+             "seconds": seconds, "options": opts.to_dict()}
+    return CompactionResult(out_g, out_prov, out_block, index, stats)
+
+
+def _compact_with_shell(gaussians: Gaussians, provenance: Provenance, opts: CompactionOptions,
+                        confidence: np.ndarray | None) -> CompactionResult:
+    """Compact the pixel-aligned Gaussians; the shell after them is appended unchanged (its blocks'
+    top-left pixels as provenance, :func:`rasterizer.shell.shell_layout`)."""
+    n, count = len(gaussians), provenance.shell
+    if n < count:
+        raise CompactionError(f"{n} Gaussians but a shell of {count}")
+    index, block = shell_layout(provenance.views, len(provenance.grids), provenance.height, provenance.width)
+    if index.size != count:
+        raise CompactionError(f"shell of {count} Gaussians, layout {index.size}")
+    shell = gaussians.subset(np.arange(n - count, n))
+    keep = shell.opacities >= np.float32(opts.min_opacity) if opts.min_opacity > 0 else np.ones(count, bool)
+    limit = count_limit(opts, gaussians.sh.shape[1])
+    front_opts = opts
+    capped = 0
+    if limit is not None:  # the cap counts the shell too; a cap below the shell's size thins it evenly
+        kept = np.flatnonzero(keep)
+        if kept.size > limit:
+            thin = np.zeros(count, bool)
+            thin[kept[np.linspace(0, kept.size - 1, limit).astype(np.int64)]] = True
+            capped, keep = kept.size - int(thin.sum()), thin
+        front_opts = replace(opts, max_count=limit - int(keep.sum()), max_bytes=None)
+    res = compact_result(gaussians.subset(np.arange(n - count)), replace(provenance, shell=0), front_opts,
+                         confidence=confidence)
+    out_g = Gaussians.concatenate([res.gaussians, shell.subset(keep)])
+    pos = np.concatenate([res.provenance.flat_index(len(res.gaussians)), index[keep]])
+    removed = dict(res.stats["removed"])
+    removed["min_opacity"] += int(count - capped - keep.sum())
+    removed["cap"] += capped
+    stats = {**res.stats, "input": n, "output": len(out_g), "removed": removed, "shell": int(keep.sum()),
+             "options": opts.to_dict()}
+    return CompactionResult(out_g, Provenance(provenance.grids, provenance.height, provenance.width, provenance.c2w, pos),
+                            np.concatenate([res.block, block[keep]]), res.index, stats)
+
+
+def compact_index(gaussians: Gaussians, provenance: Provenance, options: CompactionOptions | None = None, *,
+                  confidence: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    """Indices (ascending) of the inputs kept as they are, and the stats dict (see :func:`compact`).
+
+    Without ``merge_smooth`` these are exactly the output; with it the merged
+    blocks come in addition (:func:`compact_result` has both).
+    """
+    res = compact_result(gaussians, provenance, options, confidence=confidence)
+    return res.index, res.stats
+
+
+def compact(gaussians: Gaussians, provenance: Provenance, options: CompactionOptions | None = None, *,
+            confidence: np.ndarray | None = None) -> tuple[Gaussians, dict]:
+    """The Gaussians a scene needs, and how many each step removed.
+
+    Returns (Gaussians in layout order, stats) with stats = ``{"input": N,
+    "output": M, "removed": {"min_opacity", "resolve_overlap",
+    "merge_duplicates", "merge_smooth", "cap"}: counts (merge_smooth: inputs
+    merged minus merged Gaussians added, so the counts sum to N - M),
+    "merge_smooth": {"merged", "added", "blocks": {side: count}}, "seconds":
+    per step (and "assemble", building the output), "options": ...}``. Without ``merge_smooth`` the output is a
+    subset of the input in its original order.
+    """
+    res = compact_result(gaussians, provenance, options, confidence=confidence)
+    return res.gaussians, res.stats
