@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 from service import cli
+from service.cli import export as cli_export
+from service.cli.reconstruct import pipeline_options
 from service.model_files import default_model_name
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -21,12 +23,13 @@ def test_help_lists_every_command(capsys):
         cli.main(["--help"])
     assert info.value.code == 0
     out = capsys.readouterr().out
-    for command in ("serve", "reconstruct", "render", "export", "bench", "refine"):
+    for command in ("serve", "reconstruct", "render", "export", "refine", "select", "edit"):
         assert command in out
+    assert "bench" not in out  # benchmarks have their own entry point (omnisplat-bench)
     assert "OpenCV" in out
 
 
-@pytest.mark.parametrize("command", ["serve", "reconstruct", "render", "bench"])
+@pytest.mark.parametrize("command", ["serve", "reconstruct", "render", "export", "refine", "select", "edit"])
 def test_subcommand_help(command, capsys):
     with pytest.raises(SystemExit) as info:
         cli.main([command, "--help"])
@@ -59,35 +62,30 @@ def test_missing_command_is_an_error(capsys):
     assert info.value.code == 2
 
 
-def test_unknown_bench_is_an_error(capsys):
+def test_bench_is_not_a_service_command(capsys):
     with pytest.raises(SystemExit) as info:
-        cli.main(["bench", "nonsense"])
+        cli.main(["bench", "render"])
     assert info.value.code == 2
     assert "invalid choice" in capsys.readouterr().err
 
 
-def test_forward_to_absent_module_is_a_clear_error(monkeypatch, capsys):
+def test_export_without_torch_is_a_clear_error(monkeypatch, tmp_path, capsys):
     def load():
         raise ModuleNotFoundError("No module named 'torch'", name="torch")
 
-    monkeypatch.setitem(cli.FORWARDED, "export", (load, "the export extra"))
-    assert cli.main(["export", "--help"]) == 2
+    monkeypatch.setattr(cli_export, "load_export_model", load)
+    assert cli.main(["export", str(tmp_path / "m.onnx")]) == 2
     err = capsys.readouterr().err
     assert "not available" in err and "'torch'" in err and "export extra" in err
+    assert not (tmp_path / "m.onnx").exists()
 
 
-def test_bench_dispatch(monkeypatch):
-    seen = {}
-
-    class Fake:
-        @staticmethod
-        def main(argv):
-            seen["argv"] = argv
-            return 3
-
-    monkeypatch.setitem(sys.modules, "bench.render", Fake)
-    assert cli.main(["bench", "render", "--json", "--x", "1"]) == 3
-    assert seen["argv"] == ["--json", "--x", "1"]
+@pytest.mark.parametrize("flag", ["--erp-encoder", "--readout"])
+def test_export_offers_no_experiment_switches(flag, capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main(["export", "m.onnx", flag])
+    assert info.value.code == 2
+    assert "unrecognized arguments" in capsys.readouterr().err
 
 
 def test_reconstruct_argument_errors(tmp_path, capsys):
@@ -119,7 +117,7 @@ def test_reconstruct_compaction_flags_map_to_options():
     parser = cli.build_parser()
 
     def opts(*flags):
-        return cli._pipeline_options(parser.parse_args(["reconstruct", "scene", *flags])).compaction
+        return pipeline_options(parser.parse_args(["reconstruct", "scene", *flags])).compaction
 
     default = opts()
     assert default.merge_smooth is True and default.smooth_levels == 1
@@ -128,15 +126,15 @@ def test_reconstruct_compaction_flags_map_to_options():
     assert opts("--no-compaction").merge_smooth is False
     with pytest.raises(cli.CliError, match="smooth_levels"):
         opts("--smooth-levels", "9")
-    full = cli._pipeline_options(parser.parse_args(["reconstruct", "scene"]))
+    full = pipeline_options(parser.parse_args(["reconstruct", "scene"]))
     assert full.sh_degree == 1
-    assert cli._pipeline_options(parser.parse_args(["reconstruct", "scene", "--sh-degree", "0"])).sh_degree == 0
+    assert pipeline_options(parser.parse_args(["reconstruct", "scene", "--sh-degree", "0"])).sh_degree == 0
     with pytest.raises(cli.CliError, match="sh_degree"):
-        cli._pipeline_options(parser.parse_args(["reconstruct", "scene", "--sh-degree", "2"]))
+        pipeline_options(parser.parse_args(["reconstruct", "scene", "--sh-degree", "2"]))
     assert full.rig_cap_deg is None  # automatic (rasterizer.rig.resolve_rig_cap)
-    assert cli._pipeline_options(parser.parse_args(["reconstruct", "scene", "--rig-cap-deg", "20"])).rig_cap_deg == 20.0
+    assert pipeline_options(parser.parse_args(["reconstruct", "scene", "--rig-cap-deg", "20"])).rig_cap_deg == 20.0
     with pytest.raises(cli.CliError, match="rig_cap_deg"):
-        cli._pipeline_options(parser.parse_args(["reconstruct", "scene", "--rig-cap-deg", "50"]))
+        pipeline_options(parser.parse_args(["reconstruct", "scene", "--rig-cap-deg", "50"]))
 
 
 def test_render_argument_errors(tmp_path, capsys):
@@ -154,6 +152,7 @@ def test_serve_without_model_and_no_build(tmp_path, capsys):
 def test_console_script_is_declared():
     text = (ROOT / "pyproject.toml").read_text()
     assert 'omnisplat = "service.cli:main"' in text
+    assert 'omnisplat-bench = "bench.__main__:main"' in text
 
 
 def _importable(name: str) -> bool:

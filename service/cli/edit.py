@@ -1,0 +1,94 @@
+"""``omnisplat select`` / ``omnisplat edit``: selections and edits of scenes in a service store."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from .common import CliError
+
+
+def _triple(text: str, name: str) -> list[float]:
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != 3:
+        raise CliError(f"{name}: expected three comma-separated numbers, got {text!r}")
+    return vals
+
+
+def _point(text: str) -> list[float]:
+    try:
+        u, v = (float(x) for x in text.split(","))
+    except ValueError:
+        raise CliError(f"point: expected u,v with both in [0, 1], got {text!r}") from None
+    return [u, v]
+
+
+def _edit_store(args: argparse.Namespace):
+    from ..config import Settings
+    from ..store import SceneStore
+
+    return SceneStore(args.store or Settings().store_dir)
+
+
+def _edit_call(fn, *a):
+    from ..errors import ServiceError
+    from ..store import json_safe
+
+    try:
+        out = fn(*a)
+    except ServiceError as exc:
+        raise CliError(f"{exc.code}: {exc.message}") from None
+    print(json.dumps(json_safe(out), indent=1))
+    return 0
+
+
+def cmd_select(args: argparse.Namespace) -> int:
+    from .. import edits
+
+    if args.segment is not None:
+        request = {"segment": args.segment}
+    else:
+        if not args.point:
+            raise CliError("give --point u,v (one or more) or --segment N")
+        request = {"view": args.view, "points": [_point(p) for p in args.point],
+                   "negative": [_point(p) for p in args.negative or []]}
+        bad = [p for p in request["points"] + request["negative"] if not all(0.0 <= c <= 1.0 for c in p)]
+        if bad:
+            raise CliError(f"points must lie in [0, 1]: {bad}")
+    return _edit_call(edits.create_selection, _edit_store(args), args.scene, request)
+
+
+def cmd_edit(args: argparse.Namespace) -> int:
+    from .. import edits
+
+    request = {"selection": args.selection, "op": args.op}
+    if args.op == "recolor":
+        request["color"] = _triple(args.color or "", "--color")
+        if not all(0.0 <= c <= 1.0 for c in request["color"]):
+            raise CliError("--color: each channel in [0, 1]")
+    if args.op == "translate":
+        request["offset"] = _triple(args.offset or "", "--offset")
+    return _edit_call(lambda *a: edits.create_edit(*a)[0], _edit_store(args), args.scene, request)
+
+
+def add_parsers(sub) -> None:
+    e = sub.add_parser("select", help="select an object (points on a reference, or a segment) of a stored scene")
+    e.add_argument("scene", help="scene id in the store")
+    e.add_argument("--store", type=Path, help="scene store folder (default ~/.omnisplat/scenes)")
+    e.add_argument("--view", choices=["a", "b"], default="a")
+    e.add_argument("--point", action="append", help="u,v in [0, 1] on that reference's ERP (repeatable)")
+    e.add_argument("--negative", action="append", help="u,v of a negative point (repeatable)")
+    e.add_argument("--segment", type=int, help="take a whole automatic segment instead")
+    e.set_defaults(func=cmd_select)
+    d = sub.add_parser("edit", help="remove / keep / recolor / translate a selection; the result is a new scene")
+    d.add_argument("scene", help="scene id in the store")
+    d.add_argument("--store", type=Path, help="scene store folder (default ~/.omnisplat/scenes)")
+    d.add_argument("--selection", required=True, help="selection id from 'omnisplat select'")
+    d.add_argument("--op", required=True, choices=["remove", "keep", "recolor", "translate"])
+    d.add_argument("--color", help="recolor: r,g,b in [0, 1]")
+    d.add_argument("--offset", help="translate: dx,dy,dz in world units")
+    d.set_defaults(func=cmd_edit)

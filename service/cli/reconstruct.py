@@ -1,0 +1,192 @@
+"""``omnisplat reconstruct``: two panoramas (a scene folder, or two images + poses) -> Gaussian PLY + summary."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from .common import CliError, say
+
+
+def load_pair(args: argparse.Namespace):
+    """(erp_a, erp_b, c2w_a, c2w_b, description) from a scene folder or two images (+ poses JSON).
+
+    Two images without ``--poses`` give ``c2w_a = c2w_b = None``: the poses are estimated.
+    """
+    from rasterizer.geometry import PoseError
+    from rasterizer.scene_folder import load_image, load_scene
+
+    from ..inputs import parse_poses
+
+    inputs = [Path(p) for p in args.inputs]
+    if len(inputs) == 1:
+        if not (inputs[0] / "scene.json").is_file():
+            raise CliError(f"{inputs[0]} is not a scene folder (no scene.json); pass a folder or two images")
+        try:
+            scene = load_scene(inputs[0])
+        except (PoseError, ValueError, KeyError) as exc:
+            raise CliError(f"{inputs[0]}: {exc}") from None
+        if args.refs:
+            refs = tuple(args.refs.split(","))
+        elif scene.splits:
+            refs = scene.splits[min(args.split, len(scene.splits) - 1)].references
+        else:
+            refs = tuple(list(scene.frames)[:2])
+        if len(refs) != 2 or any(r not in scene.frames for r in refs):
+            raise CliError(f"references {refs} are not two frames of {inputs[0]} (frames: {list(scene.frames)})")
+        fa, fb = scene.frames[refs[0]], scene.frames[refs[1]]
+        return fa.image(), fb.image(), fa.c2w, fb.c2w, {"scene": str(inputs[0]), "references": list(refs)}
+    if len(inputs) == 2:
+        from ..errors import ServiceError
+
+        try:
+            poses = parse_poses(Path(args.poses).read_bytes()) if args.poses is not None else None
+        except ServiceError as exc:
+            raise CliError(f"{args.poses}: {exc.message}") from None
+        except OSError as exc:
+            raise CliError(f"cannot read {args.poses}: {exc}") from None
+        try:
+            a, b = load_image(inputs[0]), load_image(inputs[1])
+        except OSError as exc:
+            raise CliError(f"cannot read image: {exc}") from None
+        if poses is None:
+            return a, b, None, None, {"images": [str(p) for p in inputs]}
+        return a, b, poses.c2w_a, poses.c2w_b, {"images": [str(p) for p in inputs]}
+    raise CliError("reconstruct takes a scene folder, or two images (with --poses, or poses are estimated)")
+
+
+def pipeline_options(args: argparse.Namespace):
+    """The API's options object, from reconstruct's flags (validated here, before any work)."""
+    from ..pipeline import PipelineOptions
+
+    compaction: dict | bool = {}
+    if args.no_compaction:
+        compaction = False
+    else:
+        for flag, key in (("resolve_overlap", "resolve_overlap"), ("max_gaussians", "max_count"),
+                          ("max_bytes", "max_bytes"), ("min_opacity", "min_opacity")):
+            if getattr(args, flag) is not None:
+                compaction[key] = getattr(args, flag)
+        if args.merge_duplicates:
+            compaction["merge_duplicates"] = True
+        if args.no_merge_smooth:
+            compaction["merge_smooth"] = False
+        elif args.smooth_levels is not None:
+            compaction["smooth_levels"] = args.smooth_levels
+    try:
+        return PipelineOptions.from_dict({"near": args.near, "far": args.far, "compaction": compaction,
+                                          "adaptive_range": args.adaptive_range, "sh_degree": args.sh_degree,
+                                          "rig_cap_deg": args.rig_cap_deg})
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+
+
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from rasterizer.ply import write_ply
+
+    from ..config import Settings
+    from ..model_files import ModelUnavailable, ensure_model
+    from ..pipeline import build_scene
+
+    erp_a, erp_b, c2w_a, c2w_b, source = load_pair(args)  # bad inputs fail before any model build
+    options = pipeline_options(args)
+    from ..errors import ServiceError
+    from ..inputs import Poses
+    from ..poses import PoseOptions, poses_for_scene
+
+    try:
+        pose_options = PoseOptions.pop_from({"camera_height": args.camera_height, "baseline": args.baseline,
+                                             "refine_poses": args.refine_poses})
+    except ServiceError as exc:
+        raise CliError(exc.message) from None
+    for name, img in (("image A", erp_a), ("image B", erp_b)):
+        if img.shape[1] != 2 * img.shape[0]:
+            raise CliError(f"{name} is {img.shape[1]}x{img.shape[0]}; an ERP panorama must be exactly 2:1")
+    t0 = time.perf_counter()
+    given = None if c2w_a is None else Poses("opencv", c2w_a, c2w_b)
+    if given is None:
+        say("estimating the relative pose from the images")
+    try:
+        c2w_a, c2w_b, poses_json = poses_for_scene(erp_a, erp_b, given, pose_options)
+    except ServiceError as exc:
+        raise CliError(exc.message) from None
+    poses_s = time.perf_counter() - t0
+    settings = Settings(**({"model_path": args.model} if args.model else {}))
+    try:
+        model = ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build)
+    except ModelUnavailable as exc:
+        raise CliError(str(exc)) from None
+    say(f"loading model {model}")
+    from ..encoder import EncoderInputError, OnnxEncoder
+
+    t0 = time.perf_counter()
+    encoder = OnnxEncoder(model, threads=args.threads)
+    load_s = time.perf_counter() - t0
+    say(f"reconstructing {erp_a.shape[1]}x{erp_a.shape[0]} + {erp_b.shape[1]}x{erp_b.shape[0]} panoramas")
+    t0 = time.perf_counter()
+    try:
+        rec = build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options)
+    except EncoderInputError as exc:
+        raise CliError(str(exc)) from None
+    total = time.perf_counter() - t0
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_ply(out, rec.gaussians)
+    from ..store import json_safe
+
+    summary = json_safe({
+        "ply": str(out), "num_gaussians": len(rec.gaussians), "source": source,
+        "model": {k: encoder.metadata.get(k) for k in ("name", "version", "sha256")},
+        "timings": {**rec.timings, "poses": poses_s, "model_load": load_s, "total": total}, "info": rec.info,
+        "poses": poses_json,
+    })
+    text = json.dumps(summary, indent=2)
+    if args.json:
+        Path(args.json).write_text(text + "\n")
+    print(text)
+    say(f"wrote {len(rec.gaussians)} Gaussians to {out} in {total:.2f} s")
+    return 0
+
+
+def add_parser(sub) -> None:
+    r = sub.add_parser("reconstruct", help="scene folder or two images + poses -> Gaussian PLY and a JSON summary",
+                       description="Reconstruct 3D Gaussians from two ERP panoramas, without the HTTP service.")
+    r.add_argument("inputs", nargs="+", help="a scene folder (scene.json), or two image files")
+    r.add_argument("--poses", help='with two images: JSON file {"convention": "opencv"|"opengl", "c2w": [A, B]}; '
+                                   "without it the poses are estimated from the images (world = camera A)")
+    r.add_argument("--camera-height", type=float, help="estimated poses: metres of camera A above the floor (sets the scale)")
+    r.add_argument("--baseline", type=float, help="estimated poses: metres between the cameras (sets the scale)")
+    r.add_argument("--refine-poses", action="store_true", help="refine given poses against the images (upright model)")
+    r.add_argument("--split", type=int, default=0, help="scene folder: which split's references (default 0)")
+    r.add_argument("--refs", help="scene folder: two frame names, e.g. 00,02 (overrides --split)")
+    r.add_argument("-o", "--output", default="scene.ply", help="output PLY (default scene.ply)")
+    r.add_argument("--json", help="also write the summary JSON to this file")
+    r.add_argument("--model", type=Path, help="ONNX model (default: the one `serve` uses, built if missing)")
+    r.add_argument("--no-build", action="store_true", help="fail instead of building a missing model")
+    r.add_argument("--near", type=float, help="nearest depth in metres (default from the baseline)")
+    r.add_argument("--far", type=float, help="farthest depth in metres")
+    r.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
+    c = r.add_argument_group("leave out what the scene does not need (default: min opacity and the smooth merge)")
+    c.add_argument("--no-compaction", action="store_true", help="keep every pixel-aligned Gaussian")
+    c.add_argument("--resolve-overlap", choices=["split", "yin", "off"],
+                   help="Yin/Yang overlap: keep each direction once (split, yin) or keep all (off, default)")
+    c.add_argument("--merge-duplicates", action="store_true",
+                   help="keep one of the two references' copies of a surface point (default: keep both)")
+    c.add_argument("--no-merge-smooth", action="store_true",
+                   help="keep flat, evenly coloured regions at one Gaussian per pixel (default: merge 2x2 blocks)")
+    c.add_argument("--smooth-levels", type=int, help="largest merged block is 2^N pixels a side (default 1: 2x2)")
+    c.add_argument("--min-opacity", type=float, help="drop Gaussians below this opacity (default 1/255)")
+    c.add_argument("--max-gaussians", type=int, help="cap the count (drops the least visible first)")
+    c.add_argument("--max-bytes", type=int, help="cap the PLY size in bytes")
+    c.add_argument("--adaptive-range", action="store_true",
+                   help="choose near/far from a coarse pass (slower: two encoder runs)")
+    c.add_argument("--sh-degree", type=int,
+                   help="1 (default): view-dependent colour, each reference sees its own image; "
+                        "0: one colour per Gaussian (smaller PLY)")
+    c.add_argument("--rig-cap-deg", type=float,
+                   help="degrees around each camera's nadir where a tripod capture shows the rig: those pixels "
+                        "take the other panorama's colour (0: off; default: 20 where both panoramas show a rig at "
+                        "their nadir, else 0)")
+    r.set_defaults(func=cmd_reconstruct)

@@ -1,0 +1,77 @@
+"""``omnisplat serve``: the HTTP API (uvicorn, or Ray Serve replicas with ``--ray``)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .common import CliError, say
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from ..app import create_app
+    from ..config import Settings
+    from ..model_files import ModelUnavailable, ensure_model
+    from ..server import server_config
+
+    overrides = {k: v for k, v in {
+        "host": args.host, "port": args.port, "store_dir": args.store, "model_path": args.model,
+        "models_dir": args.models_dir, "ort_threads": args.threads,
+        "max_upload_bytes": None if args.max_upload_mb is None else int(args.max_upload_mb * 1024 * 1024),
+        "max_requests": args.max_requests,
+    }.items() if v is not None}
+    try:
+        settings = Settings(**overrides)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    try:
+        ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build)
+    except ModelUnavailable as exc:
+        raise CliError(str(exc)) from None
+    say(f"model {settings.resolved_model_path}; scenes in {settings.store_dir}")
+    if args.ray:
+        return _serve_ray(args, settings.model_copy(update={"model_path": settings.resolved_model_path}))
+    say(f"serving on http://{settings.host}:{settings.port} (docs at /docs; /readyz turns 200 after warm-up)")
+    uvicorn.Server(server_config(create_app(settings), settings, log_level=args.log_level)).run()
+    return 0
+
+
+def _serve_ray(args: argparse.Namespace, settings) -> int:
+    try:
+        import ray.serve  # noqa: F401  (the [ray] extra)
+
+        from ..serve_ray import RayOptions, run
+    except ModuleNotFoundError as exc:
+        raise CliError(f"--ray needs {exc.name!r}: pip install 'omnisplat[ray]'") from None
+    opts = RayOptions(min_replicas=args.min_replicas, max_replicas=max(args.min_replicas, args.max_replicas),
+                      replica_cpus=args.replica_cpus)
+    say(f"Ray Serve: {opts.min_replicas}-{opts.max_replicas} replicas of {opts.replica_cpus:g} CPU "
+         f"on http://{settings.host}:{settings.port}")
+    return run(settings, opts, address=args.ray_address)
+
+
+def add_parser(sub) -> None:
+    s = sub.add_parser("serve", help="run the HTTP API (builds the default model first if it is missing)",
+                       description="Run the HTTP API. Settings come from OMNISPLAT_* environment variables "
+                                   "(see service/config.py); these flags override them.")
+    s.add_argument("--host", help="interface to bind (default 127.0.0.1; 0.0.0.0 in containers)")
+    s.add_argument("--port", type=int, help="port (default 8000)")
+    s.add_argument("--store", type=Path, help="scene store folder (default ~/.omnisplat/scenes)")
+    s.add_argument("--model", type=Path, help="ONNX model file (default <models-dir>/omnisplat-default-<exporter hash>.onnx)")
+    s.add_argument("--models-dir", type=Path, help="where the default model is built (default ~/.omnisplat/models)")
+    s.add_argument("--no-build", action="store_true", help="fail instead of building a missing model")
+    s.add_argument("--threads", type=int, help="onnxruntime threads (default 2)")
+    s.add_argument("--max-upload-mb", type=float, help="request body limit in MiB (default 100)")
+    s.add_argument("--max-requests", type=int,
+                   help="requests in progress before 503 + Retry-After (default 256; health exempt)")
+    s.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+    ray = s.add_argument_group("Ray Serve (pip install 'omnisplat[ray]'; see README 'Scale-out on Ray Serve')")
+    ray.add_argument("--ray", action="store_true", help="serve on Ray Serve replicas instead of one uvicorn process")
+    ray.add_argument("--ray-address", help="join this Ray cluster (e.g. 'auto'); default: start a local one")
+    ray.add_argument("--min-replicas", type=int, default=1, help="autoscaling lower bound (default 1)")
+    ray.add_argument("--max-replicas", type=int, default=2, help="autoscaling upper bound (default 2)")
+    ray.add_argument("--replica-cpus", type=float, default=1.0,
+                     help="CPUs per replica, also its onnxruntime threads (default 1)")
+    s.set_defaults(func=cmd_serve)
