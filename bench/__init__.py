@@ -1,7 +1,8 @@
 """Measurements: error against run time, stability, compaction, refinement, load.
 
 Imports anything (export/ for building models, service/ for the runtime path);
-imported by nothing but the CLI's lazy ``omnisplat bench`` door and the tests.
+imported by nothing but the tests. Its own entry point: ``omnisplat-bench NAME`` (``python -m bench``,
+:mod:`bench.__main__`).
 The runtime image does not ship it.
 """
 

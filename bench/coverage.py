@@ -1,4 +1,4 @@
-"""``omnisplat bench coverage``: how opaque the reconstructed surfaces are, and quality plain vs V/A.
+"""``omnisplat-bench coverage``: how opaque the reconstructed surfaces are, and quality plain vs V/A.
 
 For every dev split: reconstruct with the shipped encoder (or ``--model``),
 compact as the service does by default, and for both the raw and the
@@ -11,7 +11,7 @@ copying the nearest reference for comparison. Where the scene has GT depth, targ
 reference sees (genuine disocclusions: the GT surface point is hidden in
 both references' GT depth) are counted and left out of a second fraction.
 
-    omnisplat bench coverage [--data DIR ...] [--model M.onnx] [--json out.json]
+    omnisplat-bench coverage [--data DIR ...] [--model M.onnx] [--json out.json]
 """
 
 from __future__ import annotations
@@ -170,7 +170,7 @@ def run(data: list[Path], model: Path | None, threads: int = 2, sh_degree: int =
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="omnisplat bench coverage", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="omnisplat-bench coverage", description=__doc__.split("\n\n")[0])
     p.add_argument("--data", nargs="+", type=Path, default=[DEV_DATA / "m3d_bedroom", DEV_DATA / "zind_room09"])
     p.add_argument("--model", type=Path, default=None, help="ONNX model (default: the shipped quality preset)")
     p.add_argument("--threads", type=int, default=2)

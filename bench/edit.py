@@ -255,7 +255,7 @@ def markdown(res: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="omnisplat bench edit", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="omnisplat-bench edit", description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--model", type=Path, default=None, help="ONNX model (default: the shipped 512x1024 quality model)")
     ap.add_argument("--threads", type=int, default=2)

@@ -1,4 +1,4 @@
-"""``omnisplat bench layout``: what the indoor layout prior changes, before / after, on every dev split.
+"""``omnisplat-bench layout``: what the indoor layout prior changes, before / after, on every dev split.
 
 For each split of the dev scenes: reconstruct with the shipped encoder (after) and with the same
 encoder exported without the layout prior (before: ``layout_strength`` 0, export/layout.py), render
@@ -9,7 +9,7 @@ seconds of one reconstruction (second run of each model; the difference is the p
 Writes docs/bench/layout.{json,md}, a picture of one zind target (ground truth | before | after) and
 the README block ``layout``.
 
-    omnisplat bench layout [--data DIR ...] [--out docs/bench] [--readme README.md]
+    omnisplat-bench layout [--data DIR ...] [--out docs/bench] [--readme README.md]
 """
 
 from __future__ import annotations
@@ -119,7 +119,7 @@ def markdown(res: dict, figure_link: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="omnisplat bench layout", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="omnisplat-bench layout", description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", nargs="+", type=Path, default=[DEV_DATA / "m3d_bedroom", DEV_DATA / "zind_room09"])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("docs/bench"))

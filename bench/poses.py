@@ -1,4 +1,4 @@
-"""``omnisplat bench poses``: poses optional, measured against the scene files' poses.
+"""``omnisplat-bench poses``: poses optional, measured against the scene files' poses.
 
 Per split (references A, B): estimate B's pose from the two images (:mod:`service.poses`,
 scale from A's camera height), compare with the scene's relative pose (rotation error deg,
@@ -9,7 +9,7 @@ translation direction error deg, scale error %), then build the scene as the ser
 estimated frame by the similarity that maps the scene's A onto the identity and its baseline
 onto the estimated one. Writes ``poses.json`` and ``poses.md`` into ``--out``.
 
-    omnisplat bench poses --data ../shared/data/m3d_bedroom ../shared/data/zind_room09
+    omnisplat-bench poses --data ../shared/data/m3d_bedroom ../shared/data/zind_room09
 """
 
 from __future__ import annotations
@@ -163,7 +163,7 @@ def markdown(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="omnisplat bench poses", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="omnisplat-bench poses", description=__doc__.split("\n\n")[0])
     p.add_argument("--data", type=Path, nargs="+", required=True, help="scene folders")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     p.add_argument("--width", type=int, default=1024, help="render width (the targets' width)")

@@ -1,4 +1,4 @@
-"""``omnisplat bench refine``: +opt quality against iterations and seconds (not a timed test).
+"""``omnisplat-bench refine``: +opt quality against iterations and seconds (not a timed test).
 
 For each scene folder and each of its splits (references A, B; every target): reconstruct
 with the ONNX encoder, build the reference Yin/Yang footprints once, run the default colour
@@ -180,7 +180,7 @@ NOTES = [
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="omnisplat bench refine", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="omnisplat-bench refine", description=__doc__.splitlines()[0])
     ap.add_argument("--data", nargs="+", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--model", type=Path, default=None, help="ONNX model (default: the shipped 512x1024 quality-preset model)")
     ap.add_argument("--iterations", nargs="+", type=int, default=list(DEFAULT_ITERATIONS))

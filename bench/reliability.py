@@ -1,6 +1,6 @@
 """Rerun the reliability audit against a real server on 127.0.0.1 and summarise it.
 
-    omnisplat bench reliability [--model M.onnx] [--json out.json]
+    omnisplat-bench reliability [--model M.onnx] [--json out.json]
 
 Categories (bounded in count and time): bad inputs by kind (status codes), schemathesis on
 every operation, overload (503 + Retry-After), idle and trickling connections (health must
@@ -367,7 +367,7 @@ def _server_errors(obj) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="omnisplat bench reliability", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="omnisplat-bench reliability", description=__doc__.splitlines()[0])
     p.add_argument("--model", type=Path, help="ONNX model (default: export a small one, needs torch)")
     p.add_argument("--fuzz-examples", type=int, default=15, help="schemathesis cases per operation")
     p.add_argument("--fuzz-seconds", type=float, default=90.0)

@@ -147,7 +147,7 @@ def run_render_benchmark(scene_dir: str | Path | None = DEFAULT_SCENE, *, width:
 
 def main(argv: list[str] | None = None) -> int:
     """CLI: print the benchmark as one JSON object (--json) or a short table."""
-    ap = argparse.ArgumentParser(prog="omnisplat bench render", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="omnisplat-bench render", description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--scene", default=str(DEFAULT_SCENE), help="scene folder with depth (default m3d_bedroom)")
     ap.add_argument("--width", type=int, default=1024)

@@ -266,3 +266,51 @@ def test_compaction_readme_block_keeps_the_quality_block(tmp_path):
     assert update_readme(readme, block, "compaction")
     text = readme.read_text()
     assert "quality\n" in text and "old" not in text and text.count(end) == 1
+
+
+# -- the omnisplat-bench entry point ----------------------------------------------
+
+def test_bench_entry_point_dispatches_to_the_module_main(monkeypatch):
+    import sys
+
+    from bench.__main__ import main
+
+    seen = {}
+
+    class Fake:
+        @staticmethod
+        def main(argv):
+            seen["argv"] = argv
+            return 3
+
+    monkeypatch.setitem(sys.modules, "bench.render", Fake)
+    assert main(["render", "--json", "--x", "1"]) == 3
+    assert seen["argv"] == ["--json", "--x", "1"]
+
+
+@pytest.mark.parametrize("argv, code", [(["nonsense"], 2), ([], 2), (["--help"], 0)])
+def test_bench_entry_point_usage(argv, code, capsys):
+    from bench.__main__ import main
+
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == code
+    captured = capsys.readouterr()
+    assert "omnisplat-bench" in captured.out + captured.err
+
+
+def test_every_bench_command_is_a_module_with_main():
+    import ast
+    from pathlib import Path
+
+    from bench.__main__ import COMMANDS
+
+    root = Path(__file__).resolve().parents[2]
+    for name, (module, help_text) in COMMANDS.items():
+        path = root / Path(*module.split(".")).with_suffix(".py")
+        tree = ast.parse(path.read_text())
+        assert any(isinstance(n, ast.FunctionDef) and n.name == "main" for n in tree.body), module
+        assert help_text
+    with_main = {p.stem for p in (root / "bench").glob("*.py") if p.stem != "__main__" and
+                 any(isinstance(n, ast.FunctionDef) and n.name == "main" for n in ast.parse(p.read_text()).body)}
+    assert with_main == set(COMMANDS)  # every benchmark is listed once

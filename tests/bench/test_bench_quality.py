@@ -1,4 +1,4 @@
-"""`omnisplat bench quality --short` end to end on one dev scene (the command must not rot)."""
+"""`omnisplat-bench quality --short` end to end on one dev scene (the command must not rot)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""`omnisplat bench stability --short --json`: every stiff/extreme case passes on a small model."""
+"""`omnisplat-bench stability --short --json`: every stiff/extreme case passes on a small model."""
 
 from __future__ import annotations
 
