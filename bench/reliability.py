@@ -29,7 +29,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from bench.service import _free_port, _inputs
+from bench.service import free_port, post_inputs
 
 ROOT = Path(__file__).resolve().parents[1]
 HUGE = "1" + "0" * 399
@@ -40,7 +40,7 @@ class Server:
 
     def __init__(self, model: Path, store: Path, store_ok: bool = True, **env) -> None:
         self.model, self.store, self.env, self.store_ok = model, store, env, store_ok
-        self.port = _free_port()
+        self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.proc: subprocess.Popen | None = None
 
@@ -384,7 +384,7 @@ def main(argv: list[str] | None = None) -> int:
             from export.onnx_export import export_model
 
             model = Path(export_model(tmp / "small.onnx", height=128, width=256, num_planes=8))
-        imgs = _inputs(128)
+        imgs = post_inputs(128)
         res: dict = {}
         header_timeout = 2.0
         with Server(model, tmp / "store", header_timeout_s=header_timeout, body_timeout_s=10,

@@ -29,13 +29,15 @@ from bench import DEV_DATA
 DEV_SCENE = DEV_DATA / "m3d_bedroom"
 
 
-def _free_port() -> int:
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that is free right now."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
 
 
-def _inputs(height: int) -> tuple[bytes, bytes, list, list]:
+def post_inputs(height: int) -> tuple[bytes, bytes, list, list]:
+    """(PNG A, PNG B, c2w A, c2w B) for a POST: the dev scene's first split at ``height`` if present, else noise."""
     from PIL import Image
 
     def encode(arr: np.ndarray) -> bytes:
@@ -79,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, help="write the results here too")
     args = p.parse_args(argv)
 
-    port = _free_port()
+    port = free_port()
     url = f"http://127.0.0.1:{port}"
     with tempfile.TemporaryDirectory() as store:
         cmd = [sys.executable, "-m", "service.cli", "serve", "--no-build", "--model", str(args.model),
@@ -97,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
                     raise SystemExit("server did not become ready")
                 time.sleep(0.1)
             ready_s = time.perf_counter() - t0
-            a, b, ca, cb = _inputs(args.height)
+            a, b, ca, cb = post_inputs(args.height)
             poses = json.dumps({"convention": "opencv", "c2w": [ca, cb]})
             post_s, render_s, stage_sums, sid, n = [], [], {}, None, 0
             with httpx.Client(base_url=url, timeout=600) as c:
