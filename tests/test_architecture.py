@@ -254,6 +254,22 @@ def test_the_private_name_check_can_fail(tmp_path):
     assert found == ["rasterizer.user:2 rasterizer.gaussians._x", "rasterizer.user:3 rasterizer.geometry._y"]
 
 
+def test_no_test_module_imports_another_test_module():
+    """Shared test helpers live in conftest.py fixtures or helper modules (tests/*/_support.py)."""
+    bad = [f"{m}:{e.line} imports {e.target}" for m, es in TESTS.items() for e in es
+           if e.target.startswith("tests.") and e.target.rpartition(".")[2].startswith("test_")]
+    assert not bad, bad
+
+
+def test_dev_data_is_reached_only_through_the_conftest_fixtures():
+    """A test that builds its own ``../shared/data`` path would fail (not skip) on a fresh clone."""
+    import re
+
+    pattern = re.compile(r"""["'](\.\./)?shared["'/]""")
+    bad = [str(p.relative_to(ROOT)) for p in _files("tests") if p.name != "conftest.py" and pattern.search(p.read_text())]
+    assert not bad, bad
+
+
 #: Longest module (lines) in the product packages.
 MAX_LINES = 600
 #: Modules allowed over MAX_LINES for now.

@@ -11,7 +11,7 @@ from rasterizer.colour_fit import check_colour_fit, fit_reference_colours, own_v
 from rasterizer.depth_gaussians import gaussians_from_depth
 from rasterizer.gaussians import Gaussians, sh_dc_to_rgb
 from rasterizer.render import render
-from tests.rasterizer.test_compaction import box_range, pose_at
+from tests.rasterizer._support import box_range, pose_at
 
 H, W = 32, 96  # one Yin/Yang grid
 GRIDS = ("yin", "yang")

@@ -20,38 +20,7 @@ from rasterizer.gaussians import Gaussians
 from rasterizer.ply import ply_bytes
 from rasterizer.render import render
 
-H, W = 12, 36  # one Yin/Yang grid
-
-
-def pose_at(t):
-    """A camera at ``t`` looking along +z (identity rotation)."""
-    c2w = np.eye(4)
-    c2w[:3, 3] = t
-    return c2w
-
-
-def box_range(kind, c2w, half=2.0, size=(H, W)):
-    """Range along each grid ray (grid ``size``) from camera ``c2w`` to the inside of the box [-half, half]^3."""
-    d = geo.grid_directions(kind, *size) @ c2w[:3, :3].T
-    o = c2w[:3, 3]
-    with np.errstate(divide="ignore"):
-        t = np.where(d > 0, (half - o) / d, np.where(d < 0, (-half - o) / d, np.inf))
-    return t.min(axis=-1)
-
-
-def _colour(kind, c2w):
-    d = geo.grid_directions(kind, H, W) @ c2w[:3, :3].T
-    p = c2w[:3, 3] + d * box_range(kind, c2w)[..., None]
-    return (0.5 + 0.4 * np.sin(3 * p)).astype(np.float32)
-
-
-def two_view_box(opacity=0.9):
-    """Two references inside a box room: full [view][yin, yang][row][col] layout."""
-    poses = [pose_at([0.0, 0.0, -0.3]), pose_at([0.0, 0.0, 0.3])]
-    parts = [gaussians_from_depth(_colour(k, c), box_range(k, c), c, k, scale_factor=0.75, thickness=0.1,
-                                  opacity=opacity)
-             for c in poses for k in ("yin", "yang")]
-    return Gaussians.concatenate(parts), Provenance(("yin", "yang"), H, W, np.stack(poses))
+from ._support import H, W, pose_at, two_view_box
 
 
 def test_disabled_steps_remove_nothing():

@@ -263,7 +263,7 @@ def test_only_blocks_whose_pixels_are_all_present():
 
 
 def test_merge_with_cap_and_default_steps_on_two_views():
-    from tests.rasterizer.test_compaction import two_view_box
+    from tests.rasterizer._support import two_view_box
 
     g, prov = two_view_box()
     res = compact_result(g, prov, CompactionOptions(max_count=200))

@@ -13,6 +13,8 @@ from rasterizer.refine.backward import BlendOperator, opacity_gradient, suffix_s
 from rasterizer.refine.solver import _Problem
 from rasterizer.splat import Footprints
 
+from ._support import toy_scene
+
 
 def synthetic_footprints(seed: int = 0, n: int = 12, pixels: int = 40, per_pixel: int = 6) -> Footprints:
     """Random per-pixel lists (front to back) with weights g in [0.1, 1]: alpha stays off the 1/255 and 0.99 kinks."""
@@ -131,20 +133,6 @@ def test_blend_operator_reproduces_normalised_render():
 
 # -- the refinement loop on a small real scene --------------------------------------------------------
 
-def _toy_scene(seed: int = 0, n: int = 600):
-    """Gaussians on a sphere of radius ~3 around the origin (a closed room), true colours/opacities."""
-    rng = np.random.default_rng(seed)
-    d = rng.standard_normal((n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    means = d * rng.uniform(2.5, 3.5, (n, 1))
-    scales = np.full((n, 3), 0.35) * rng.uniform(0.7, 1.3, (n, 1))
-    quats = rng.standard_normal((n, 4))
-    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
-    rgb = rng.uniform(0.05, 0.95, (n, 3))
-    opac = rng.uniform(0.5, 0.95, n)
-    return Gaussians(means, scales, quats, opac, rgb_to_sh_dc(rgb)[:, None, :])
-
-
 def _targets_from(g, c2ws, h):
     """Yin/Yang renders of the true scene, merged back to ERP-like targets through reference_views."""
     from rasterizer.render import render
@@ -153,7 +141,7 @@ def _targets_from(g, c2ws, h):
 
 
 def test_refine_recovers_perturbed_colours_and_opacities():
-    truth = _toy_scene(0)
+    truth = toy_scene(0)
     rng = np.random.default_rng(5)
     c2ws = [np.eye(4), np.eye(4)]
     c2ws[1] = np.eye(4)
@@ -182,7 +170,7 @@ def test_refine_recovers_perturbed_colours_and_opacities():
 
 
 def test_opacity_adam_alone_decreases_loss():
-    truth = _toy_scene(1)
+    truth = toy_scene(1)
     c2ws = [np.eye(4), np.eye(4)]
     c2ws[1][2, 3] = 0.4
     h = 16
@@ -196,7 +184,7 @@ def test_opacity_adam_alone_decreases_loss():
 
 
 def test_refine_progress_and_sh_degree_one():
-    truth = _toy_scene(2, n=300)
+    truth = toy_scene(2, n=300)
     c2ws = [np.eye(4), np.eye(4)]
     c2ws[1][0, 3] = 0.3
     images = _targets_from(truth, c2ws, 12)
@@ -210,7 +198,7 @@ def test_refine_progress_and_sh_degree_one():
 
 
 def test_colour_cg_reduces_held_out_error_and_early_stops():
-    truth = _toy_scene(3)
+    truth = toy_scene(3)
     rng = np.random.default_rng(7)
     c2ws = [np.eye(4), np.eye(4)]
     c2ws[1][1, 3] = 0.3
@@ -239,7 +227,7 @@ def test_cross_view_guard_rejects_refinement_on_wrong_geometry():
 
     Small Gaussians with random colours (a detailed room), start colours = the room's mean colour.
     """
-    room = _toy_scene(4, n=2000)
+    room = toy_scene(4, n=2000)
     truth = Gaussians(room.means, room.scales * (0.15 / 0.35), room.quats, room.opacities, room.sh)
     wrong = Gaussians(truth.means / 3.0, truth.scales / 3.0, truth.quats, truth.opacities,
                       rgb_to_sh_dc(np.tile(truth.rgb.mean(0), (len(truth), 1)))[:, None, :])
@@ -257,7 +245,7 @@ def test_cross_view_guard_rejects_refinement_on_wrong_geometry():
 
 
 def test_cross_view_guard_accepts_refinement_on_right_geometry():
-    truth = _toy_scene(5)
+    truth = toy_scene(5)
     rng = np.random.default_rng(3)
     noisy = np.clip(truth.rgb + rng.normal(0, 0.2, truth.rgb.shape), 0, 1)
     start = Gaussians(truth.means, truth.scales, truth.quats, truth.opacities, rgb_to_sh_dc(noisy)[:, None, :])

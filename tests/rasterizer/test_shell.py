@@ -9,7 +9,7 @@ from rasterizer.depth_gaussians import gaussians_from_depth
 from rasterizer.gaussians import Gaussians, sh_dc_to_rgb
 from rasterizer.render import render
 from rasterizer.shell import SHELL_OPACITY, SHELL_RADIUS_FACTOR, environment_shell, shell_block, shell_layout, shell_radius
-from tests.rasterizer.test_compaction import box_range, pose_at
+from tests.rasterizer._support import box_range, pose_at
 
 H, W = 16, 48  # one Yin/Yang grid
 

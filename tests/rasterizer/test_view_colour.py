@@ -11,7 +11,7 @@ from rasterizer.gaussians import Gaussians, sh_dc_to_rgb
 from rasterizer.render import render
 from rasterizer.sh import sh_to_rgb
 from rasterizer.view_colour import VIEW_COLOUR_RIDGE, fit_view_colour
-from tests.rasterizer.test_compaction import box_range, pose_at
+from tests.rasterizer._support import box_range, pose_at
 
 H, W = 16, 48  # one Yin/Yang grid
 GRIDS = ("yin", "yang")

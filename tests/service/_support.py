@@ -1,5 +1,111 @@
-"""Helpers shared by tests/service: the live-server fixtures of the service API tests."""
+"""Helpers shared by tests/service (not a test module): the small model, synthetic panoramas, a live server.
+
+The session fixture ``model_path`` (tests/service/conftest.py) exports the small model once.
+"""
 
 from __future__ import annotations
 
-from tests.service.test_service_api import IDENTITY, LiveServer, make_settings, panorama, post_scene, small_model  # noqa: F401
+import io
+import json
+import socket
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+from PIL import Image
+
+from service.config import Settings
+
+IDENTITY = ",".join(str(v) for v in np.eye(4).ravel())
+
+
+def small_model(tmp_path_factory) -> Path:
+    """Export the small test model once per session (a shared path under the session's temp root)."""
+    path = tmp_path_factory.getbasetemp() / "omnisplat-test-model" / "small-128x256-p8.onnx"
+    if not path.is_file():
+        from export.onnx_export import export_model
+
+        export_model(path, height=128, width=256, num_planes=8)
+    return path
+
+
+def panorama(height: int = 128, seed: int = 0, fmt: str = "PNG", shift: int = 0) -> bytes:
+    """A textured synthetic ERP (smooth bands + noise), encoded."""
+    rng = np.random.default_rng(seed)
+    w = 2 * height
+    yy, xx = np.mgrid[0:height, 0:w].astype(np.float32)
+    xx = (xx + shift) % w
+    base = np.stack([np.sin(xx / w * 12.56 + k) * np.cos(yy / height * 6.28 * (k + 1)) for k in range(3)], -1)
+    img = 0.5 + 0.35 * base + 0.1 * rng.standard_normal((height, w, 3))
+    buf = io.BytesIO()
+    Image.fromarray((np.clip(img, 0, 1) * 255).astype(np.uint8)).save(buf, format=fmt)
+    return buf.getvalue()
+
+
+def pose(x: float = 0.0) -> list:
+    m = np.eye(4)
+    m[0, 3] = x
+    return m.tolist()
+
+
+POSES = json.dumps({"convention": "opencv", "c2w": [pose(0.0), pose(0.5)]})
+
+
+class LiveServer:
+    """uvicorn serving create_app(settings) in a thread, on a free loopback port."""
+
+    def __init__(self, settings: Settings) -> None:
+        import uvicorn
+
+        from service.app import create_app
+        from service.server import server_config
+
+        self.settings = settings
+        self.app = create_app(settings)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.sock.bind(("127.0.0.1", 0))
+        self.url = f"http://127.0.0.1:{self.sock.getsockname()[1]}"
+        self.server = uvicorn.Server(server_config(self.app, settings, log_level="warning", timeout_keep_alive=5))
+        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
+
+    def __enter__(self) -> "LiveServer":
+        self.thread.start()
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            try:
+                if httpx.get(self.url + "/readyz", timeout=2).status_code == 200:
+                    return self
+            except httpx.TransportError:
+                pass
+            if not self.thread.is_alive():
+                raise RuntimeError("server thread died during start-up")
+            time.sleep(0.05)
+        raise TimeoutError("server did not become ready")
+
+    def __exit__(self, *exc) -> None:
+        self.server.should_exit = True
+        self.thread.join(30)
+        self.sock.close()
+
+    def client(self, **kw) -> httpx.Client:
+        return httpx.Client(base_url=self.url, timeout=120, **kw)
+
+
+def make_settings(model: Path, store: Path, **kw) -> Settings:
+    return Settings(model_path=model, store_dir=store, **kw)
+
+
+def post_scene(client: httpx.Client, a: bytes, b: bytes, poses: str = POSES, options: str | None = None,
+               names=("a.png", "b.png")) -> httpx.Response:
+    data = {"poses": poses}
+    if options is not None:
+        data["options"] = options
+    return client.post("/v1/scenes", files={"image_a": (names[0], a), "image_b": (names[1], b)}, data=data)
+
+
+def stored_scene_count(store: Path) -> int:
+    scenes = store / "scenes"
+    return len([p for p in scenes.iterdir() if (p / "meta.json").exists()]) if scenes.exists() else 0

@@ -10,7 +10,7 @@ from PIL import Image
 from rasterizer.ply import read_ply, write_ply
 from rasterizer.render import render
 from service.cli import main as cli_main
-from tests.rasterizer.test_refine import _toy_scene
+from tests.rasterizer._support import toy_scene
 
 
 def main(argv):
@@ -18,7 +18,7 @@ def main(argv):
 
 
 def test_refine_cli_writes_refined_ply(tmp_path, capsys):
-    truth = _toy_scene(4, n=300)
+    truth = toy_scene(4, n=300)
     c2ws = [np.eye(4), np.eye(4)]
     c2ws[1][0, 3] = 0.3
     for name, c2w in zip("ab", c2ws):

@@ -8,7 +8,7 @@ import pytest
 from PIL import Image
 
 from rasterizer.scene_folder import load_scene
-from tests.service.test_service_api import LiveServer, make_settings, model_path, post_scene  # noqa: F401
+from tests.service._support import LiveServer, make_settings, post_scene
 
 IDENTITY = ",".join(str(float(x)) for x in np.eye(4).ravel())
 

@@ -24,12 +24,11 @@ from rasterizer.splat import RenderLimitError
 from service.access import AccessGuard
 from service.config import Settings
 from service.errors import translate
-from tests.service.test_service_api import (  # noqa: F401 - model_path is a fixture
+from tests.service._support import (
     IDENTITY,
     POSES,
     LiveServer,
     make_settings,
-    model_path,
     panorama,
     post_scene,
 )

@@ -11,7 +11,7 @@ import pytest
 
 from service.job_state import JobFiles, identity
 from service.jobs import JobRegistry
-from tests.service.test_service_api import LiveServer, make_settings, model_path, panorama, post_scene  # noqa: F401
+from tests.service._support import LiveServer, make_settings, panorama, post_scene
 
 JOB = "a" * 32
 PARENT = "b" * 32

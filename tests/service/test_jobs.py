@@ -11,7 +11,7 @@ from PIL import Image
 
 from service.jobs import JobRegistry, result_id_for
 from service.references import store_references
-from tests.service.test_service_api import LiveServer, make_settings, model_path, panorama, post_scene  # noqa: F401
+from tests.service._support import LiveServer, make_settings, panorama, post_scene
 
 ZERO_ID = "0" * 32
 

@@ -9,7 +9,7 @@ from rasterizer.geometry import direction_from_lat_lon, erp_lat_lon
 from rasterizer.relative_pose import yaw_rotation
 from rasterizer.scene_folder import load_scene
 from service.poses import PoseEstimationFailed, PoseOptions, estimate_poses, poses_for_scene
-from tests.service.test_service_api import LiveServer, make_settings, model_path  # noqa: F401
+from tests.service._support import LiveServer, make_settings
 
 ROOM_MIN = np.array([-3.0, -1.2, -3.5])  # camera A at the origin, OpenCV (y down): floor at y = 1.5
 ROOM_MAX = np.array([3.5, 1.5, 4.0])

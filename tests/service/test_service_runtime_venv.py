@@ -18,7 +18,7 @@ import httpx
 import plyfile
 import pytest
 
-from tests.service.test_service_api import IDENTITY, POSES, panorama, small_model
+from tests.service._support import IDENTITY, POSES, panorama, small_model
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -34,13 +34,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from bench import DEV_DATA
 from service.routes import viewer as viewer_route
 
 from ._support import LiveServer, make_settings
 
 ROOT = Path(__file__).resolve().parents[2]
 DRIVER = Path(__file__).with_name("viewer_browser.mjs")
-M3D = ROOT.parent / "shared" / "data" / "m3d_bedroom"
 WIDTH, HEIGHT, FOV_DEG = 640, 480, 90.0
 YAWS = (0, 90, 180, 270)
 MIN_PSNR = 35.0
@@ -82,15 +82,15 @@ def default_model(folder: Path) -> Path:
 
 
 @contextmanager
-def m3d_server(model: Path, store: Path):
-    """A live server holding the m3d scene (split 0 references); yields (server, scene id, scene.json)."""
-    scene = json.loads((M3D / "scene.json").read_text())
+def m3d_server(model: Path, store: Path, scene_dir: Path):
+    """A live server holding the m3d scene ``scene_dir`` (split 0 references); yields (server, scene id, scene.json)."""
+    scene = json.loads((scene_dir / "scene.json").read_text())
     frames = {f["name"]: f for f in scene["frames"]}
     ref_a, ref_b = scene["splits"][0]["references"]
     poses = {"convention": scene["convention"], "c2w": [frames[ref_a]["c2w"], frames[ref_b]["c2w"]]}
     with LiveServer(make_settings(model, store)) as server, server.client() as client:
-        files = {"image_a": (f"{ref_a}.png", (M3D / frames[ref_a]["image"]).read_bytes()),
-                 "image_b": (f"{ref_b}.png", (M3D / frames[ref_b]["image"]).read_bytes())}
+        files = {"image_a": (f"{ref_a}.png", (scene_dir / frames[ref_a]["image"]).read_bytes()),
+                 "image_b": (f"{ref_b}.png", (scene_dir / frames[ref_b]["image"]).read_bytes())}
         r = client.post("/v1/scenes", files=files, data={"poses": json.dumps(poses)})
         assert r.status_code == 201, r.text
         yield server, r.json()["id"], scene
@@ -140,7 +140,7 @@ def measure(server_url: str, scene_id: str, c2w_base: np.ndarray, out_dir: Path,
 @pytest.fixture(scope="module")
 def m3d(tmp_path_factory, m3d_dir):
     model = default_model(tmp_path_factory.getbasetemp() / "omnisplat-default-model")
-    with m3d_server(model, tmp_path_factory.mktemp("viewer-store")) as served:
+    with m3d_server(model, tmp_path_factory.mktemp("viewer-store"), m3d_dir) as served:
         yield served
 
 
@@ -241,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
         out = args.out or tmp / "shots"
         out.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
-        with m3d_server(model, tmp / "store") as (server, scene_id, scene):
+        with m3d_server(model, tmp / "store", DEV_DATA / "m3d_bedroom") as (server, scene_id, scene):
             report = measure(server.url, scene_id, target_pose(scene), out, page_shot=args.page_shot,
                              page_shot_at_reference_a=args.page_shot_at_reference_a)
         if args.page_shot:  # small enough to commit

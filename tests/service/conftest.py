@@ -1,0 +1,13 @@
+"""Fixtures of tests/service: the small ONNX model, exported once per session."""
+
+from pathlib import Path
+
+import pytest
+
+from ._support import small_model
+
+
+@pytest.fixture(scope="session")
+def model_path(tmp_path_factory) -> Path:
+    """The small test model (128x256 input, 8 planes)."""
+    return small_model(tmp_path_factory)
