@@ -1,4 +1,4 @@
-"""What every sub-command shares: the one-line user error and the progress line on stderr."""
+"""What every sub-command shares: the one-line user error, the progress line on stderr, lazy optional imports."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ class CliError(Exception):
 
 
 def say(msg: str) -> None:
+    """One progress line on stderr (stdout carries the commands' JSON)."""
     print(f"[omnisplat] {msg}", file=sys.stderr, flush=True)
 
 
