@@ -3,10 +3,10 @@
 Eigenvalues by the trigonometric roots of the characteristic polynomial (many times faster than
 ``np.linalg.eigh`` on stacked small matrices), the smallest eigenpair, the plane test of the smooth
 merge, and scales / quaternion of covariances with the arithmetic of :mod:`rasterizer.gaussians`.
-Two forms of the eigen maths: :func:`smallest_eigenpair` on (m, 6) stacks (the merged covariance's
-widening) and :func:`plane_ok_c` on separate component arrays, which rejects blocks by their
-eigenvalues before it computes any eigenvector (the hot path of the 2x2 merge); their
-eigenvectors use the same cross products but a differently ordered argmax, so they stay two.
+The eigen maths exists once, on separate component arrays (:func:`eigvals_c`,
+:func:`eigvec_c`); :func:`sym3_eigvals` / :func:`smallest_eigenpair` apply it to (m, 6) stacks
+(the merged covariance's widening) and :func:`plane_ok_c` to the blocks its eigenvalue tests
+keep (the hot path of the 2x2 merge).
 """
 
 from __future__ import annotations
@@ -55,22 +55,40 @@ def sym3_eigvals(s6: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np
 def smallest_eigenpair(s6: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Smallest eigenvalue, its unit eigenvector and ok-flag of symmetric PSD 3x3 matrices (6 components).
 
-    The eigenvector is the longest cross product of two rows of A - lambda I.
     ok is False where the smallest eigenvalue is (numerically) repeated, so
     the eigenvector, a plane normal here, is not defined.
     """
     lam, mid, _, p = sym3_eigvals(s6)
-    xx, yy, zz, xy, xz, yz = (s6[:, k] for k in range(6))
-    r0 = np.stack([xx - lam, xy, xz], axis=1)
-    r1 = np.stack([xy, yy - lam, yz], axis=1)
-    r2 = np.stack([xz, yz, zz - lam], axis=1)
-    cands = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)
-    norms = sum3(cands * cands)
-    best = np.argmax(norms, axis=1)
-    rows = np.arange(len(best))
-    vec, nb = cands[rows, best], np.sqrt(norms[rows, best])
+    vec, nb = eigvec_c(lam, *(s6[:, k] for k in range(6)))
     ok = (p > 0) & (mid - lam > 1e-9 * p) & (nb > 0)
-    return np.maximum(lam, 0.0), vec / np.where(nb > 0, nb, 1.0)[:, None], ok
+    return np.maximum(lam, 0.0), np.stack(vec, axis=1), ok
+
+
+def eigvec_c(lam, xx, yy, zz, xy, xz, yz):
+    """Unit eigenvector (three component arrays) of eigenvalue ``lam`` and its unnormalised length nb.
+
+    The longest cross product of two rows of A - lambda I (the first of equal lengths); where
+    nb = 0 the eigenvector is not defined and the components are the (zero) cross product.
+    """
+    r0 = (xx - lam, xy, xz)
+    r1 = (xy, yy - lam, yz)
+    r2 = (xz, yz, zz - lam)
+
+    def cross(a, b):
+        return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+    cands = (cross(r0, r1), cross(r0, r2), cross(r1, r2))
+    norms = [c[0] * c[0] + c[1] * c[1] + c[2] * c[2] for c in cands]
+    # argmax, first of equal maxima
+    best1 = norms[1] > norms[0]
+    nmax = np.where(best1, norms[1], norms[0])
+    best2 = norms[2] > nmax
+    nb2 = np.where(best2, norms[2], nmax)
+    vec = [np.where(best2, cands[2][k], np.where(best1, cands[1][k], cands[0][k])) for k in range(3)]
+    nb = np.sqrt(nb2)
+    nbs = np.where(nb > 0, nb, 1.0)
+    return (vec[0] / nbs, vec[1] / nbs, vec[2] / nbs), nb
+
 
 def rows4(a: np.ndarray) -> np.ndarray:
     """a[0] + a[1] + a[2] + a[3] in that order (the same rounding as summing four member arrays one by one)."""
@@ -111,28 +129,13 @@ def plane_ok_c(wsafe, mux, muy, muz, m2, plane_tol: float, cos_incidence: float)
     ok = (p > 0) & (mid - lam > 1e-9 * p) & (rng > 0) & (np.maximum(lam, 0.0) <= (plane_tol * rng) ** 2)
     i = np.flatnonzero(ok)
     lam, xx, yy, zz, xy, xz, yz = (a[i] for a in (lam, xx, yy, zz, xy, xz, yz))
-    r0 = (xx - lam, xy, xz)
-    r1 = (xy, yy - lam, yz)
-    r2 = (xz, yz, zz - lam)
-
-    def cross(a, b):
-        return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-    cands = (cross(r0, r1), cross(r0, r2), cross(r1, r2))
-    norms = [c[0] * c[0] + c[1] * c[1] + c[2] * c[2] for c in cands]
-    # argmax, first of equal maxima
-    best1 = norms[1] > norms[0]
-    nmax = np.where(best1, norms[1], norms[0])
-    best2 = norms[2] > nmax
-    nb2 = np.where(best2, norms[2], nmax)
-    vec = [np.where(best2, cands[2][k], np.where(best1, cands[1][k], cands[0][k])) for k in range(3)]
-    nb = np.sqrt(nb2)
-    nbs = np.where(nb > 0, nb, 1.0)
+    (vx, vy, vz), nb = eigvec_c(lam, xx, yy, zz, xy, xz, yz)
     mux, muy, muz, rng = mux[i], muy[i], muz[i], rng[i]
-    dot = (vec[0] / nbs) * mux + (vec[1] / nbs) * muy + (vec[2] / nbs) * muz
+    dot = vx * mux + vy * muy + vz * muz
     cos_inc = np.abs(dot) / rng
     ok[i] = (nb > 0) & (cos_inc >= cos_incidence)
     return ok
+
 
 def scale_rotation6(cov6: np.ndarray, min_scale: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`rasterizer.gaussians.scale_rotation_from_covariance` of covariances given as 6 components.
