@@ -16,9 +16,7 @@ World frame: OpenCV-like, x right, y down, z forward, in metres; the cameras are
 the floor (y = 0), the floor is y = +1.5 and the ceiling y = -1.1.
 
     python scripts/make_sample.py                # writes samples/room
-    python scripts/make_sample.py --out DIR --width 512
-
-Everything is deterministic (fixed seeds): running it again rewrites the same files.
+Deterministic (fixed seeds): running it again rewrites the same files.
 """
 
 from __future__ import annotations
@@ -51,15 +49,11 @@ WINDOW = dict(x=(-1.3, -0.1), y=(-0.75, 0.35), frame=0.07)  # on the wall z = Z1
 RUG = dict(x=(-0.9, 1.3), z=(0.45, 2.05))  # on the floor
 
 # Camera centres and yaw (degrees about the world y axis); 01 lies between 00 and 02.
-CAMERAS = {
-    "00": (np.array([-0.42, 0.0, -0.14]), 8.0),
-    "01": (np.array([0.0, 0.0, 0.0]), 0.0),
-    "02": (np.array([0.43, 0.0, 0.13]), -12.0),
-}
+CAMERAS = {"00": (np.array([-0.42, 0.0, -0.14]), 8.0), "01": (np.array([0.0, 0.0, 0.0]), 0.0),
+           "02": (np.array([0.43, 0.0, 0.13]), -12.0)}
 
 
-# ---------------------------------------------------------------------------------------------
-# Cameras and rays (docs/conventions.md, section 1)
+# ---- Cameras and rays (docs/conventions.md, section 1)
 
 
 def c2w_matrix(centre: np.ndarray, yaw_deg: float) -> np.ndarray:
@@ -67,8 +61,7 @@ def c2w_matrix(centre: np.ndarray, yaw_deg: float) -> np.ndarray:
     a = np.deg2rad(yaw_deg)
     rot = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
     m = np.eye(4)
-    m[:3, :3] = rot
-    m[:3, 3] = centre
+    m[:3, :3], m[:3, 3] = rot, centre
     return m
 
 
@@ -90,15 +83,14 @@ def jitter(frame_index: int, width: int, spp: int) -> np.ndarray:
     rng = np.random.default_rng(SEED + 101 * frame_index)
     u = rng.random((spp, height, width, 2))
     nx = 2 if spp % 2 == 0 else 1
-    ny = spp // nx
+    ny = spp // nx  # strata: nx across, ny down
     s = np.arange(spp)
     u[..., 0] = (u[..., 0] + (s % nx)[:, None, None]) / nx
     u[..., 1] = (u[..., 1] + (s // nx)[:, None, None]) / ny
     return u
 
 
-# ---------------------------------------------------------------------------------------------
-# Procedural noise
+# ---- Procedural noise
 
 
 class Noise:
@@ -145,12 +137,11 @@ def mix(a, b, t):
     return np.asarray(a) * (1 - t) + np.asarray(b) * t
 
 
-def inside(a: np.ndarray, lo_hi: tuple[float, float], margin: float = 0.0) -> np.ndarray:
-    return (a > lo_hi[0] - margin) & (a < lo_hi[1] + margin)
+def inside(a: np.ndarray, lo_hi: tuple[float, float]) -> np.ndarray:
+    return (a > lo_hi[0]) & (a < lo_hi[1])
 
 
-# ---------------------------------------------------------------------------------------------
-# Materials: albedo (N, 3) in [0, 1] (linear) from world points (N, 3)
+# ---- Materials: albedo (N, 3) in [0, 1] (linear) from world points (N, 3)
 
 
 def wood(u: np.ndarray, v: np.ndarray, base: np.ndarray, salt: int) -> np.ndarray:
@@ -307,10 +298,8 @@ def window_albedo(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     out = mix([0.55, 0.72, 0.95], [0.85, 0.90, 0.97], np.clip(v * 1.5, 0, 1))
     trees = v > 0.62 + 0.06 * NOISE.fbm(x * 12.0, np.zeros_like(x) + 3.0, 3)
     out[trees] = mix([0.12, 0.30, 0.10], [0.30, 0.50, 0.18], NOISE.fbm(x[trees] * 30.0, y[trees] * 30.0, 3))
-    xm = 0.5 * (x0 + x1)
-    ym = 0.5 * (y0 + y1)
     frame = (x < x0 + f) | (x > x1 - f) | (y < y0 + f) | (y > y1 - f)
-    frame |= (np.abs(x - xm) < 0.02) | (np.abs(y - ym) < 0.02)
+    frame |= (np.abs(x - 0.5 * (x0 + x1)) < 0.02) | (np.abs(y - 0.5 * (y0 + y1)) < 0.02)  # mullions
     out[frame] = [0.93, 0.93, 0.92]
     return out
 
@@ -367,9 +356,8 @@ def ball_albedo(p: np.ndarray, n: np.ndarray) -> np.ndarray:
     """A beach ball: six coloured gores around its vertical axis, white caps."""
     lon = np.arctan2(n[:, 0], n[:, 2])
     gore = np.floor((lon + np.pi) / (2 * np.pi) * 6).astype(int) % 6
-    colours = np.array([[0.85, 0.15, 0.10], [0.95, 0.85, 0.15], [0.10, 0.35, 0.80],
-                        [0.90, 0.90, 0.90], [0.15, 0.60, 0.25], [0.95, 0.50, 0.10]])
-    out = colours[gore]
+    out = np.array([[0.85, 0.15, 0.10], [0.95, 0.85, 0.15], [0.10, 0.35, 0.80],
+                    [0.90, 0.90, 0.90], [0.15, 0.60, 0.25], [0.95, 0.50, 0.10]])[gore]
     out[np.abs(n[:, 1]) > 0.93] = [0.95, 0.95, 0.95]
     return out
 
@@ -383,13 +371,7 @@ def lamp_albedo(p: np.ndarray, n: np.ndarray) -> np.ndarray:
     return out
 
 
-def plain(colour):
-    return lambda p, n: np.tile(colour, (len(p), 1))
-
-
-# ---------------------------------------------------------------------------------------------
-# Objects: axis-aligned boxes, a sphere, vertical capped cylinders
-
+# ---- Objects: axis-aligned boxes, a sphere, vertical capped cylinders
 
 SHELF = dict(lo=np.array([X0, -0.35, -1.6]), hi=np.array([X0 + 0.34, Y_FLOOR, -0.4]))
 TABLE_TOP = dict(lo=np.array([-0.35, 0.72, 0.95]), hi=np.array([0.85, 0.77, 1.75]))
@@ -398,6 +380,10 @@ LAMP_XZ = np.array([1.55, -1.9])
 LAMP_SHADE_Y = (-0.55, -0.25)
 BALL = (np.array([-1.15, Y_FLOOR - 0.27, 1.05]), 0.27)
 CRATE = dict(lo=np.array([0.25, 0.47, 1.1]), hi=np.array([0.6, 0.72, 1.45]))  # a box on the table
+
+
+def flat(colour):
+    return lambda p, n: np.tile(colour, (len(p), 1))
 
 
 def table_albedo(p, n):
@@ -422,10 +408,9 @@ def _objects():
         for lz in (z0 + 0.04, z1 - 0.04 - LEG):
             objs.append(("box", dict(lo=np.array([lx, TABLE_TOP["hi"][1], lz]),
                                      hi=np.array([lx + LEG, Y_FLOOR, lz + LEG])), table_albedo))
-    objs.append(("sphere", BALL, ball_albedo))
-    objs.append(("cylinder", dict(xz=LAMP_XZ, r=0.2, y=LAMP_SHADE_Y), lamp_albedo))
-    objs.append(("cylinder", dict(xz=LAMP_XZ, r=0.018, y=(LAMP_SHADE_Y[1], Y_FLOOR - 0.03)), plain([0.12, 0.12, 0.13])))
-    objs.append(("cylinder", dict(xz=LAMP_XZ, r=0.16, y=(Y_FLOOR - 0.03, Y_FLOOR)), plain([0.15, 0.15, 0.16])))
+    objs += [("sphere", BALL, ball_albedo), ("cylinder", dict(xz=LAMP_XZ, r=0.2, y=LAMP_SHADE_Y), lamp_albedo)]
+    objs.append(("cylinder", dict(xz=LAMP_XZ, r=0.018, y=(LAMP_SHADE_Y[1], Y_FLOOR - 0.03)), flat([0.12, 0.12, 0.13])))
+    objs.append(("cylinder", dict(xz=LAMP_XZ, r=0.16, y=(Y_FLOOR - 0.03, Y_FLOOR)), flat([0.15, 0.15, 0.16])))
     return objs
 
 
@@ -439,14 +424,10 @@ def hit_box(o: np.ndarray, d: np.ndarray, g: dict) -> tuple[np.ndarray, np.ndarr
         inv = 1.0 / d
         t0 = (g["lo"] - o) * inv
         t1 = (g["hi"] - o) * inv
-    tmin = np.minimum(t0, t1)
-    tmax = np.maximum(t0, t1)
-    tmin = np.nan_to_num(tmin, nan=-np.inf)
-    tmax = np.nan_to_num(tmax, nan=np.inf)
-    near = tmin.max(axis=1)
-    far = tmax.min(axis=1)
-    ok = (near <= far) & (near > EPS)
-    t = np.where(ok, near, np.inf)
+    tmin = np.nan_to_num(np.minimum(t0, t1), nan=-np.inf)
+    tmax = np.nan_to_num(np.maximum(t0, t1), nan=np.inf)
+    near, far = tmin.max(axis=1), tmax.min(axis=1)
+    t = np.where((near <= far) & (near > EPS), near, np.inf)
     axis = tmin.argmax(axis=1)
     normal = np.zeros_like(d)
     normal[np.arange(len(d)), axis] = -np.sign(d[np.arange(len(d)), axis])
@@ -459,8 +440,7 @@ def hit_sphere(o, d, g):
     b = np.einsum("ij,ij->i", oc, d)
     c = np.einsum("ij,ij->i", oc, oc) - r * r
     disc = b * b - c
-    sq = np.sqrt(np.maximum(disc, 0.0))
-    t = -b - sq
+    t = -b - np.sqrt(np.maximum(disc, 0.0))
     t = np.where((disc > 0) & (t > EPS), t, np.inf)
     p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
     return t, (p - centre) / r
@@ -478,8 +458,7 @@ def hit_cylinder(o, d, g):
         ts = (-b - np.sqrt(np.maximum(disc, 0.0))) / a
     ys = o[:, 1] + ts * d[:, 1]
     t_side = np.where((disc > 0) & (a > 1e-12) & (ts > EPS) & (ys > y0) & (ys < y1), ts, np.inf)
-    t_cap = np.full(len(o), np.inf)
-    cap_y = np.zeros(len(o))
+    t_cap, cap_y = np.full(len(o), np.inf), np.zeros(len(o))
     for yc in (y0, y1):
         with np.errstate(divide="ignore", invalid="ignore"):
             tc = (yc - o[:, 1]) / d[:, 1]
@@ -584,8 +563,7 @@ def render(c2w: np.ndarray, frame_index: int, width: int = WIDTH, spp: int = SPP
         rr = np.arange(a, b, dtype=np.float64)[:, None]
         acc = np.zeros((b - a, width, 3))
         for s in range(spp):
-            dirs = erp_directions(rr + jit[s, a:b, :, 1], cols[None, :] + jit[s, a:b, :, 0], width) @ rot.T
-            dirs = dirs.reshape(-1, 3)
+            dirs = (erp_directions(rr + jit[s, a:b, :, 1], cols[None, :] + jit[s, a:b, :, 0], width) @ rot.T).reshape(-1, 3)
             radiance, _ = trace(np.broadcast_to(centre, dirs.shape), dirs)
             acc += radiance.reshape(b - a, width, 3)
         image[a - r0:b - r0] = encode(acc / spp)
@@ -613,19 +591,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--width", type=int, default=WIDTH, help="ERP width (height = width / 2)")
     ap.add_argument("--spp", type=int, default=SPP, help="jittered rays per pixel")
     args = ap.parse_args(argv)
-    (args.out / "images").mkdir(parents=True, exist_ok=True)
-    (args.out / "depth").mkdir(parents=True, exist_ok=True)
+    for sub in ("images", "depth"):
+        (args.out / sub).mkdir(parents=True, exist_ok=True)
     meta = scene_json()
     for i, f in enumerate(meta["frames"]):
         image, depth = render(np.array(f["c2w"]), i, args.width, args.spp)
         Image.fromarray(image).save(args.out / f["image"], optimize=True)
         if "depth" in f:
-            np.save(args.out / f["depth"], depth.astype(DEPTH_DTYPE))
+            np.save(args.out / f["depth"], depth)  # float32
         print(f"{f['name']}: {image.shape[1]}x{image.shape[0]}, range {depth.min():.3f}..{depth.max():.3f} m")
     (args.out / "scene.json").write_text(json.dumps(meta, indent=1) + "\n")
 
-
-DEPTH_DTYPE = np.float32
 
 if __name__ == "__main__":
     main()
