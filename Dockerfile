@@ -26,11 +26,16 @@ ARG MODEL_HEIGHT=512
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_EXTRA_INDEX_URL=${PIP_EXTRA_INDEX_URL} \
     PIP_FIND_LINKS=${PIP_FIND_LINKS}
 WORKDIR /src
-COPY pyproject.toml README.md ./
+# Dependencies first, in their own layer: it is rebuilt only when pyproject.toml changes.
+COPY pyproject.toml ./
+# (the one-liner writes [project].dependencies and the named extras as a requirements file)
+RUN python -c 'import sys, tomllib; p = tomllib.load(open("pyproject.toml", "rb"))["project"]; deps = p["dependencies"] + [d for e in sys.argv[1:] for d in p["optional-dependencies"][e]]; open("deps.txt", "w").write(chr(10).join(deps))' export \
+    && pip install -r deps.txt && rm deps.txt
+COPY README.md ./
 COPY rasterizer ./rasterizer
 COPY export ./export
 COPY service ./service
-RUN pip install ".[export]"
+RUN pip install --no-deps .
 RUN python -m service.cli export /models/omnisplat-default.onnx --height ${MODEL_HEIGHT}
 
 # Stage 2 (viewer): the web viewer's pinned npm packages (package-lock.json), built with Debian's
@@ -51,15 +56,20 @@ ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 \
     OMNISPLAT_STORE_DIR=/data/scenes \
     OMNISPLAT_NODE_MODULES=/app/node_modules
 WORKDIR /app
-COPY pyproject.toml README.md ./
+# Runtime dependencies only (pyproject [project].dependencies: numpy, onnxruntime, fastapi, scipy, ...),
+# in a layer of their own before any source is copied.
+COPY pyproject.toml ./
+RUN python -c 'import sys, tomllib; p = tomllib.load(open("pyproject.toml", "rb"))["project"]; deps = p["dependencies"] + [d for e in sys.argv[1:] for d in p["optional-dependencies"][e]]; open("deps.txt", "w").write(chr(10).join(deps))' \
+    && pip install -r deps.txt && rm deps.txt
+COPY --from=viewer /src/node_modules/three/build ./node_modules/three/build
+COPY --from=viewer /src/node_modules/@mkkellogg/gaussian-splats-3d/build ./node_modules/@mkkellogg/gaussian-splats-3d/build
+COPY README.md ./
 COPY rasterizer ./rasterizer
 COPY export/__init__.py ./export/__init__.py
 COPY service ./service
-COPY --from=viewer /src/node_modules/three/build ./node_modules/three/build
-COPY --from=viewer /src/node_modules/@mkkellogg/gaussian-splats-3d/build ./node_modules/@mkkellogg/gaussian-splats-3d/build
-# Runtime dependencies only (pyproject [project].dependencies): numpy, onnxruntime, fastapi, scipy, ...
-# The checks: no torch in the image; the app and the refine path import with what was installed.
-RUN pip install . \
+# The package itself, without dependencies. The checks: no torch in the image; the app and the
+# refine path import with what was installed.
+RUN pip install --no-deps . \
     && python -c "import importlib.util, sys; sys.exit(importlib.util.find_spec('torch') is not None)" \
     && python -c "import service.app, service.jobs, rasterizer.refine, scipy.sparse"
 COPY --from=export /models/omnisplat-default.onnx /models/omnisplat-default.onnx

@@ -29,7 +29,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-DATA = Path(os.environ.get("OMNISPLAT_SCALE_DATA", "/work/shared/data/m3d_bedroom"))
+# the dev scene beside the checkout (../shared/data), unless OMNISPLAT_SCALE_DATA names another scene folder
+DATA = Path(os.environ.get("OMNISPLAT_SCALE_DATA", Path(__file__).resolve().parents[2] / "shared" / "data" / "m3d_bedroom"))
 HEADER = "x-omnisplat-replica"
 
 
