@@ -403,13 +403,14 @@ def test_gaussian_factors_match_rotation_times_scales():
 def test_grid_domain_cull_drops_only_gaussians_without_contributions(kind, monkeypatch):
     """The shared Yin/Yang domain cull is conservative: without it the footprints are the same."""
     from rasterizer import splat
+    from rasterizer.splat import projection
     rng = np.random.default_rng(12)
     g = random_scene(rng, 3000, size=(0.02, 0.5))
     cam = Camera(kind, 96, 32, pose(rng))
     culled = footprints(g, cam)
     kept = splat.grid_keep(splat.shared_pose(g, cam), cam)
     assert 0 < kept.size < len(g)
-    monkeypatch.setattr(splat, "grid_keep",
+    monkeypatch.setattr(projection, "grid_keep",
                         lambda p, c: np.flatnonzero(p.ranges >= c.near))
     full = footprints(g, cam)
     for f in ("pixel", "gaussian", "weight"):
