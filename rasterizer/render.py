@@ -33,16 +33,12 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
-from . import splat, yin_yang
+from . import front_to_back, splat, yin_yang
 from .camera import DEFAULT_NEAR, PROJECTIONS, Camera
 from .composite import (
-    accumulate,
     composite,
-    composite_segments,
     gaussian_table,
-    images_from_sums,
     normalise_range,
-    segment_starts,
 )
 from .gaussians import Gaussians
 from .sh import sh_to_rgb
@@ -73,41 +69,13 @@ def _check_gaussians(gaussians: Gaussians) -> None:
 
 
 def _premultiplied(gaussians: Gaussians, camera: Camera, colours: np.ndarray | None = None):
-    """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) of one camera."""
+    """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) of one camera, front to back."""
     if colours is None:
         colours = sh_to_rgb(gaussians.sh, gaussians.means, camera.centre)
-    fp = footprints(gaussians, camera, opacity_bound=gaussians.opacities)
-    return accumulate(fp, gaussians.opacities, colours)
-
-
-def _premultiplied_keys(camera: Camera, pose, qcut, tables):
-    """:func:`_premultiplied` for cameras sharing one pose (the Yin and Yang of a render).
-
-    Composites the sorted footprint keys directly: each key holds the Gaussian's
-    depth rank, and ``tables()`` returns the :func:`~rasterizer.composite.gaussian_table`
-    rows in rank order. Those rows are first re-gathered in the order the keys were
-    built (neighbouring boxes together), so that the per-contribution reads of the
-    pixel-sorted keys stay in cache: a rank -> row lookup (4 bytes) then a near read.
-    """
-    key, layout, _, job_ranks = splat.sorted_keys(pose, camera, qcut, splat.MAX_CONTRIBUTIONS)
-    h, w = camera.height, camera.width
-    if key is None:
-        return images_from_sums(np.zeros((0, 5), np.float32), np.zeros(0, np.int64), h, w)
-    pix = layout.pixels(key)
-    starts = segment_starts(pix)
-    table = tables()
-    if job_ranks is None:
-        def fetch(a, b):
-            return layout.ranks(key[a:b]), layout.weights(key[a:b])
-    else:
-        table = np.take(table.view(np.complex128).reshape(-1, 2), job_ranks, axis=0).view(np.float32)
-        row_of_rank = np.empty(pose.ranges.size, dtype=np.int32)
-        row_of_rank[job_ranks] = np.arange(job_ranks.size, dtype=np.int32)
-
-        def fetch(a, b):
-            return row_of_rank[layout.ranks(key[a:b])], layout.weights(key[a:b])
-    sums, _ = composite_segments(key.size, starts, fetch, table)
-    return images_from_sums(sums, pix[starts], h, w)
+    pose = splat.shared_pose(gaussians, camera)
+    qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
+    table = gaussian_table(gaussians.opacities, colours, pose.ranges)[pose.order]
+    return front_to_back.premultiplied(pose, camera, qcut, table)
 
 
 def render_camera(gaussians: Gaussians, camera: Camera) -> RenderOutput:
@@ -131,7 +99,7 @@ def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: i
         return gaussian_table(gaussians.opacities, colours, pose.ranges)[order]
 
     def one(cam, tables):
-        c, a, r = _premultiplied_keys(cam, pose, qcut, tables)
+        c, a, r = front_to_back.premultiplied(pose, cam, qcut, tables())
         return np.concatenate([c, a[:, :, None], r[:, :, None]], axis=2)
 
     if threads > 1 and len(gaussians) >= _THREAD_MIN_GAUSSIANS:

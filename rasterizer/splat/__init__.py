@@ -7,7 +7,16 @@
 - :mod:`.keys`: the sorted per-pixel front-to-back lists (:func:`footprints`, :func:`sorted_keys`).
 """
 
-from .keys import MAX_CONTRIBUTIONS, Footprints, RenderLimitError, footprints, sorted_keys
+from .keys import (
+    MAX_CONTRIBUTIONS,
+    Footprints,
+    KeyJob,
+    RenderLimitError,
+    footprints,
+    job_keys,
+    key_job,
+    sorted_keys,
+)
 from .polar import polar_rows
 from .projection import (
     ALPHA_MIN,
@@ -22,6 +31,6 @@ from .projection import (
     shared_pose,
 )
 
-__all__ = ["ALPHA_MIN", "LOW_PASS", "MAX_CONTRIBUTIONS", "Q_MAX", "Footprints", "Projected", "RenderLimitError",
-           "SharedPose", "footprints", "gaussian_factors", "grid_keep", "opacity_cuts", "polar_rows", "project",
-           "shared_pose", "sorted_keys"]
+__all__ = ["ALPHA_MIN", "LOW_PASS", "MAX_CONTRIBUTIONS", "Q_MAX", "Footprints", "KeyJob", "Projected",
+           "RenderLimitError", "SharedPose", "footprints", "gaussian_factors", "grid_keep", "job_keys", "key_job",
+           "opacity_cuts", "polar_rows", "project", "shared_pose", "sorted_keys"]

@@ -39,8 +39,8 @@ from .polar import polar_split, sphere_boxes, sphere_ellipses, sphere_keys
 from .projection import Q_MAX, Columns, SharedPose, footprint_boxes, opacity_cuts, project_columns, shared_pose
 
 #: Default memory guard of :func:`footprints`: refuse renders estimated above this many (Gaussian, pixel)
-#: contributions. 120M (was 60M) since the environment shell (rasterizer.shell) added large backdrop discs:
-#: a zind scene's direct 1024x512 ERP render estimates ~86M and peaks at ~3.0 GB RSS (1.4 GB without it).
+#: contributions (about 20 bytes each). The environment shell's (rasterizer.shell) large backdrop discs need
+#: room: a zind scene's full 1024x512 ERP lists estimate ~86M.
 MAX_CONTRIBUTIONS = 120_000_000
 _SIZE_CLASSES = np.unique(np.concatenate([
     np.arange(1, 13), np.ceil(12 * 1.25 ** np.arange(1, 60)),
@@ -128,20 +128,41 @@ def _unpack_keys(key, layout, cols: Columns, pose: SharedPose, camera: Camera) -
     return Footprints(pixel, gauss, weight, ranges_all, h, w)
 
 
-def sorted_keys(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None, max_contributions: int):
-    """(keys, layout, columns, job_ranks): the sorted uint64 keys ``pixel | rank | q`` of one camera.
+@dataclass(frozen=True)
+class KeyJob:
+    """What the keys of one camera are built from: projected columns, cuts, ranks, boxes, key layout.
 
-    keys is None when nothing is visible. Ranks are the pose's (all N Gaussians).
-    job_ranks: the ranks of the Gaussians in the order their keys were built
-    (by size class, then box origin), a spatially coherent order for tables
-    indexed per contribution; None when some keys came from elsewhere (polar
-    ERP footprints).
+    ``cols`` the kept Gaussians' :class:`~.projection.Columns` (n); ``qcut`` (n,) float64
+    Mahalanobis cut; ``rank`` (n,) int64 depth rank among all the pose's Gaussians; ``live``
+    indices into ``cols`` of the non-empty pixel-space footprints and ``box`` (x0, kx, y0, ky)
+    (n,) int64 their pixel boxes; ``polar`` indices into ``cols`` of the polar ERP footprints,
+    ``sphere`` their tangent-plane ellipses and ``sphere_box`` their boxes (None without any).
+    """
+
+    cols: Columns
+    qcut: np.ndarray
+    rank: np.ndarray
+    live: np.ndarray
+    box: tuple
+    polar: np.ndarray
+    sphere: object
+    sphere_box: tuple | None
+    layout: KeyLayout
+    camera: Camera
+    n_all: int
+
+
+def key_job(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None) -> KeyJob | None:
+    """The :class:`KeyJob` of ``camera`` (None when no Gaussian projects into it).
+
+    Raises :class:`RenderLimitError` when the image and the Gaussian count do not fit the
+    64-bit key.
     """
     h, w = camera.height, camera.width
     cols = project_columns(pose, camera)
     n = cols.index.size
     if n == 0:
-        return None, None, cols, None
+        return None
     qcut = np.full(n, Q_MAX) if qcut_all is None else qcut_all[cols.index]
     n_all = pose.ranges.size
     rank = pose.rank[cols.index]
@@ -150,8 +171,6 @@ def sorted_keys(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None, m
     x0, kx, y0, ky = footprint_boxes(cols.mx, cols.my, cols.cov_a, cols.cov_c, camera, np.maximum(qcut, 0.0))
     ok = (kx > 0) & (ky > 0) & (qcut > 0)
     live = flat_idx[ok[flat_idx]] if polar_idx.size else np.flatnonzero(ok)
-    period = camera.column_period
-    s0 = camera.period_start
 
     # key layout, high to low bits: [pixel | depth rank | (unused) | q], q in the low 32 bits
     pix_bits = max(1, int(np.ceil(np.log2(h * w))))
@@ -161,23 +180,31 @@ def sorted_keys(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None, m
         raise RenderLimitError(f"image {w}x{h} with {n_all} Gaussians exceeds the 64-bit sort key")
     layout = KeyLayout(pix_bits, rank_bits, q_bits, 64 - pix_bits - rank_bits)
 
-    sph = None
+    sph, sph_box = None, None
     if polar_idx.size:
         sph = sphere_ellipses(cols, polar_idx, camera, pose.factors[:, cols.index[polar_idx]])
         sph_box = sphere_boxes(sph, camera)
-    est = _estimated_hits(cols, qcut, live, kx, ky, None if sph is None else sph_box, max_contributions)
-    if est > max_contributions:
-        raise RenderLimitError(
-            f"footprints need about {est} contributions (> max_contributions={max_contributions}); "
-            "reduce the image size or the number/size of Gaussians")
+    return KeyJob(cols, qcut, rank, live, (x0, kx, y0, ky), polar_idx, sph, sph_box, layout, camera, n_all)
 
+
+def job_keys(job: KeyJob, live: np.ndarray, polar: np.ndarray):
+    """(keys, job_ranks) of a subset of ``job``'s footprints, keys sorted (None when there are none).
+
+    ``live``: a subset of ``job.live`` (indices into ``job.cols``); ``polar``: positions in
+    ``job.polar``. job_ranks: see :func:`sorted_keys` (None when polar keys are included).
+    """
+    camera, layout, cols, qcut, rank = job.camera, job.layout, job.cols, job.qcut, job.rank
+    h, w = camera.height, camera.width
     keys = []
     job_ranks = None
     if live.size:
-        flat, job_ranks = _flat_keys(live, cols, qcut, rank, x0, kx, y0, ky, h, w, period, s0, n_all, layout)
+        x0, kx, y0, ky = job.box
+        flat, job_ranks = _flat_keys(live, cols, qcut, rank, x0, kx, y0, ky, h, w, camera.column_period,
+                                     camera.period_start, job.n_all, layout)
         keys.append(flat)
-    if sph is not None:
-        sx0, skx, sy0, sky = sph_box
+    if polar.size:
+        sph, polar_idx = job.sphere, job.polar
+        sx0, skx, sy0, sky = (b[polar] for b in job.sphere_box)
         kcx, kcy = _size_class(np.maximum(skx, 1)), _size_class(np.maximum(sky, 1))
         cls = kcx * (1 << 20) + kcy
         grp_order = np.argsort(cls, kind="stable")
@@ -186,18 +213,42 @@ def sorted_keys(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None, m
             kxc, kyc = int(kcx[grp[0]]), int(kcy[grp[0]])
             step = max(1, _CHUNK_ELEMENTS // (kxc * kyc))
             for start in range(0, grp.size, step):
-                part = grp[start:start + step]
-                box = (sx0[part], skx[part], sy0[part], sky[part])
+                sub = grp[start:start + step]
+                part = polar[sub]
+                box = (sx0[sub], skx[sub], sy0[sub], sky[sub])
                 keys.append(sphere_keys(part, polar_idx[part], kxc, kyc, sph, qcut, rank, box, h, w, layout))
     if len(keys) > 1:
         job_ranks = None
     keys = [k for k in keys if k.size]
     if not keys:
-        return None, None, cols, None
+        return None, None
     key = np.concatenate(keys) if len(keys) > 1 else keys[0]
     del keys
     key.sort(kind="stable")  # timsort: merges the pre-sorted runs (keys are unique: order is the same)
-    return key, layout, cols, job_ranks
+    return key, job_ranks
+
+
+def sorted_keys(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None, max_contributions: int):
+    """(keys, layout, columns, job_ranks): the sorted uint64 keys ``pixel | rank | q`` of one camera.
+
+    keys is None when nothing is visible. Ranks are the pose's (all N Gaussians).
+    job_ranks: the ranks of the Gaussians in the order their keys were built
+    (by size class, then box origin), a spatially coherent order for tables
+    indexed per contribution; None when some keys came from elsewhere (polar
+    ERP footprints). Refuses (:class:`RenderLimitError`) more than about
+    ``max_contributions`` keys.
+    """
+    job = key_job(pose, camera, qcut_all)
+    if job is None:
+        return None, None, project_columns(pose, camera), None
+    _, kx, _, ky = job.box
+    est = _estimated_hits(job.cols, job.qcut, job.live, kx, ky, job.sphere_box, max_contributions)
+    if est > max_contributions:
+        raise RenderLimitError(
+            f"footprints need about {est} contributions (> max_contributions={max_contributions}); "
+            "reduce the image size or the number/size of Gaussians")
+    key, job_ranks = job_keys(job, job.live, np.arange(job.polar.size))
+    return key, job.layout, job.cols, job_ranks
 
 
 def _flat_keys(live, cols: Columns, qcut, rank, x0, kx, y0, ky, h, w, period, s0, n_all, layout):
