@@ -24,6 +24,9 @@ image), not by the total number of contributions.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
+
 import numpy as np
 
 from . import splat
@@ -34,6 +37,8 @@ from .composite import T_MIN, composite_segments, segment_starts
 CHUNK_LAYERS = 1.0
 #: Smallest chunk (box pixels): tiny images are not cut into tiny chunks.
 MIN_CHUNK = 1 << 15
+#: Below this many visible Gaussians a second thread costs more than it saves.
+MIN_THREAD_GAUSSIANS = 20_000
 
 
 def _pieces(x0, kx, period, start, w):
@@ -74,23 +79,65 @@ def _summed_area(alive: np.ndarray, h: int, w: int) -> np.ndarray:
     return sat
 
 
-def premultiplied(pose: splat.SharedPose, camera, qcut_all: np.ndarray | None, table: np.ndarray):
+def premultiplied(pose: splat.SharedPose, camera, qcut_all: np.ndarray | None, table: np.ndarray,
+                  threads: int = 1):
     """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) float32 of one camera, front to back.
 
     ``pose``: the :class:`~rasterizer.splat.SharedPose` of the camera's pose; ``qcut_all`` (N,)
     :func:`~rasterizer.splat.opacity_cuts` or None; ``table`` (N, 8) float32
     :func:`~rasterizer.composite.gaussian_table` rows in depth-rank order (row k = the Gaussian of
-    rank k). alpha is clipped to [0, 1].
+    rank k). alpha is clipped to [0, 1]. ``threads`` > 1 splits the rows into that many bands of
+    about equal footprint area, composited side by side (numpy releases the GIL in its loops);
+    the bands touch disjoint pixels, so the result is the same up to float rounding.
     """
     h, w = camera.height, camera.width
     npix = h * w
     sums = np.zeros((npix, 5), dtype=np.float32)
     job = splat.key_job(pose, camera, qcut_all)
     if job is not None:
-        _composite_chunks(job, table, sums, h, w)
+        bands = _row_bands(job, h, threads)
+        if len(bands) == 1:
+            _composite_chunks(job, table, sums, h, w)
+        else:
+            with ThreadPoolExecutor(max_workers=len(bands)) as pool:
+                done = [pool.submit(_composite_chunks, _band(job, r0, r1), table, sums, h, w) for r0, r1 in bands]
+                for f in done:
+                    f.result()
     alpha = np.clip(sums[:, 0], 0.0, 1.0)
     return (np.ascontiguousarray(sums[:, 1:4]).reshape(h, w, 3), alpha.reshape(h, w),
             np.ascontiguousarray(sums[:, 4]).reshape(h, w))
+
+
+def _row_bands(job, h: int, threads: int) -> list[tuple[int, int]]:
+    """Row ranges [r0, r1) splitting the footprints' box area into ``threads`` about equal parts."""
+    if threads <= 1 or h < 2 * threads:
+        return [(0, h)]
+    x0, kx, y0, ky = (b[job.live] for b in job.box)
+    if job.polar.size:
+        sx0, skx, sy0, sky = job.sphere_box
+        kx, y0, ky = np.concatenate([kx, skx]), np.concatenate([y0, sy0]), np.concatenate([ky, sky])
+    if kx.size < MIN_THREAD_GAUSSIANS:
+        return [(0, h)]
+    per_row = np.bincount(y0, weights=kx, minlength=h + 1) - np.bincount(y0 + ky, weights=kx, minlength=h + 1)
+    cum = np.cumsum(np.cumsum(per_row)[:h])
+    cuts = np.searchsorted(cum, cum[-1] * np.arange(1, threads) / threads) + 1
+    edges = np.unique(np.clip(np.concatenate([[0], cuts, [h]]), 0, h))
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def _band(job, r0: int, r1: int):
+    """``job`` with every box clipped to rows [r0, r1) (boxes outside the band are dropped)."""
+    x0, kx, y0, ky = job.box
+    b0 = np.maximum(y0, r0)
+    kb = np.minimum(y0 + ky, r1) - b0
+    live = job.live[kb[job.live] > 0]
+    sphere_box, polar = job.sphere_box, job.polar
+    if polar.size:
+        sx0, skx, sy0, sky = sphere_box
+        s0 = np.maximum(sy0, r0)
+        sk = np.minimum(sy0 + sky, r1) - s0
+        sphere_box = (sx0, skx, s0, sk)
+    return replace(job, live=live, box=(x0, kx, b0, kb), sphere_box=sphere_box)
 
 
 def _composite_chunks(job, table: np.ndarray, sums: np.ndarray, h: int, w: int) -> None:
@@ -109,6 +156,7 @@ def _composite_chunks(job, table: np.ndarray, sums: np.ndarray, h: int, w: int) 
         rank = np.concatenate([rank, job.rank[job.polar]])
         area = np.concatenate([area, skx.astype(np.float64) * sky])
     order = np.argsort(rank)  # ranks are unique: front to back
+    order = order[area[order] > 0]  # a band's clipped boxes may be empty
     if order.size == 0:
         return
     budget = max(float(MIN_CHUNK), CHUNK_LAYERS * h * w)

@@ -68,20 +68,19 @@ def _check_gaussians(gaussians: Gaussians) -> None:
     gaussians.check_finite()
 
 
-def _premultiplied(gaussians: Gaussians, camera: Camera, colours: np.ndarray | None = None):
+def _premultiplied(gaussians: Gaussians, camera: Camera, threads: int = 1):
     """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) of one camera, front to back."""
-    if colours is None:
-        colours = sh_to_rgb(gaussians.sh, gaussians.means, camera.centre)
+    colours = sh_to_rgb(gaussians.sh, gaussians.means, camera.centre)
     pose = splat.shared_pose(gaussians, camera)
     qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
     table = gaussian_table(gaussians.opacities, colours, pose.ranges)[pose.order]
-    return front_to_back.premultiplied(pose, camera, qcut, table)
+    return front_to_back.premultiplied(pose, camera, qcut, table, threads=threads)
 
 
-def render_camera(gaussians: Gaussians, camera: Camera) -> RenderOutput:
-    """Render one :class:`Camera` (any kind), colour composited over black."""
+def render_camera(gaussians: Gaussians, camera: Camera, threads: int = 1) -> RenderOutput:
+    """Render one :class:`Camera` (any kind), colour composited over black; ``threads`` row bands side by side."""
     _check_gaussians(gaussians)
-    colour, alpha, range_sum = _premultiplied(gaussians, camera)
+    colour, alpha, range_sum = _premultiplied(gaussians, camera, threads)
     return RenderOutput(colour, alpha, normalise_range(range_sum, alpha))
 
 
@@ -150,7 +149,8 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
     method : ERP only. "yinyang" (default; Yin and Yang merged into the ERP) or
         "direct" (splatted straight into the ERP grid). Other projections ignore it.
     near : Gaussians closer than this range (world units) are culled.
-    threads : ERP "yinyang" renders Yin and Yang in two threads when > 1.
+    threads : when > 1, ERP "yinyang" renders Yin and Yang in two threads; other projections
+        composite that many row bands side by side (the same result up to float rounding).
     normalize : divide colour by alpha where alpha >= 1/255 (OmniSplat's V/A
         normalisation; thin coverage then shows the surface colour instead of a
         darkened or black hole) or, when False, return the plain front-to-back
@@ -180,7 +180,7 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
         cam = Camera("erp", width, height, c2w, near=near)  # validates pose and sizes
         return _render_yinyang(gaussians, cam.c2w, width, height, near, int(threads),
                                divide=True if normalize is None else bool(normalize))
-    out = render_camera(gaussians, Camera(projection, width, height, c2w, fov_deg=fov_deg, near=near))
+    out = render_camera(gaussians, Camera(projection, width, height, c2w, fov_deg=fov_deg, near=near), int(threads))
     if not normalize:
         return out
     colour = out.colour * _alpha_inverse(out.alpha)[:, :, None]

@@ -119,7 +119,7 @@ def test_erp_renders_both_methods_match_the_single_sort(scene, normalize, tiny_c
     for method in ("yinyang", "direct"):
         new = render(g, c2w, projection="erp", width=64, method=method, normalize=normalize)
         with pytest.MonkeyPatch.context() as mp:  # the same render through the single global sort
-            mp.setattr(front_to_back, "premultiplied", lambda p, cam, q, t: old_path(g, cam))
+            mp.setattr(front_to_back, "premultiplied", lambda p, cam, q, t, threads=1: old_path(g, cam))
             old = render(g, c2w, projection="erp", width=64, method=method, normalize=normalize)
         # V/A divides by alpha >= 1/255: allow the division's amplification of rounding
         assert_same(new, old, atol=2e-5 if normalize is False or (normalize is None and method == "direct") else 1e-3)
@@ -195,3 +195,18 @@ def test_random_scene_perspective_and_direct_match_with_default_chunks():
     for kind, (w, h) in (("perspective", (96, 64)), ("erp", (128, 64))):
         cam = Camera(kind, w, h, pose(rng))
         assert_same(new_path(g, cam), old_path(g, cam))
+
+
+@pytest.mark.parametrize("kind", ["perspective", "erp", "yang"])
+def test_row_bands_in_threads_match_one_thread(kind, monkeypatch):
+    monkeypatch.setattr(front_to_back, "MIN_THREAD_GAUSSIANS", 0)
+    rng = np.random.default_rng(5)
+    g = random_scene(rng, 4000)
+    c2w = pose(rng)
+    w = {"perspective": 96, "erp": 128, "yang": 96}[kind]
+    kw = dict(projection=kind, width=w, method="direct")
+    one = render(g, c2w, threads=1, **kw)
+    for threads in (2, 3):
+        many = render(g, c2w, threads=threads, **kw)
+        assert_same(many, one, atol=1e-5)
+    assert one.alpha.max() > 0.5
