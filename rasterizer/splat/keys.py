@@ -187,11 +187,12 @@ def key_job(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None) -> Ke
     return KeyJob(cols, qcut, rank, live, (x0, kx, y0, ky), polar_idx, sph, sph_box, layout, camera, n_all)
 
 
-def job_keys(job: KeyJob, live: np.ndarray, polar: np.ndarray):
+def job_keys(job: KeyJob, live: np.ndarray, polar: np.ndarray, pixel_mask: np.ndarray | None = None):
     """(keys, job_ranks) of a subset of ``job``'s footprints, keys sorted (None when there are none).
 
     ``live``: a subset of ``job.live`` (indices into ``job.cols``); ``polar``: positions in
-    ``job.polar``. job_ranks: see :func:`sorted_keys` (None when polar keys are included).
+    ``job.polar``. ``pixel_mask`` (H*W,) bool, optional: only keys of the pixels it marks are kept
+    (dropped before the sort). job_ranks: see :func:`sorted_keys` (None when polar keys are included).
     """
     camera, layout, cols, qcut, rank = job.camera, job.layout, job.cols, job.qcut, job.rank
     h, w = camera.height, camera.width
@@ -224,6 +225,10 @@ def job_keys(job: KeyJob, live: np.ndarray, polar: np.ndarray):
         return None, None
     key = np.concatenate(keys) if len(keys) > 1 else keys[0]
     del keys
+    if pixel_mask is not None:
+        key = key[pixel_mask[layout.pixels(key)]]
+        if key.size == 0:
+            return None, None
     key.sort(kind="stable")  # timsort: merges the pre-sorted runs (keys are unique: order is the same)
     return key, job_ranks
 

@@ -146,9 +146,9 @@ def test_gaussians_behind_an_opaque_wall_are_skipped(monkeypatch):
     seen = []
     job_keys = splat.job_keys
 
-    def counting(job, live, polar):
+    def counting(job, live, polar, **kw):
         seen.append(job.cols.index[live])
-        return job_keys(job, live, polar)
+        return job_keys(job, live, polar, **kw)
 
     monkeypatch.setattr(splat, "job_keys", counting)
     new = new_path(g, cam)
@@ -169,8 +169,8 @@ def test_contributions_per_chunk_are_bounded_by_the_image_not_the_scene(monkeypa
     sizes = []
     job_keys = splat.job_keys
 
-    def recording(job, live, polar):
-        key, ranks = job_keys(job, live, polar)
+    def recording(job, live, polar, **kw):
+        key, ranks = job_keys(job, live, polar, **kw)
         sizes.append(0 if key is None else key.size)
         return key, ranks
 
@@ -184,7 +184,7 @@ def test_contributions_per_chunk_are_bounded_by_the_image_not_the_scene(monkeypa
         out = new_path(g, cam)
         assert_same(out, old_path(g, cam))
         peaks.append((sum(sizes), max(sizes)))
-    budget = max(front_to_back.MIN_CHUNK, front_to_back.CHUNK_LAYERS * cam.width * cam.height)
+    budget = front_to_back.chunk_budget(cam.height, cam.width)
     assert peaks[1][0] > 5 * peaks[0][0]  # ten times the layers, many times the contributions
     assert peaks[1][1] <= budget + cam.width * cam.height
 
