@@ -1,12 +1,18 @@
 """Render 3D Gaussians into ERP, Yin, Yang or perspective images (numpy, CPU).
 
-Public entry point: :func:`render`. Pipeline, two reusable phases:
+Public entry point: :func:`render`. Pipeline, two phases:
 
-1. :func:`rasterizer.splat.footprints` (phase a): EWA projection with the
-   camera's exact analytic Jacobian + 0.3 px^2 low-pass, culling, and the
-   per-pixel front-to-back lists of (Gaussian, opacity-free weight g).
-2. :func:`rasterizer.composite.composite` (phase b): alpha compositing with
+1. :mod:`rasterizer.splat` (phase a): EWA projection with the camera's exact
+   analytic Jacobian + 0.3 px^2 low-pass, culling, and the per-pixel
+   front-to-back lists of (Gaussian, opacity-free weight g).
+2. :mod:`rasterizer.composite` (phase b): alpha compositing with
    alpha = min(0.99, opacity * g), skip alpha < 1/255, stop at T < 1e-4.
+
+:func:`render` runs them depth chunk after depth chunk
+(:mod:`rasterizer.front_to_back`: pixels that stopped drop out, memory set by
+the image and the chunk); :func:`rasterizer.splat.footprints` and
+:func:`rasterizer.composite.composite` give the same images in one pass, and
+their lists serve refinement.
 
 Frames and pixels follow ``shared/design/conventions.md`` section 1: poses
 are 4x4 OpenCV camera-to-world; pixel (r, c) centre at coordinate (c, r);
