@@ -1,7 +1,7 @@
 """ONNX models for bench settings: built once with ``export.onnx_export.export_model``, cached on disk.
 
 Export runs in a child Python process so the bench process itself never
-imports torch (``service/`` stays torch-free, docs/contracts.md).
+imports torch (``service/`` stays torch-free, docs/conventions.md section 7).
 """
 
 from __future__ import annotations

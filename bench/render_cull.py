@@ -1,13 +1,15 @@
 """Pre-render culling for one camera: drop Gaussians a render cannot show.
 
-What :func:`rasterizer.render.render` already skips (``splat.footprints``):
+What :func:`rasterizer.render.render` already skips (``rasterizer.splat``):
 range below ``near`` (and z below it for a pinhole), non-finite projections,
 footprint boxes wholly outside the image or the Yin/Yang grid's columns, and
 Gaussians whose opacity is below 1/255 (footprint cut at ``opacity * g >=
-1/255``). It still projects every Gaussian (Jacobian, 2-D covariance) for
-every camera (twice for an ERP via Yin-Yang) and enumerates and sorts the
-footprints of Gaussians *hidden behind opaque surfaces*, which cost as much
-as visible ones although the compositor gives them (almost) no weight.
+1/255``); ``rasterizer.front_to_back`` also skips, chunk by chunk, boxes whose
+pixels all reached T < 1e-4. It still projects every Gaussian (Jacobian, 2-D
+covariance) for every camera (twice for an ERP via Yin-Yang) and enumerates
+and sorts the footprints of Gaussians behind surfaces that are dense but not
+yet at T < 1e-4, which cost as much as visible ones although the compositor
+gives them little weight.
 
 :func:`cull_for_camera` adds, as an index the caller passes to ``subset``:
 

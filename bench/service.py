@@ -4,8 +4,10 @@
 
 Starts ``omnisplat serve`` as a subprocess on 127.0.0.1 (fresh temporary store), posts two
 512x1024 panoramas (the dev scene when present, else synthetic ones) ``repeats`` times with
-distinct options so each POST really reconstructs, renders a 512x1024 ERP ``repeats`` times,
-and reads the server's peak RSS (VmHWM) from /proc. Timings on a shared CPU are noisy.
+distinct options so each POST really reconstructs, then GETs ``repeats`` renders of each view
+(a 1024-wide ERP and a 1280x720 90-degree perspective, from the dev scene's target pose when
+present) and reads the server's peak RSS (VmHWM) from /proc. Prints a table of the medians with
+the machine, date and load (before and after). Timings on a shared CPU are noisy.
 """
 
 from __future__ import annotations
@@ -34,6 +36,24 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def _target_pose(fallback: list) -> list:
+    """The dev scene's first target camera (what the quality benches score), else ``fallback``."""
+    scene = DEV_SCENE / "scene.json"
+    if scene.is_file():
+        meta = json.loads(scene.read_text())
+        frames = {f["name"]: f for f in meta["frames"]}
+        targets = meta["splits"][0].get("targets") or []
+        if targets:
+            return frames[targets[0]]["c2w"]
+    return fallback
+
+
+#: The rendered views: (row label, query parameters besides c2w).
+VIEWS = (("GET ERP render, 1024 wide", {"width": 1024}),
+         ("GET perspective render, 1280x720, 90 deg", {"projection": "perspective", "width": 1280, "height": 720,
+                                                       "fov_deg": 90.0}))
 
 
 def post_inputs(height: int) -> tuple[bytes, bytes, list, list]:
@@ -70,17 +90,39 @@ def _peak_rss_mb(pid: int) -> float | None:
     return None
 
 
+def _server_timing(header: str, name: str) -> float:
+    """Seconds of the ``name`` entry of a Server-Timing header (NaN when absent)."""
+    for part in header.split(","):
+        key, _, dur = part.strip().partition(";dur=")
+        if key == name and dur:
+            return float(dur) / 1000.0
+    return float("nan")
+
+
+def _table(result: dict, machine: str) -> str:
+    """The medians as a markdown table, with the machine line and the load at the end."""
+    rows = ["| request | median |", "|---|---|",
+            f"| POST {result['inputs']} | {result['post_scene_seconds']['median']:.2f} s |"]
+    for label, r in result["renders"].items():
+        rows.append(f"| {label} | {r['median_seconds']:.2f} s (render stage {r['median_render_stage_seconds']:.2f} s) |")
+    rss = result["peak_rss_mb"]
+    rows.append(f"| server peak RSS (VmHWM) after these | {'n/a' if rss is None else f'{rss / 1024:.2f} GB'} |")
+    return "\n".join(rows + ["", f"{result['num_gaussians']} Gaussians; {machine}; load average at the end "
+                                  f"{result['load_average_1_5_15min_at_end']}"])
+
+
 def main(argv: list[str] | None = None) -> int:
     import httpx
 
     p = argparse.ArgumentParser(prog="python -m bench.service", description=__doc__.splitlines()[0])
     p.add_argument("--model", type=Path, required=True, help="ONNX model to serve")
     p.add_argument("--height", type=int, default=512, help="panorama height (width = 2 x height)")
-    p.add_argument("--render-width", type=int, default=1024)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--json", type=Path, help="write the results here too")
     args = p.parse_args(argv)
+    from bench.machine import machine_info, machine_line
 
+    machine = machine_info()
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     with tempfile.TemporaryDirectory() as store:
@@ -101,7 +143,9 @@ def main(argv: list[str] | None = None) -> int:
             ready_s = time.perf_counter() - t0
             a, b, ca, cb = post_inputs(args.height)
             poses = json.dumps({"convention": "opencv", "c2w": [ca, cb]})
-            post_s, render_s, stage_sums, sid, n = [], [], {}, None, 0
+            post_s, stage_sums, sid, n = [], {}, None, 0
+            render_s = {label: [] for label, _ in VIEWS}
+            render_stage = {label: [] for label, _ in VIEWS}
             with httpx.Client(base_url=url, timeout=600) as c:
                 for i in range(args.repeats):
                     # distinct far plane -> distinct scene id -> a real reconstruction each time
@@ -116,13 +160,15 @@ def main(argv: list[str] | None = None) -> int:
                     for k, v in body["timings"].items():
                         stage_sums.setdefault(k, []).append(v)
                     print(f"POST {i + 1}/{args.repeats}: {post_s[-1]:.2f} s", file=sys.stderr)
-                c2w = ",".join(str(v) for v in np.asarray(ca, dtype=float).ravel())
-                for i in range(args.repeats):
-                    t = time.perf_counter()
-                    r = c.get(f"/v1/scenes/{sid}/render", params={"c2w": c2w, "width": args.render_width})
-                    render_s.append(time.perf_counter() - t)
-                    r.raise_for_status()
-                    print(f"GET render {i + 1}/{args.repeats}: {render_s[-1]:.2f} s", file=sys.stderr)
+                c2w = ",".join(str(v) for v in np.asarray(_target_pose(ca), dtype=float).ravel())
+                for label, params in VIEWS:
+                    for i in range(args.repeats):
+                        t = time.perf_counter()
+                        r = c.get(f"/v1/scenes/{sid}/render", params={"c2w": c2w, **params})
+                        render_s[label].append(time.perf_counter() - t)
+                        r.raise_for_status()
+                        render_stage[label].append(_server_timing(r.headers.get("server-timing", ""), "render"))
+                        print(f"{label} {i + 1}/{args.repeats}: {render_s[label][-1]:.2f} s", file=sys.stderr)
                 info = c.get("/v1/info").json()
             result = {
                 "model": {k: info["model"].get(k) for k in ("name", "version", "sha256")},
@@ -132,11 +178,13 @@ def main(argv: list[str] | None = None) -> int:
                 "ready_seconds": round(ready_s, 2),
                 "post_scene_seconds": {"median": statistics.median(post_s), "all": post_s},
                 "post_stage_median_seconds": {k: statistics.median(v) for k, v in stage_sums.items()},
-                "render_erp_seconds": {"width": args.render_width, "median": statistics.median(render_s),
-                                       "all": render_s},
+                "renders": {label: {"params": params, "median_seconds": statistics.median(render_s[label]),
+                                    "all_seconds": render_s[label],
+                                    "median_render_stage_seconds": statistics.median(render_stage[label])}
+                            for label, params in VIEWS},
                 "peak_rss_mb": _peak_rss_mb(proc.pid),
-                "cpu_count": os.cpu_count(),
-                "load_average_1_5_15min": [round(x, 2) for x in os.getloadavg()],
+                "machine": machine,
+                "load_average_1_5_15min_at_end": [round(x, 2) for x in os.getloadavg()],
             }
         finally:
             proc.terminate()
@@ -146,6 +194,7 @@ def main(argv: list[str] | None = None) -> int:
                 proc.kill()
     text = json.dumps(result, indent=2)
     print(text)
+    print(_table(result, machine_line(machine)))
     if args.json:
         args.json.write_text(text + "\n")
     return 0

@@ -66,7 +66,8 @@ def segment_starts(pixel: np.ndarray) -> np.ndarray:
     return np.flatnonzero(new)
 
 
-def composite_segments(m: int, starts: np.ndarray, fetch, table: np.ndarray, terms: bool = False):
+def composite_segments(m: int, starts: np.ndarray, fetch, table: np.ndarray, terms: bool = False,
+                       log_t: np.ndarray | None = None):
     """Front-to-back compositing of M contributions in pixel segments, chunk by chunk.
 
     ``starts`` (P,): first contribution of each pixel; ``fetch(a, b)`` returns
@@ -78,6 +79,12 @@ def composite_segments(m: int, starts: np.ndarray, fetch, table: np.ndarray, ter
     (1, colour, range), and with ``terms`` the full (M,) alpha, T and w.
     The rules are those of the module docstring; the exclusive log-T is a
     float64 cumulative sum restarted at every pixel.
+
+    ``log_t`` (P,) float64, optional, in and out: each pixel's log transmittance
+    before these contributions (its earlier contributions were composited by
+    a previous call: the front-to-back renderer feeds depth chunk after depth
+    chunk), overwritten with the log transmittance after them. A pixel whose
+    log T is below ``log(T_MIN)`` takes no further contribution.
     """
     p = starts.size
     sums = np.empty((p, 5), dtype=np.float32)
@@ -106,6 +113,9 @@ def composite_segments(m: int, starts: np.ndarray, fetch, table: np.ndarray, ter
             before = np.zeros(ls.size, dtype=np.float64)
             before[1:] = csum[ls[1:] - 1]
             csum -= np.repeat(before, np.diff(np.append(ls, b - a)))  # inclusive log T within each pixel
+        if log_t is not None:
+            csum += np.repeat(log_t[sa:sb], np.diff(np.append(ls, b - a)))
+            log_t[sa:sb] = csum[np.append(ls[1:], b - a) - 1]
         alive = csum >= log_tmin
         csum -= log_keep  # exclusive
         trans = np.exp(csum, out=csum).astype(np.float32)

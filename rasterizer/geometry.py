@@ -35,7 +35,7 @@ YIN_LON_MAX = 3 * np.pi / 4
 
 #: Floor on cos(lat) and on squared radii, so Jacobians stay finite at poles
 #: and at the camera centre.
-_EPS = 1e-12
+EPS = 1e-12
 
 
 # ---------------------------------------------------------------------------
@@ -166,9 +166,9 @@ def grid_jacobian(kind: GridKind, p: np.ndarray, height: int, width: int) -> np.
         sx, sy = width / (2 * np.pi), height / np.pi
     else:
         sx, sy = width / (2 * YIN_LON_MAX), height / (2 * YIN_LAT_MAX)
-    rho2 = np.maximum(x * x + z * z, _EPS)
+    rho2 = np.maximum(x * x + z * z, EPS)
     rho = np.sqrt(rho2)
-    r2 = np.maximum(rho2 + y * y, _EPS)
+    r2 = np.maximum(rho2 + y * y, EPS)
     zero = np.zeros_like(x)
     dcol = np.stack([sx * z / rho2, zero, -sx * x / rho2], axis=-1)
     # row grows as lat falls; d(-lat)/dq = (-x y / rho, rho, -z y / rho) / r^2.
@@ -207,7 +207,7 @@ def pinhole_directions(width: int, height: int, fov_deg: float) -> np.ndarray:
 def pinhole_project(p: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> tuple[np.ndarray, np.ndarray]:
     """(col, row) of camera-frame points; only meaningful for z > 0."""
     p = np.asarray(p)
-    z = np.where(np.abs(p[..., 2]) < _EPS, _EPS, p[..., 2])
+    z = np.where(np.abs(p[..., 2]) < EPS, EPS, p[..., 2])
     return fx * p[..., 0] / z + cx, fy * p[..., 1] / z + cy
 
 
@@ -215,7 +215,7 @@ def pinhole_jacobian(p: np.ndarray, fx: float, fy: float) -> np.ndarray:
     """Analytic d(col, row)/dp of :func:`pinhole_project`, (..., 2, 3)."""
     p = np.asarray(p)
     x, y = p[..., 0], p[..., 1]
-    z = np.where(np.abs(p[..., 2]) < _EPS, _EPS, p[..., 2])
+    z = np.where(np.abs(p[..., 2]) < EPS, EPS, p[..., 2])
     zero = np.zeros_like(x)
     r0 = np.stack([fx / z, zero, -fx * x / (z * z)], axis=-1)
     r1 = np.stack([zero, fy / z, -fy * y / (z * z)], axis=-1)

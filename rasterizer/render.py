@@ -1,12 +1,18 @@
 """Render 3D Gaussians into ERP, Yin, Yang or perspective images (numpy, CPU).
 
-Public entry point: :func:`render`. Pipeline, two reusable phases:
+Public entry point: :func:`render`. Pipeline, two phases:
 
-1. :func:`rasterizer.splat.footprints` (phase a): EWA projection with the
-   camera's exact analytic Jacobian + 0.3 px^2 low-pass, culling, and the
-   per-pixel front-to-back lists of (Gaussian, opacity-free weight g).
-2. :func:`rasterizer.composite.composite` (phase b): alpha compositing with
+1. :mod:`rasterizer.splat` (phase a): EWA projection with the camera's exact
+   analytic Jacobian + 0.3 px^2 low-pass, culling, and the per-pixel
+   front-to-back lists of (Gaussian, opacity-free weight g).
+2. :mod:`rasterizer.composite` (phase b): alpha compositing with
    alpha = min(0.99, opacity * g), skip alpha < 1/255, stop at T < 1e-4.
+
+:func:`render` runs them depth chunk after depth chunk
+(:mod:`rasterizer.front_to_back`: pixels that stopped drop out, memory set by
+the image and the chunk); :func:`rasterizer.splat.footprints` and
+:func:`rasterizer.composite.composite` give the same images in one pass, and
+their lists serve refinement.
 
 Frames and pixels follow ``shared/design/conventions.md`` section 1: poses
 are 4x4 OpenCV camera-to-world; pixel (r, c) centre at coordinate (c, r);
@@ -33,16 +39,12 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
-from . import splat, yin_yang
+from . import front_to_back, splat, yin_yang
 from .camera import DEFAULT_NEAR, PROJECTIONS, Camera
 from .composite import (
-    accumulate,
     composite,
-    composite_segments,
     gaussian_table,
-    images_from_sums,
     normalise_range,
-    segment_starts,
 )
 from .gaussians import Gaussians
 from .sh import sh_to_rgb
@@ -72,48 +74,19 @@ def _check_gaussians(gaussians: Gaussians) -> None:
     gaussians.check_finite()
 
 
-def _premultiplied(gaussians: Gaussians, camera: Camera, colours: np.ndarray | None = None):
-    """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) of one camera."""
-    if colours is None:
-        colours = sh_to_rgb(gaussians.sh, gaussians.means, camera.centre)
-    fp = footprints(gaussians, camera, opacity_bound=gaussians.opacities)
-    return accumulate(fp, gaussians.opacities, colours)
+def _premultiplied(gaussians: Gaussians, camera: Camera, threads: int = 1):
+    """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) of one camera, front to back."""
+    colours = sh_to_rgb(gaussians.sh, gaussians.means, camera.centre)
+    pose = splat.shared_pose(gaussians, camera)
+    qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
+    table = gaussian_table(gaussians.opacities, colours, pose.ranges)[pose.order]
+    return front_to_back.premultiplied(pose, camera, qcut, table, threads=threads)
 
 
-def _premultiplied_keys(camera: Camera, pose, qcut, tables):
-    """:func:`_premultiplied` for cameras sharing one pose (the Yin and Yang of a render).
-
-    Composites the sorted footprint keys directly: each key holds the Gaussian's
-    depth rank, and ``tables()`` returns the :func:`~rasterizer.composite.gaussian_table`
-    rows in rank order. Those rows are first re-gathered in the order the keys were
-    built (neighbouring boxes together), so that the per-contribution reads of the
-    pixel-sorted keys stay in cache: a rank -> row lookup (4 bytes) then a near read.
-    """
-    key, layout, _, job_ranks = splat.sorted_keys(pose, camera, qcut, splat.MAX_CONTRIBUTIONS)
-    h, w = camera.height, camera.width
-    if key is None:
-        return images_from_sums(np.zeros((0, 5), np.float32), np.zeros(0, np.int64), h, w)
-    pix = layout.pixels(key)
-    starts = segment_starts(pix)
-    table = tables()
-    if job_ranks is None:
-        def fetch(a, b):
-            return layout.ranks(key[a:b]), layout.weights(key[a:b])
-    else:
-        table = np.take(table.view(np.complex128).reshape(-1, 2), job_ranks, axis=0).view(np.float32)
-        row_of_rank = np.empty(pose.ranges.size, dtype=np.int32)
-        row_of_rank[job_ranks] = np.arange(job_ranks.size, dtype=np.int32)
-
-        def fetch(a, b):
-            return row_of_rank[layout.ranks(key[a:b])], layout.weights(key[a:b])
-    sums, _ = composite_segments(key.size, starts, fetch, table)
-    return images_from_sums(sums, pix[starts], h, w)
-
-
-def render_camera(gaussians: Gaussians, camera: Camera) -> RenderOutput:
-    """Render one :class:`Camera` (any kind), colour composited over black."""
+def render_camera(gaussians: Gaussians, camera: Camera, threads: int = 1) -> RenderOutput:
+    """Render one :class:`Camera` (any kind), colour composited over black; ``threads`` row bands side by side."""
     _check_gaussians(gaussians)
-    colour, alpha, range_sum = _premultiplied(gaussians, camera)
+    colour, alpha, range_sum = _premultiplied(gaussians, camera, threads)
     return RenderOutput(colour, alpha, normalise_range(range_sum, alpha))
 
 
@@ -131,7 +104,7 @@ def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: i
         return gaussian_table(gaussians.opacities, colours, pose.ranges)[order]
 
     def one(cam, tables):
-        c, a, r = _premultiplied_keys(cam, pose, qcut, tables)
+        c, a, r = front_to_back.premultiplied(pose, cam, qcut, tables())
         return np.concatenate([c, a[:, :, None], r[:, :, None]], axis=2)
 
     if threads > 1 and len(gaussians) >= _THREAD_MIN_GAUSSIANS:
@@ -182,7 +155,8 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
     method : ERP only. "yinyang" (default; Yin and Yang merged into the ERP) or
         "direct" (splatted straight into the ERP grid). Other projections ignore it.
     near : Gaussians closer than this range (world units) are culled.
-    threads : ERP "yinyang" renders Yin and Yang in two threads when > 1.
+    threads : when > 1, ERP "yinyang" renders Yin and Yang in two threads; other projections
+        composite that many row bands side by side (the same result up to float rounding).
     normalize : divide colour by alpha where alpha >= 1/255 (OmniSplat's V/A
         normalisation; thin coverage then shows the surface colour instead of a
         darkened or black hole) or, when False, return the plain front-to-back
@@ -212,7 +186,7 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
         cam = Camera("erp", width, height, c2w, near=near)  # validates pose and sizes
         return _render_yinyang(gaussians, cam.c2w, width, height, near, int(threads),
                                divide=True if normalize is None else bool(normalize))
-    out = render_camera(gaussians, Camera(projection, width, height, c2w, fov_deg=fov_deg, near=near))
+    out = render_camera(gaussians, Camera(projection, width, height, c2w, fov_deg=fov_deg, near=near), int(threads))
     if not normalize:
         return out
     colour = out.colour * _alpha_inverse(out.alpha)[:, :, None]

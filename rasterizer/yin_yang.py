@@ -185,15 +185,18 @@ def _from_grid_maps(h: int, w: int, height: int, width: int):
     return idx, wts
 
 
-@lru_cache(maxsize=16)
+@lru_cache(maxsize=4)
 def _sparse_taps(h: int, w: int, height: int, width: int):
     """The taps of :func:`_from_grid_maps` without the zero-weight ones.
 
     About 94% of ERP pixels read only one grid (4 of their 8 bilinear taps have
     weight 0). Returns (pixels, idx, wts) for those with 4 taps (the non-zero
-    ones, in their original order; in two halves) and for the rest (all 8).
+    ones, in their original order; in two halves) and for the rest (all 8);
+    idx int32 (the stacked grids hold 2 h w < 2^31 pixels). The dense maps are
+    built for this and not kept (a 4096-wide ERP's weigh about 800 MB).
     """
-    idx, wts = _from_grid_maps(h, w, height, width)
+    idx, wts = _from_grid_maps.__wrapped__(h, w, height, width)
+    idx = idx.astype(np.int32)
     yin_zero = ~np.any(wts[:, :4] != 0, axis=1)
     yang_zero = ~np.any(wts[:, 4:] != 0, axis=1)
     one = yin_zero | yang_zero

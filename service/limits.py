@@ -8,6 +8,7 @@
 * :class:`WorkGate` runs blocking work in worker threads through its own anyio
   ``CapacityLimiter`` (not Starlette's shared pool), with at most ``concurrency`` jobs
   running and ``queue`` waiting; one more is refused at once with 503 + Retry-After.
+* :func:`render_cost` prices a render for the 413 render budget and the heavy-render slot.
 """
 
 from __future__ import annotations
@@ -21,6 +22,24 @@ import anyio.to_thread
 from .errors import Busy, error_body, translate
 
 T = TypeVar("T")
+
+
+#: What one output pixel weighs in :func:`render_cost`, in Gaussians. The renderer's memory is
+#: bounded by the image and a depth chunk, not by pixels x Gaussians (rasterizer.front_to_back),
+#: but the image's own buffers and maps cost at any scene size: a 4096-wide ERP of one Gaussian
+#: took 12 CPU s and 2.7 GB peak (the Yin-Yang merge maps), about what 130k Gaussians cost per
+#: pixel on the m3d scene (10.8 CPU s for a 2048-wide ERP of 469k Gaussians).
+RENDER_PIXEL_GAUSSIANS = 150_000
+
+
+def render_cost(height: int, width: int, n_gaussians: int) -> float:
+    """A render's cost in pixel-Gaussians: output pixels x (scene Gaussians + :data:`RENDER_PIXEL_GAUSSIANS`).
+
+    Its time grows with the contributions composited (pixels x Gaussians for a given room) and
+    with the image's buffers (pixels); compared with ``max_render_cost`` (413 beyond) and
+    ``heavy_render_cost`` (the reconstruction slot beyond) of the settings.
+    """
+    return float(height) * float(width) * (max(int(n_gaussians), 0) + RENDER_PIXEL_GAUSSIANS)
 
 
 #: longest time, and most bytes (in multiples of the limit), spent discarding an oversize

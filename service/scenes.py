@@ -24,6 +24,7 @@ from .edits import edit_artifacts
 from .errors import BadInput, PayloadTooLarge, ServiceError, StoreUnavailable
 from .images import check_header, decode_rgb, encode
 from .inputs import Poses, RenderQuery, check_sweep_range
+from .limits import render_cost
 from .pipeline import PipelineOptions, build_scene
 from .poses import PoseOptions, poses_for_scene
 from .references import REFERENCES_ARTIFACT, load_references, references_bytes
@@ -131,14 +132,15 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
 
 
 def check_render_cost(store: SceneStore, scene_id: str, query: RenderQuery, max_cost: float) -> float:
-    """The render's cost, output pixels x scene Gaussians (memory grows with both); 413 beyond ``max_cost``."""
+    """The render's :func:`~service.limits.render_cost` (pixel-Gaussians); 413 beyond ``max_cost``."""
     h, w = query.output_size()
     n = int(store.meta(scene_id).get("num_gaussians") or 0)
-    if h * w * n > max_cost:
+    cost = render_cost(h, w, n)
+    if cost > max_cost:
         raise PayloadTooLarge(f"a {w}x{h} render of this scene's {n} Gaussians exceeds the render budget "
-                              f"({h * w * n:.3g} > {max_cost:.3g} pixel-Gaussians); ask for at most "
-                              f"{int(max_cost // max(n, 1))} pixels", code="render_too_large")
-    return float(h * w * n)
+                              f"({cost:.3g} > {max_cost:.3g} pixel-Gaussians); ask for at most "
+                              f"{int(max_cost // render_cost(1, 1, n))} pixels", code="render_too_large")
+    return cost
 
 
 def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[bytes, dict[str, float]]:

@@ -235,16 +235,9 @@ def test_splat_and_composite_privates_stay_inside():
     assert not _private_uses(everyone, PATHS, owners)
 
 
-#: Modules allowed to use another module's ``_`` names for now.
-PRIVATE_USES_ALLOWED = {
-    "rasterizer.splat",  # being split in parallel
-}
-
-
 def test_no_module_uses_another_modules_private_names():
     """rasterizer, export, service and bench: no ``from x import _y`` and no ``x._y`` of another module."""
-    checked = {m: es for m, es in ALL.items() if m not in PRIVATE_USES_ALLOWED}
-    assert not _private_uses(checked, PATHS, None)
+    assert not _private_uses(ALL, PATHS, None)
 
 
 def test_the_private_name_check_can_fail(tmp_path):
@@ -272,13 +265,8 @@ def test_dev_data_is_reached_only_through_the_conftest_fixtures():
 
 #: Longest module (lines) in the product packages.
 MAX_LINES = 600
-#: Modules allowed over MAX_LINES for now.
-LONG_MODULES_ALLOWED = {
-    "rasterizer/splat.py",  # being split in parallel
-}
-
 
 def test_no_module_over_600_lines():
     long = {str(p.relative_to(ROOT)): n for p in _files(*PACKAGES)
             if (n := len(p.read_text().splitlines())) > MAX_LINES}
-    assert not {k: v for k, v in long.items() if k not in LONG_MODULES_ALLOWED}, long
+    assert not long, long

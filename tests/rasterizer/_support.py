@@ -1,7 +1,8 @@
 """Helpers shared by the tests (not a test module): small synthetic scenes.
 
 ``two_view_box``: two references inside a box room, the full [view][yin, yang][row][col] layout;
-``toy_scene``: Gaussians on a sphere around the origin (a closed room) with known colours / opacities.
+``toy_scene``: Gaussians on a sphere around the origin (a closed room) with known colours / opacities;
+``random_scene`` / ``reference_composite``: random Gaussians and the slow per-pixel compositor the renderer is checked against.
 """
 
 from __future__ import annotations
@@ -11,7 +12,8 @@ import numpy as np
 from rasterizer import geometry as geo
 from rasterizer.compaction import Provenance
 from rasterizer.depth_gaussians import gaussians_from_depth
-from rasterizer.gaussians import Gaussians, rgb_to_sh_dc
+from rasterizer.gaussians import Gaussians, quat_to_rotmat, rgb_to_sh_dc
+from rasterizer.splat import ALPHA_MIN
 
 H, W = 12, 36  # one Yin/Yang grid of two_view_box
 
@@ -60,3 +62,64 @@ def toy_scene(seed: int = 0, n: int = 600):
     rgb = rng.uniform(0.05, 0.95, (n, 3))
     opac = rng.uniform(0.5, 0.95, n)
     return Gaussians(means, scales, quats, opac, rgb_to_sh_dc(rgb)[:, None, :])
+
+
+# -- renderer tests: random scenes and the slow reference compositor --------------------
+
+def make_gaussians(means, scales, quats=None, opacities=None, rgb=None):
+    means = np.atleast_2d(np.asarray(means, dtype=np.float64))
+    n = len(means)
+    scales = np.broadcast_to(np.asarray(scales, dtype=np.float64), (n, 3))
+    quats = np.tile([1.0, 0, 0, 0], (n, 1)) if quats is None else np.atleast_2d(quats)
+    opacities = np.full(n, 0.5) if opacities is None else np.broadcast_to(opacities, (n,))
+    rgb = np.full((n, 3), 0.8) if rgb is None else np.broadcast_to(rgb, (n, 3))
+    return Gaussians(means, scales, quats, opacities, rgb_to_sh_dc(rgb)[:, None, :])
+
+
+def random_scene(rng, n, radius=(1.0, 4.0), size=(0.02, 0.2)):
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    means = d * rng.uniform(*radius, size=(n, 1))
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return make_gaussians(means, rng.uniform(*size, size=(n, 3)), q, rng.uniform(0.05, 1.0, n),
+                          rng.uniform(0, 1, (n, 3)))
+
+
+def pose(rng):
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    c2w = np.eye(4)
+    c2w[:3, :3] = quat_to_rotmat(q[None])[0]
+    c2w[:3, 3] = rng.normal(size=3) * 0.3
+    return c2w
+
+
+def reference_composite(fp_mean, fp_conic, ranges, opacities, colours, w, h, period=None, depths=None):
+    """Slow per-pixel loop: evaluate every Gaussian, sort by range (by ``depths`` if given), apply the 3DGS rules."""
+    colour = np.zeros((h, w, 3))
+    alpha = np.zeros((h, w))
+    rng_img = np.zeros((h, w))
+    order = np.argsort(ranges if depths is None else depths, kind="stable")
+    for r in range(h):
+        for c in range(w):
+            t = 1.0
+            for i in order:
+                dx = c - fp_mean[i, 0]
+                if period is not None:
+                    dx = (dx + period / 2) % period - period / 2
+                dy = r - fp_mean[i, 1]
+                qv = fp_conic[i, 0] * dx * dx + 2 * fp_conic[i, 1] * dx * dy + fp_conic[i, 2] * dy * dy
+                g = np.exp(-0.5 * qv)
+                if g < ALPHA_MIN:
+                    continue  # outside the opacity-free footprint
+                a = min(0.99, opacities[i] * g)
+                if a < ALPHA_MIN:
+                    continue
+                if t * (1 - a) < 1e-4:
+                    break
+                colour[r, c] += t * a * colours[i]
+                alpha[r, c] += t * a
+                rng_img[r, c] += t * a * ranges[i]
+                t *= 1 - a
+    return colour, alpha, np.where(alpha > 0, rng_img / np.maximum(alpha, 1e-30), 0)

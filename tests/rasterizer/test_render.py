@@ -11,36 +11,7 @@ from rasterizer.composite import composite
 from rasterizer.gaussians import Gaussians, covariance_from_scale_rotation, rgb_to_sh_dc
 from rasterizer.render import RenderOutput, render, to_uint8
 from rasterizer.splat import ALPHA_MIN, Q_MAX, footprints, polar_rows, project
-
-
-def make_gaussians(means, scales, quats=None, opacities=None, rgb=None):
-    means = np.atleast_2d(np.asarray(means, dtype=np.float64))
-    n = len(means)
-    scales = np.broadcast_to(np.asarray(scales, dtype=np.float64), (n, 3))
-    quats = np.tile([1.0, 0, 0, 0], (n, 1)) if quats is None else np.atleast_2d(quats)
-    opacities = np.full(n, 0.5) if opacities is None else np.broadcast_to(opacities, (n,))
-    rgb = np.full((n, 3), 0.8) if rgb is None else np.broadcast_to(rgb, (n, 3))
-    return Gaussians(means, scales, quats, opacities, rgb_to_sh_dc(rgb)[:, None, :])
-
-
-def random_scene(rng, n, radius=(1.0, 4.0), size=(0.02, 0.2)):
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    means = d * rng.uniform(*radius, size=(n, 1))
-    q = rng.normal(size=(n, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return make_gaussians(means, rng.uniform(*size, size=(n, 3)), q, rng.uniform(0.05, 1.0, n),
-                          rng.uniform(0, 1, (n, 3)))
-
-
-def pose(rng):
-    q = rng.normal(size=4)
-    q /= np.linalg.norm(q)
-    from rasterizer.gaussians import quat_to_rotmat
-    c2w = np.eye(4)
-    c2w[:3, :3] = quat_to_rotmat(q[None])[0]
-    c2w[:3, 3] = rng.normal(size=3) * 0.3
-    return c2w
+from tests.rasterizer._support import make_gaussians, pose, random_scene, reference_composite
 
 
 def truncation_factor(r2):
@@ -113,36 +84,6 @@ def test_yang_render_is_yin_render_of_the_yang_pose():
     assert np.allclose(yang.colour, yin.colour, atol=1e-5)
     assert np.allclose(yang.alpha, yin.alpha, atol=1e-5)
     assert np.allclose(yang.range, yin.range, rtol=1e-5, atol=1e-5)
-
-
-def reference_composite(fp_mean, fp_conic, ranges, opacities, colours, w, h, period=None, depths=None):
-    """Slow per-pixel loop: evaluate every Gaussian, sort by range (by ``depths`` if given), apply the 3DGS rules."""
-    colour = np.zeros((h, w, 3))
-    alpha = np.zeros((h, w))
-    rng_img = np.zeros((h, w))
-    order = np.argsort(ranges if depths is None else depths, kind="stable")
-    for r in range(h):
-        for c in range(w):
-            t = 1.0
-            for i in order:
-                dx = c - fp_mean[i, 0]
-                if period is not None:
-                    dx = (dx + period / 2) % period - period / 2
-                dy = r - fp_mean[i, 1]
-                qv = fp_conic[i, 0] * dx * dx + 2 * fp_conic[i, 1] * dx * dy + fp_conic[i, 2] * dy * dy
-                g = np.exp(-0.5 * qv)
-                if g < ALPHA_MIN:
-                    continue  # outside the opacity-free footprint
-                a = min(0.99, opacities[i] * g)
-                if a < ALPHA_MIN:
-                    continue
-                if t * (1 - a) < 1e-4:
-                    break
-                colour[r, c] += t * a * colours[i]
-                alpha[r, c] += t * a
-                rng_img[r, c] += t * a * ranges[i]
-                t *= 1 - a
-    return colour, alpha, np.where(alpha > 0, rng_img / np.maximum(alpha, 1e-30), 0)
 
 
 @pytest.mark.parametrize("kind", ["perspective", "yin", "erp"])
@@ -328,10 +269,8 @@ def test_normalize_divides_colour_by_alpha_and_keeps_alpha():
 # --- fast paths of the renderer (shared pose, key compositing, chunking, sparse merge) --------------------
 
 def test_yinyang_render_is_the_same_with_one_or_two_threads_and_matches_footprints():
-    """The key-compositing Yin/Yang path gives what footprints + accumulate give, in any thread layout."""
-    import importlib
-
-    render_mod = importlib.import_module("rasterizer.render")  # the module; rasterizer.render is the function
+    """The front-to-back Yin/Yang path gives what footprints + accumulate give, in any thread layout."""
+    from rasterizer import front_to_back
     from rasterizer.composite import accumulate
     rng = np.random.default_rng(21)
     g = random_scene(rng, 25_000, size=(0.01, 0.08))  # above the two-thread threshold
@@ -340,7 +279,7 @@ def test_yinyang_render_is_the_same_with_one_or_two_threads_and_matches_footprin
     two = render(g, c2w, projection="erp", width=128, threads=2)
     for a, b in zip(one, two):
         assert np.array_equal(a, b)
-    # per grid: the fused key path equals the public footprints + accumulate
+    # per grid: the chunked key path equals the public footprints + accumulate (float rounding of log T)
     from rasterizer import splat
     from rasterizer.composite import gaussian_table
     from rasterizer.sh import sh_to_rgb
@@ -351,11 +290,11 @@ def test_yinyang_render_is_the_same_with_one_or_two_threads_and_matches_footprin
     table = gaussian_table(g.opacities, colours, p.ranges)[p.order]
     for kind in ("yin", "yang"):
         cam = Camera(kind, 192, 64, c2w)
-        fused = render_mod._premultiplied_keys(cam, p, qcut, lambda: table)
+        fused = front_to_back.premultiplied(p, cam, qcut, table)
         ref = accumulate(footprints(g, cam, opacity_bound=g.opacities), g.opacities, colours)
         assert fused[1].max() > 0.5
         for a, b in zip(fused, ref):
-            assert np.array_equal(a, b)
+            assert np.allclose(a, b, rtol=1e-5, atol=1e-5)
 
 
 def test_accumulate_does_not_depend_on_its_chunking(monkeypatch):
@@ -403,13 +342,14 @@ def test_gaussian_factors_match_rotation_times_scales():
 def test_grid_domain_cull_drops_only_gaussians_without_contributions(kind, monkeypatch):
     """The shared Yin/Yang domain cull is conservative: without it the footprints are the same."""
     from rasterizer import splat
+    from rasterizer.splat import projection
     rng = np.random.default_rng(12)
     g = random_scene(rng, 3000, size=(0.02, 0.5))
     cam = Camera(kind, 96, 32, pose(rng))
     culled = footprints(g, cam)
     kept = splat.grid_keep(splat.shared_pose(g, cam), cam)
     assert 0 < kept.size < len(g)
-    monkeypatch.setattr(splat, "grid_keep",
+    monkeypatch.setattr(projection, "grid_keep",
                         lambda p, c: np.flatnonzero(p.ranges >= c.near))
     full = footprints(g, cam)
     for f in ("pixel", "gaussian", "weight"):

@@ -24,6 +24,7 @@ from rasterizer.splat import RenderLimitError
 from service.access import AccessGuard
 from service.config import Settings
 from service.errors import translate
+from service.limits import RENDER_PIXEL_GAUSSIANS, render_cost
 from tests.service._support import (
     IDENTITY,
     POSES,
@@ -39,7 +40,7 @@ HUGE = "1" + "0" * 399
 @pytest.fixture(scope="module")
 def guarded(model_path, tmp_path_factory):  # noqa: F811
     settings = make_settings(model_path, tmp_path_factory.mktemp("store"), header_timeout_s=1.0, body_timeout_s=2.0,
-                             max_requests=3, max_render_cost=64 * 32 * 60_000.0, heavy_render_cost=1e7)
+                             max_requests=3, max_render_cost=64 * 32 * (60_000.0 + RENDER_PIXEL_GAUSSIANS), heavy_render_cost=4e7)
     with LiveServer(settings) as server:
         yield server
 
@@ -157,7 +158,7 @@ def test_heavy_renders_take_the_reconstruction_slot(guarded, scene, monkeypatch)
         monkeypatch.setattr(gate, "run", lambda fn, *a, _n=name, _run=gate.run: used.append(_n) or _run(fn, *a))
     with guarded.client() as c:
         n = c.get(f"/v1/scenes/{scene}").json()["num_gaussians"]
-        assert 16 * 8 * n < 1e7 < 32 * 16 * n  # light at width 16, heavy at width 32
+        assert render_cost(8, 16, n) < 4e7 < render_cost(16, 32, n)  # light at width 16, heavy at width 32
         for width in (16, 32):
             assert c.get(f"/v1/scenes/{scene}/render", params={"c2w": IDENTITY, "width": width}).status_code == 200
     assert used == ["render_gate", "heavy_render_gate"]
