@@ -36,15 +36,24 @@ class _Refused(Exception):
 
 
 class BodySizeLimit:
-    """ASGI middleware: 413 JSON error for request bodies over ``max_bytes``, 408 for bodies
-    that take longer than ``timeout_s`` to arrive (a client trickling its upload)."""
+    """ASGI middleware: 413 JSON error for request bodies over ``max_bytes``; 408 for bodies that
+    take longer than ``timeout_s`` to arrive, or that arrive slower than ``min_rate`` bytes/s.
+
+    The rate is measured in windows of ``rate_window_s`` seconds of *waiting* for the body (time
+    the app spends between reads does not count against the client): each window must bring
+    ``min_rate * rate_window_s`` bytes, or the rest of a body whose ``Content-Length`` says it
+    is shorter. A client trickling its upload is cut off after one window, not after the whole
+    ``timeout_s``, so slow clients cannot hold the upload slots of :class:`service.access.AccessGuard`.
+    """
 
     def __init__(self, app, max_bytes: int, on_reject: Callable[[], None] | None = None,
-                 timeout_s: float = 120.0) -> None:
+                 timeout_s: float = 120.0, min_rate: float = 0.0, rate_window_s: float = 10.0) -> None:
         self.app = app
         self.max_bytes = max_bytes
         self.on_reject = on_reject
         self.timeout_s = timeout_s
+        self.min_rate = min_rate
+        self.rate_window_s = rate_window_s
 
     async def _drain(self, receive) -> None:
         """Read and discard what the client is still sending, at most ``DRAIN_LIMITS`` limits' worth
@@ -76,6 +85,7 @@ class BodySizeLimit:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        declared: int | None = None
         for name, value in scope.get("headers", ()):
             if name == b"content-length":
                 try:
@@ -91,23 +101,57 @@ class BodySizeLimit:
         started = False
         body_done = False
         deadline = anyio.current_time() + self.timeout_s
+        window = self.rate_window_s
+        window_waited = 0.0  # seconds spent waiting for the body in the current rate window
+        window_bytes = 0  # received in it
+
+        def too_slow() -> _Refused:
+            return _Refused(408, "request_timeout", f"the request body arrived slower than {self.min_rate:g} bytes/s "
+                                                    f"(measured over {window:g} s)")
+
+        def window_ok() -> bool:
+            need = self.min_rate * window
+            if declared is not None and declared >= 0:
+                need = min(need, declared - (received - window_bytes))  # the rest of the body, at the window's start
+            return window_bytes >= need
 
         async def counting_receive():
-            nonlocal received, refused, body_done
+            nonlocal received, refused, body_done, window_waited, window_bytes
             if body_done:  # after the body: disconnect polling, no deadline
                 return await receive()
-            try:
-                with anyio.fail_after(max(0.0, deadline - anyio.current_time())):
-                    message = await receive()
-            except TimeoutError:
-                refused = _Refused(408, "request_timeout", f"the request body did not arrive within {self.timeout_s:g} s")
-                raise refused from None
+            while True:
+                now = anyio.current_time()
+                wait = deadline - now
+                if self.min_rate > 0:
+                    wait = min(wait, window - window_waited)
+                try:
+                    with anyio.fail_after(max(0.0, wait)):
+                        message = await receive()
+                    window_waited += anyio.current_time() - now
+                    break
+                except TimeoutError:
+                    window_waited += anyio.current_time() - now
+                    if anyio.current_time() >= deadline:
+                        refused = _Refused(408, "request_timeout",
+                                           f"the request body did not arrive within {self.timeout_s:g} s")
+                        raise refused from None
+                    if not window_ok():
+                        refused = too_slow()
+                        raise refused from None
+                    window_waited, window_bytes = 0.0, 0  # this window brought enough: the next one
             if message["type"] == "http.request":
-                received += len(message.get("body", b""))
+                size = len(message.get("body", b""))
+                received += size
+                window_bytes += size
                 body_done = not message.get("more_body", False)
                 if received > self.max_bytes:
                     refused = self._too_large()
                     raise refused
+                if not body_done and self.min_rate > 0 and window_waited >= window:
+                    if not window_ok():
+                        refused = too_slow()
+                        raise refused
+                    window_waited, window_bytes = 0.0, 0
             return message
 
         async def guarded_send(message):

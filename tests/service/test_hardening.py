@@ -117,17 +117,30 @@ def test_trickled_body_gets_408_json(guarded):
 
 
 def test_overload_is_json_503_with_retry_after_and_health_exempt(guarded):
+    admission = guarded.app.state.admission
+    admission.working += admission.max_requests  # every work slot taken
+    try:
+        with guarded.client() as c:
+            r = c.get("/v1/info")
+            assert r.status_code == 503 and r.headers["retry-after"] and r.json()["error"]["code"] == "busy"
+            assert c.get("/healthz").status_code == 200
+            ready = c.get("/readyz")
+            assert ready.status_code == 503 and "request slots" in ready.json()["error"]
+    finally:
+        admission.working -= admission.max_requests
+
+
+def test_slow_uploads_do_not_take_work_slots(guarded):
     socks = []
     try:
-        for _ in range(3):  # three requests in progress (bodies still arriving): the limit
+        for _ in range(3):  # as many uploads arriving as there are work slots (max_requests=3)
             s = _connect(guarded.url)
             s.sendall(b"POST /v1/scenes HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: multipart/form-data; "
                       b"boundary=x\r\nContent-Length: 1000\r\n\r\n--x\r\n")
             socks.append(s)
         time.sleep(0.3)
         with guarded.client() as c:
-            r = c.get("/v1/info")
-            assert r.status_code == 503 and r.headers["retry-after"] and r.json()["error"]["code"] == "busy"
+            assert c.get("/v1/info").status_code == 200
             assert c.get("/healthz").status_code == 200 and c.get("/readyz").status_code == 200
     finally:
         for s in socks:

@@ -1,0 +1,289 @@
+"""Regression tests of the HTTP layer's hardening: slow bodies and request slots, protocol errors, HEAD,
+multipart framing, image pre-checks, the viewer's key, the API docs and error messages.
+
+Every server here listens on 127.0.0.1 only; slow clients are few and stop by themselves.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+
+import pytest
+import uvicorn
+from fastapi import FastAPI
+from starlette.responses import JSONResponse
+
+from service.config import Settings
+from service.errors import install_error_handlers
+from service.limits import BodySizeLimit
+from service.server import server_config
+from tests.service.test_service_api import (  # noqa: F401 - model_path is a fixture
+    LiveServer,
+    make_settings,
+    model_path,
+    panorama,
+    post_scene,
+)
+
+
+class TinyServer:
+    """uvicorn with the service's protocol (server_config) around a small ASGI app, on 127.0.0.1."""
+
+    def __init__(self, app, **settings) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.sock.bind(("127.0.0.1", 0))
+        self.port = self.sock.getsockname()[1]
+        config = server_config(app, Settings(**settings), log_level="critical", timeout_keep_alive=5)
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
+
+    def __enter__(self) -> "TinyServer":
+        self.thread.start()
+        deadline = time.monotonic() + 20
+        while not self.server.started and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert self.server.started
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.server.should_exit = True
+        self.thread.join(10)
+        self.sock.close()
+
+    def connect(self) -> socket.socket:
+        return socket.create_connection(("127.0.0.1", self.port), timeout=10)
+
+
+def _read_until_closed(sock: socket.socket, within: float) -> tuple[bytes, bool]:
+    """(everything the server sent, whether it closed the connection within ``within`` seconds)."""
+    data = b""
+    end = time.monotonic() + within
+    while time.monotonic() < end:
+        sock.settimeout(max(0.01, end - time.monotonic()))
+        try:
+            chunk = sock.recv(65536)
+        except socket.timeout:
+            return data, False
+        except ConnectionError:
+            return data, True
+        if not chunk:
+            return data, True
+        data += chunk
+    return data, False
+
+
+def _head_and_json(data: bytes) -> tuple[bytes, dict]:
+    head, _, body = data.partition(b"\r\n\r\n")
+    return head, json.loads(body)
+
+
+def _echo_app():
+    app = FastAPI()
+    install_error_handlers(app)
+
+    @app.get("/boom")
+    async def boom():
+        raise RuntimeError("a bug")
+
+    @app.get("/ok")
+    async def ok():
+        return {"ok": True}
+
+    @app.post("/echo")
+    async def echo(request: __import__("fastapi").Request):
+        return JSONResponse({"bytes": len(await request.body())})
+
+    return app
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    with TinyServer(_echo_app(), max_header_bytes=16 * 1024) as server:
+        yield server
+
+
+# -- protocol: 5xx, oversized headers, CL + TE -------------------------------------------------------
+
+def test_500_says_connection_close_and_closes(tiny):
+    sock = tiny.connect()
+    try:  # two pipelined requests: the client must learn that the second will not be answered
+        sock.sendall(b"GET /boom HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\nGET /ok HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        data, closed = _read_until_closed(sock, 5.0)
+    finally:
+        sock.close()
+    head, body = _head_and_json(data.split(b"HTTP/1.1 200")[0])
+    assert head.startswith(b"HTTP/1.1 500") and b"connection: close" in head.lower(), head
+    assert body["error"]["code"] == "internal_error" and closed
+
+
+def test_huge_header_is_431_json_not_a_reset(tiny):
+    sock = tiny.connect()
+    try:
+        sock.sendall(b"GET /ok HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Big: " + b"a" * (1 << 20) + b"\r\n\r\n")
+    except ConnectionError:
+        pass  # the server may stop reading; its answer must still arrive
+    try:
+        data, closed = _read_until_closed(sock, 5.0)
+    finally:
+        sock.close()
+    head, body = _head_and_json(data)
+    assert head.startswith(b"HTTP/1.1 431"), data[:200]
+    assert body["error"]["code"] == "header_too_large" and "16384 bytes" in body["error"]["message"]
+    assert closed
+
+
+def test_content_length_with_transfer_encoding_is_refused(tiny):
+    sock = tiny.connect()
+    try:
+        sock.sendall(b"POST /echo HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 4\r\nTransfer-Encoding: chunked\r\n"
+                     b"\r\n4\r\nabcd\r\n0\r\n\r\nGET /ok HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        data, closed = _read_until_closed(sock, 5.0)
+    finally:
+        sock.close()
+    head, body = _head_and_json(data)
+    assert head.startswith(b"HTTP/1.1 400"), data[:200]
+    assert "Content-Length and Transfer-Encoding" in body["error"]["message"]
+    assert closed and data.count(b"HTTP/1.1") == 1  # the smuggled request is never answered
+
+
+# -- slow bodies -------------------------------------------------------------------------------------
+
+def _body_app(**limits):
+    async def app(scope, receive, send):
+        if scope["type"] != "http":
+            return
+        size = 0
+        while True:
+            message = await receive()
+            size += len(message.get("body", b""))
+            if not message.get("more_body", False):
+                break
+        body = json.dumps({"bytes": size}).encode()
+        await send({"type": "http.response.start", "status": 200, "headers": [(b"content-type", b"application/json"),
+                                                                          (b"content-length", b"%d" % len(body))]})
+        await send({"type": "http.response.body", "body": body})
+
+    return BodySizeLimit(app, max_bytes=1 << 20, timeout_s=60.0, **limits)
+
+
+def _trickle(port: int, total: int, step: int, pause: float, within: float) -> tuple[bytes, float]:
+    sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+    t0 = time.monotonic()
+    try:
+        sock.sendall(b"POST /x HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: %d\r\n\r\n" % total)
+        sent = 0
+        sock.settimeout(pause)
+        data = b""
+        while time.monotonic() - t0 < within:
+            if sent < total:
+                sock.sendall(b"y" * min(step, total - sent))
+                sent += min(step, total - sent)
+            try:
+                chunk = sock.recv(4096)
+                if not chunk:
+                    break
+                data += chunk
+                if b"\r\n\r\n{" in data and data.endswith(b"}"):
+                    break
+            except socket.timeout:
+                continue
+            except ConnectionError:
+                break
+        return data, time.monotonic() - t0
+    finally:
+        sock.close()
+
+
+def test_body_below_the_minimum_rate_gets_408_after_one_window():
+    with TinyServer(_body_app(min_rate=100.0, rate_window_s=1.0)) as server:
+        data, seconds = _trickle(server.port, total=200, step=1, pause=0.3, within=8.0)
+    head, body = _head_and_json(data)
+    assert head.startswith(b"HTTP/1.1 408"), data[:200]
+    assert body["error"]["code"] == "request_timeout" and "bytes/s" in body["error"]["message"]
+    assert seconds < 4.0  # one window (1 s), not the whole-body deadline (60 s)
+
+
+def test_body_above_the_minimum_rate_is_read():
+    with TinyServer(_body_app(min_rate=100.0, rate_window_s=1.0)) as server:
+        data, _ = _trickle(server.port, total=900, step=100, pause=0.3, within=10.0)  # ~330 bytes/s
+    head, body = _head_and_json(data)
+    assert head.startswith(b"HTTP/1.1 200") and body == {"bytes": 900}, data[:200]
+
+
+# -- the real app: request slots, readiness, HEAD -------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def slots(model_path, tmp_path_factory):  # noqa: F811
+    settings = make_settings(model_path, tmp_path_factory.mktemp("store"), max_requests=2, max_body_readers=3,
+                             body_min_rate=0.0, header_timeout_s=5.0, body_timeout_s=30.0)
+    with LiveServer(settings) as server:
+        yield server
+
+
+@pytest.fixture(scope="module")
+def slots_scene(slots) -> str:
+    with slots.client() as c:
+        r = post_scene(c, panorama(seed=141), panorama(seed=141, shift=4))
+    assert r.status_code == 201, r.text
+    return r.json()["id"]
+
+
+def _slow_upload(url: str, path: str) -> socket.socket:
+    host, port = url.removeprefix("http://").split(":")
+    s = socket.create_connection((host, int(port)), timeout=10)
+    s.sendall(f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+              "Content-Length: 1000\r\n\r\n{".encode())
+    return s
+
+
+def test_slow_uploads_fill_upload_slots_not_work_slots(slots, slots_scene):
+    socks = [_slow_upload(slots.url, f"/v1/scenes/{slots_scene}/refine") for _ in range(3)]
+    try:
+        time.sleep(0.5)
+        with slots.client() as c:
+            for _ in range(3):  # more than max_requests (2) reads, one after another, while the uploads hang
+                assert c.get("/v1/info").status_code == 200
+                assert c.get(f"/v1/scenes/{slots_scene}").status_code == 200
+            render = c.get(f"/v1/scenes/{slots_scene}/render", params={"c2w": ",".join(
+                "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1".split(",")), "width": 16})
+            assert render.status_code == 200
+            fourth = c.post(f"/v1/scenes/{slots_scene}/refine", json={})
+            assert fourth.status_code == 503 and fourth.json()["error"]["code"] == "busy"
+            assert "uploads" in fourth.json()["error"]["message"] and fourth.headers["retry-after"]
+            ready = c.get("/readyz")
+            assert ready.status_code == 503 and "upload slots" in ready.json()["error"], ready.text
+    finally:
+        for s in socks:
+            s.close()
+    deadline = time.monotonic() + 10
+    with slots.client() as c:
+        while c.get("/readyz").status_code != 200 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert c.get("/readyz").status_code == 200  # the slots are given back when the clients leave
+
+
+def test_readyz_reports_full_work_slots(slots):
+    admission = slots.app.state.admission
+    admission.working += admission.max_requests
+    try:
+        with slots.client() as c:
+            r = c.get("/readyz")
+            assert r.status_code == 503 and "request slots" in r.json()["error"]
+            assert c.get("/healthz").status_code == 200
+    finally:
+        admission.working -= admission.max_requests
+
+
+@pytest.mark.parametrize("path", ["/healthz", "/readyz", "/v1/info", "/metrics", "/openapi.json", "SCENE"])
+def test_head_answers_like_get_without_a_body(slots, slots_scene, path):
+    path = f"/v1/scenes/{slots_scene}" if path == "SCENE" else path
+    with slots.client() as c:
+        get, head = c.get(path), c.head(path)
+    assert get.status_code == head.status_code == 200, head.text
+    assert head.content == b"" and head.headers["content-type"] == get.headers["content-type"]
+    if path != "/metrics":  # the metrics change between the two requests
+        assert head.headers["content-length"] == get.headers["content-length"]
