@@ -3,12 +3,26 @@
 Checks, in order, so that nothing expensive happens before the cheap checks pass:
 the header (format, size, 2:1 aspect, minimum height, pixel cap against decompression
 bombs), then the full decode (corrupt or truncated data).
+
+A PNG's chunk list is walked first (:func:`scan_png`, a loop over chunk headers that stops at
+the first limit passed, no decoding): Pillow keeps every ancillary chunk before the image data
+in memory, so a file of millions of empty private chunks would cost seconds and hundreds of
+MB before any pixel check. At most :data:`MAX_PNG_ANCILLARY_CHUNKS` ancillary chunks of
+:data:`MAX_PNG_ANCILLARY_BYTES` in all, and :data:`MAX_PNG_CHUNKS` chunks in all plus one per
+:data:`PNG_BYTES_PER_EXTRA_CHUNK` bytes of file (image data split into small chunks) are
+accepted (413 beyond). Before the full decode, the PNG's compressed image data is inflated
+and counted (not kept): Pillow stops without an error when the compressed stream ends early,
+leaving the missing rows black, so a PNG whose data holds fewer rows than its header
+declares is refused (400).
 """
 
 from __future__ import annotations
 
 import io
+import math
+import struct
 import warnings
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,9 +51,106 @@ def _too_many_pixels(field: str, w: int, h: int, max_pixels: int) -> PayloadTooL
                            code="image_too_many_pixels")
 
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: ancillary (lower-case first letter) chunks a PNG may hold, and their payload bytes in all
+MAX_PNG_ANCILLARY_CHUNKS = 1024
+MAX_PNG_ANCILLARY_BYTES = 16 * 1024 * 1024
+#: chunks of any kind a PNG may hold, plus one per this many bytes of file
+MAX_PNG_CHUNKS = 4096
+PNG_BYTES_PER_EXTRA_CHUNK = 1024
+#: channels per PNG colour type (greyscale, RGB, palette, grey + alpha, RGBA)
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+
+
+@dataclass(frozen=True)
+class PngLayout:
+    """What :func:`scan_png` found: the IHDR fields and where the compressed image data lies."""
+
+    width: int
+    height: int
+    bit_depth: int
+    colour_type: int
+    interlaced: bool
+    idat: tuple[tuple[int, int], ...]  # (offset, length) of each IDAT payload, in file order
+
+    def raw_bytes(self) -> int | None:
+        """Bytes of filtered scanlines the header promises (None: an IHDR this check does not know)."""
+        channels = _PNG_CHANNELS.get(self.colour_type)
+        if channels is None or self.bit_depth not in (1, 2, 4, 8, 16):
+            return None
+        bits = channels * self.bit_depth
+        passes = _ADAM7 if self.interlaced else ((0, 0, 1, 1),)
+        total = 0
+        for x0, y0, dx, dy in passes:
+            w, h = -(-(self.width - x0) // dx), -(-(self.height - y0) // dy)
+            if w > 0 and h > 0:
+                total += h * (1 + -(-(w * bits) // 8))
+        return total
+
+
+def scan_png(data: bytes, field: str) -> PngLayout | None:
+    """Walk a PNG's chunk list (headers only); 413 past the chunk limits. None: not a PNG, or
+    one this walk cannot follow (Pillow then reports it)."""
+    if not data.startswith(PNG_SIGNATURE):
+        return None
+    max_chunks = MAX_PNG_CHUNKS + len(data) // PNG_BYTES_PER_EXTRA_CHUNK
+    pos, chunks, ancillary, ancillary_bytes = len(PNG_SIGNATURE), 0, 0, 0
+    ihdr, idat = None, []
+    while pos + 8 <= len(data):
+        length, kind = struct.unpack_from(">I4s", data, pos)
+        start = pos + 8
+        chunks += 1
+        if chunks > max_chunks:
+            raise PayloadTooLarge(f"{field}: the PNG holds more than {max_chunks} chunks", code="image_too_many_chunks")
+        if kind[:1].islower():
+            ancillary += 1
+            ancillary_bytes += length
+            if ancillary > MAX_PNG_ANCILLARY_CHUNKS or ancillary_bytes > MAX_PNG_ANCILLARY_BYTES:
+                raise PayloadTooLarge(f"{field}: the PNG holds more than {MAX_PNG_ANCILLARY_CHUNKS} ancillary chunks "
+                                      f"or {MAX_PNG_ANCILLARY_BYTES} bytes of them (metadata, not pixels)",
+                                      code="image_too_many_chunks")
+        elif kind == b"IHDR" and length == 13 and start + 13 <= len(data):
+            ihdr = struct.unpack_from(">IIBBBBB", data, start)
+        elif kind == b"IDAT":
+            idat.append((start, min(length, max(0, len(data) - start))))
+        elif kind == b"IEND":
+            break
+        pos = start + length + 4  # payload and CRC
+    if ihdr is None:
+        return None
+    width, height, depth, colour, _, _, interlace = ihdr
+    return PngLayout(width, height, depth, colour, interlace == 1, tuple(idat))
+
+
+def check_png_data(data: bytes, layout: PngLayout, field: str) -> None:
+    """400 when the compressed image data inflates to fewer scanline bytes than the header declares."""
+    need = layout.raw_bytes()
+    if need is None:
+        return
+    inflate = zlib.decompressobj()
+    got = 0
+    view = memoryview(data)
+    try:
+        for offset, length in layout.idat:
+            pending = view[offset:offset + length]
+            while pending and got < need:
+                got += len(inflate.decompress(pending, 1 << 20))  # counted, not kept
+                pending = inflate.unconsumed_tail
+            if got >= need or inflate.eof:
+                break
+    except zlib.error:
+        raise InvalidImage(f"{field}: the PNG's image data is corrupt (it does not inflate)") from None
+    if got < need:
+        per_row = need / max(layout.height, 1)
+        raise InvalidImage(f"{field}: the PNG's image data is truncated: it holds about {math.floor(got / per_row)} of "
+                           f"the {layout.height} rows its header declares")
+
+
 def _open(data: bytes, field: str, max_pixels: int) -> Image.Image:
     if not data:
         raise InvalidImage(f"{field}: the file is empty")
+    scan_png(data, field)  # before Pillow reads the chunks
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
@@ -82,6 +193,9 @@ def check_header(data: bytes, field: str, *, max_pixels: int, min_height: int) -
 def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> tuple[np.ndarray, ImageHeader]:
     """Fully decode to uint8 RGB (H, W, 3) after :func:`check_header`; corrupt data -> 400."""
     header = check_header(data, field, max_pixels=max_pixels, min_height=min_height)
+    layout = scan_png(data, field)
+    if layout is not None:
+        check_png_data(data, layout, field)
     im = _open(data, field, max_pixels)
     try:
         im.load()  # raises on truncated or corrupt data (LOAD_TRUNCATED_IMAGES stays False)

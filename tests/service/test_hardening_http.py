@@ -6,10 +6,13 @@ Every server here listens on 127.0.0.1 only; slow clients are few and stop by th
 
 from __future__ import annotations
 
+import io
 import json
 import socket
+import struct
 import threading
 import time
+import zlib
 
 import pytest
 import uvicorn
@@ -287,3 +290,77 @@ def test_head_answers_like_get_without_a_body(slots, slots_scene, path):
     assert head.content == b"" and head.headers["content-type"] == get.headers["content-type"]
     if path != "/metrics":  # the metrics change between the two requests
         assert head.headers["content-length"] == get.headers["content-length"]
+
+
+# -- PNG: chunk bombs and truncated image data ---------------------------------------------------------
+
+def _chunk(kind: bytes, payload: bytes) -> bytes:
+    return struct.pack(">I", len(payload)) + kind + payload + struct.pack(">I", zlib.crc32(kind + payload))
+
+
+def _png(width: int, height: int, rows: int | None = None, before_idat: bytes = b"", idat_size: int = 1 << 30,
+         interlace: int = 0) -> bytes:
+    """An 8-bit RGB PNG (grey ramp) whose compressed stream holds ``rows`` rows (default: all, Adam7 if asked)."""
+    import numpy as np
+    from PIL import Image
+
+    if interlace:  # let Pillow write the interlaced stream; re-chunk nothing
+        buf = io.BytesIO()
+        Image.fromarray(np.full((height, width, 3), 90, np.uint8)).save(buf, format="PNG", interlace=1)
+        return buf.getvalue()
+    row = b"\x00" + bytes(range(256)) * (3 * width // 256) + bytes(3 * width % 256)
+    stream = zlib.compress(row * (height if rows is None else rows))
+    idat = b"".join(_chunk(b"IDAT", stream[i:i + idat_size]) for i in range(0, len(stream), idat_size))
+    ihdr = _chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, interlace))
+    return b"\x89PNG\r\n\x1a\n" + ihdr + before_idat + idat + _chunk(b"IEND", b"")
+
+
+def test_png_with_millions_of_chunks_is_refused_before_pillow(monkeypatch):
+    from PIL import Image
+
+    from service.errors import PayloadTooLarge
+    from service.images import check_header
+
+    opened = []
+    monkeypatch.setattr(Image, "open", lambda *a, **k: opened.append(1))
+    bomb = _png(256, 128, before_idat=_chunk(b"prVt", b"") * 200_000)  # 2.4 MB of empty private chunks
+    t0 = time.perf_counter()
+    with pytest.raises(PayloadTooLarge) as refused:
+        check_header(bomb, "image_a", max_pixels=1 << 30, min_height=32)
+    assert refused.value.status == 413 and refused.value.code == "image_too_many_chunks"
+    assert "image_a" in refused.value.message and opened == []
+    assert time.perf_counter() - t0 < 1.0  # stops at the limit, not after 200k chunks
+    big_text = _png(256, 128, before_idat=_chunk(b"tEXt", b"c\x00" + b"x" * (17 << 20)))
+    with pytest.raises(PayloadTooLarge):
+        check_header(big_text, "image_b", max_pixels=1 << 30, min_height=32)
+
+
+def test_png_split_into_small_idat_chunks_and_interlaced_pngs_still_decode():
+    from service.images import decode_rgb
+
+    for (w, h), data in [((256, 128), _png(256, 128, idat_size=64, before_idat=_chunk(b"tEXt", b"k\x00v") * 50)),
+                         ((256, 128), _png(256, 128, interlace=1)), ((250, 125), _png(250, 125, interlace=1))]:
+        rgb, header = decode_rgb(data, "image_a", max_pixels=1 << 30, min_height=32)
+        assert rgb.shape == (h, w, 3) and header.format == "PNG"
+
+
+def test_png_with_fewer_rows_than_declared_is_400():
+    from service.errors import InvalidImage
+    from service.images import decode_rgb
+
+    short = _png(8192, 4096, rows=3)
+    assert len(short) < 2000
+    with pytest.raises(InvalidImage) as refused:
+        decode_rgb(short, "image_b", max_pixels=8192 * 4096, min_height=32)
+    assert refused.value.status == 400 and refused.value.code == "invalid_image"
+    assert "3 of the 4096 rows" in refused.value.message
+    with pytest.raises(InvalidImage):  # a few rows short is also refused
+        decode_rgb(_png(256, 128, rows=120), "image_b", max_pixels=1 << 30, min_height=32)
+
+
+def test_truncated_png_upload_is_400_not_a_black_scene(slots):
+    with slots.client() as c:
+        r = post_scene(c, panorama(seed=142), _png(8192, 4096, rows=3))
+    assert r.status_code == 400, r.text
+    assert r.json()["error"]["code"] == "invalid_image" and "image_b" in r.json()["error"]["message"]
+    assert "truncated" in r.json()["error"]["message"]
