@@ -5,6 +5,10 @@
   refused the moment it passes the cap (whatever the app answered is replaced by the 413).
   Before answering, the rest of the body is discarded (bounded in bytes and seconds, never
   buffered) so the client reads the 413 rather than a connection reset.
+* The same middleware follows a ``multipart/form-data`` body as it streams (:class:`MultipartFraming`,
+  nothing kept): a body that ends without its closing boundary is refused (400), since the
+  form parser would silently drop its last part, and so is a field sent twice (422 naming it),
+  where the parser would silently keep one of them.
 * :class:`WorkGate` runs blocking work in worker threads through its own anyio
   ``CapacityLimiter`` (not Starlette's shared pool), with at most ``concurrency`` jobs
   running and ``queue`` waiting; one more is refused at once with 503 + Retry-After.
@@ -17,6 +21,7 @@ from typing import Any, Callable, TypeVar
 
 import anyio
 import anyio.to_thread
+from python_multipart.multipart import MultipartParseError, MultipartParser, MultipartState, parse_options_header
 
 from .errors import Busy, error_body, translate
 
@@ -33,6 +38,70 @@ class _Refused(Exception):
     def __init__(self, status: int, code: str, message: str) -> None:
         super().__init__(message)
         self.status, self.code, self.message = status, code, message
+
+
+class MultipartFraming:
+    """Follows a multipart/form-data body chunk by chunk: the field names seen and whether the
+    closing boundary arrived. ``broken`` when the parser gave up (the form parser reports that)."""
+
+    def __init__(self, boundary: bytes) -> None:
+        self.boundary = boundary
+        self.names: set[bytes] = set()
+        self.duplicate: bytes | None = None
+        self.broken = False
+        self._field, self._value = bytearray(), bytearray()
+        self._name: bytes | None = None
+
+        def field(data, start, end):
+            self._field += data[start:end]
+
+        def value(data, start, end):
+            self._value += data[start:end]
+
+        def header_end():
+            if bytes(self._field).strip().lower() == b"content-disposition":
+                _, params = parse_options_header(bytes(self._value))
+                self._name = params.get(b"name")
+            self._field, self._value = bytearray(), bytearray()
+
+        def headers_finished():
+            if self._name is not None:
+                if self._name in self.names and self.duplicate is None:
+                    self.duplicate = self._name
+                self.names.add(self._name)
+            self._name = None
+
+        self.parser = MultipartParser(boundary, {"on_header_field": field, "on_header_value": value,
+                                                 "on_header_end": header_end, "on_headers_finished": headers_finished})
+
+    @classmethod
+    def for_request(cls, scope) -> "MultipartFraming | None":
+        """The tracker of a multipart/form-data request with a boundary, else None."""
+        for name, value in scope.get("headers", ()):
+            if name == b"content-type":
+                kind, params = parse_options_header(value)
+                if kind == b"multipart/form-data" and params.get(b"boundary"):
+                    return cls(params[b"boundary"])
+        return None
+
+    def feed(self, chunk: bytes) -> None:
+        if chunk and not self.broken:
+            try:
+                self.parser.write(chunk)
+            except MultipartParseError:
+                self.broken = True
+
+    @property
+    def complete(self) -> bool:
+        return self.broken or self.parser.state == MultipartState.END
+
+    def duplicate_refusal(self) -> "_Refused":
+        name = self.duplicate.decode("utf-8", "replace")[:100] if self.duplicate else "?"
+        return _Refused(422, "duplicate_field", f"form field {name!r} is sent more than once; send each field once")
+
+    def incomplete_refusal(self) -> "_Refused":
+        return _Refused(400, "incomplete_multipart", "the multipart body ends without its closing boundary "
+                        f"('--{self.boundary.decode('latin-1')[:70]}--'): the upload is incomplete")
 
 
 class BodySizeLimit:
@@ -100,6 +169,7 @@ class BodySizeLimit:
         refused: _Refused | None = None
         started = False
         body_done = False
+        framing = MultipartFraming.for_request(scope)
         deadline = anyio.current_time() + self.timeout_s
         window = self.rate_window_s
         window_waited = 0.0  # seconds spent waiting for the body in the current rate window
@@ -147,6 +217,14 @@ class BodySizeLimit:
                 if received > self.max_bytes:
                     refused = self._too_large()
                     raise refused
+                if framing is not None:
+                    framing.feed(message.get("body", b""))
+                    if framing.duplicate is not None:
+                        refused = framing.duplicate_refusal()
+                        raise refused
+                    if body_done and not framing.complete:
+                        refused = framing.incomplete_refusal()
+                        raise refused
                 if not body_done and self.min_rate > 0 and window_waited >= window:
                     if not window_ok():
                         refused = too_slow()
@@ -170,7 +248,7 @@ class BodySizeLimit:
             if refused is None:
                 raise
         if refused is not None and not started:
-            if refused.status == 413:
+            if refused.status != 408 and not body_done:  # the client still sends: read it, then answer
                 await self._drain(receive)
             await self._reject(send, refused)
 

@@ -14,6 +14,7 @@ import threading
 import time
 import zlib
 
+import httpx
 import pytest
 import uvicorn
 from fastapi import FastAPI
@@ -364,3 +365,40 @@ def test_truncated_png_upload_is_400_not_a_black_scene(slots):
     assert r.status_code == 400, r.text
     assert r.json()["error"]["code"] == "invalid_image" and "image_b" in r.json()["error"]["message"]
     assert "truncated" in r.json()["error"]["message"]
+
+
+# -- multipart framing ----------------------------------------------------------------------------------
+
+def _multipart(parts: list[tuple[str, bytes]], boundary: str = "b0undary", close: bool = True) -> bytes:
+    out = b""
+    for name, data in parts:
+        filename = f'; filename="{name}.png"' if name.startswith("image") else ""
+        out += (f'--{boundary}\r\nContent-Disposition: form-data; name="{name}"{filename}\r\n\r\n').encode() + data + b"\r\n"
+    return out + (f"--{boundary}--\r\n".encode() if close else b"")
+
+
+def _post_multipart(server, body: bytes, boundary: str = "b0undary") -> httpx.Response:
+    with server.client() as c:
+        return c.post("/v1/scenes", content=body, headers={"content-type": f"multipart/form-data; boundary={boundary}"})
+
+
+def test_multipart_without_its_closing_boundary_is_400(slots):
+    from tests.service.test_service_api import POSES
+
+    parts = [("image_a", panorama(seed=143)), ("image_b", panorama(seed=144)), ("poses", POSES.encode())]
+    r = _post_multipart(slots, _multipart(parts, close=False))
+    assert r.status_code == 400, r.text
+    assert r.json()["error"]["code"] == "incomplete_multipart" and "--b0undary--" in r.json()["error"]["message"]
+    whole = _post_multipart(slots, _multipart(parts))  # the same upload, complete
+    assert whole.status_code == 201, whole.text
+
+
+def test_duplicate_form_fields_are_422_naming_the_field(slots):
+    from tests.service.test_service_api import POSES
+
+    for dup in ("poses", "image_a"):
+        parts = [("image_a", panorama(seed=145)), ("image_b", panorama(seed=146)), ("poses", POSES.encode())]
+        parts.append(next(p for p in parts if p[0] == dup))
+        r = _post_multipart(slots, _multipart(parts))
+        assert r.status_code == 422, r.text
+        assert r.json()["error"]["code"] == "duplicate_field" and repr(dup) in r.json()["error"]["message"]
