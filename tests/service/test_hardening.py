@@ -341,11 +341,18 @@ def test_viewer_page_takes_the_key_once_and_keeps_it_in_a_same_site_cookie(model
         del c.headers["Authorization"]
         assert c.get("/v1/info", params={"key": "s3cret"}).status_code == 401  # the query key opens the page only
         assert c.get(f"/v1/scenes/{sid}/viewer", params={"key": "wrong"}).status_code == 401
-        page = c.get(f"/v1/scenes/{sid}/viewer", params={"key": "s3cret"})
-        assert page.status_code == 200, page.text
-        cookie = page.headers["set-cookie"].lower()
+        moved = c.get(f"/v1/scenes/{sid}/viewer", params={"key": "s3cret", "fov_deg": "70"})
+        assert moved.status_code == 303, moved.text  # the key leaves the URL at once
+        assert moved.headers["location"] == f"/v1/scenes/{sid}/viewer?fov_deg=70"
+        assert moved.headers["referrer-policy"] == "no-referrer"
+        cookie = moved.headers["set-cookie"].lower()
         assert "omnisplat_key=s3cret" in cookie and "httponly" in cookie and "samesite=strict" in cookie
+        page = c.get(moved.headers["location"])  # the browser follows, with the cookie
+        assert page.status_code == 200 and page.headers["referrer-policy"] == "no-referrer", page.text
         assert c.get(f"/v1/scenes/{sid}/gaussians.ply").status_code == 200  # the browser's next requests
+        for keys in (["s3cret", "other"], ["other", "s3cret"], ["s3cret", "s3cret"]):  # one rule: refused
+            twice = c.get(f"/v1/scenes/{sid}/viewer", params=[("key", k) for k in keys])
+            assert twice.status_code == 400 and twice.json()["error"]["code"] == "duplicate_query_parameter"
 
 
 # -- D10: one error shape ------------------------------------------------------------------------------

@@ -402,3 +402,28 @@ def test_duplicate_form_fields_are_422_naming_the_field(slots):
         r = _post_multipart(slots, _multipart(parts))
         assert r.status_code == 422, r.text
         assert r.json()["error"]["code"] == "duplicate_field" and repr(dup) in r.json()["error"]["message"]
+
+
+# -- the viewer's key in logs; error messages -----------------------------------------------------------
+
+def test_access_log_redacts_the_viewer_key():
+    import logging
+
+    from service.server import RedactKeyFilter
+
+    server_config(_echo_app(), Settings())
+    assert any(isinstance(f, RedactKeyFilter) for f in logging.getLogger("uvicorn.access").filters)
+    record = logging.LogRecord("uvicorn.access", logging.INFO, __file__, 1, '%s - "%s %s HTTP/%s" %d',
+                               ("127.0.0.1:5", "GET", "/v1/scenes/ab/viewer?fov_deg=70&key=s3cret%21&x=1", "1.1", 303),
+                               None)
+    assert RedactKeyFilter().filter(record)
+    message = record.getMessage()
+    assert "s3cret" not in message and "key=<redacted>" in message and "fov_deg=70" in message and "x=1" in message
+
+
+def test_viewer_unavailable_names_no_server_path(slots, slots_scene, monkeypatch):
+    monkeypatch.setenv("OMNISPLAT_NODE_MODULES", "/nonexistent-omnisplat-test/node_modules")
+    with slots.client() as c:
+        r = c.get(f"/v1/scenes/{slots_scene}/viewer")
+    assert r.status_code == 503 and r.json()["error"]["code"] == "viewer_unavailable"
+    assert "nonexistent-omnisplat-test" not in r.text and "three/build/three.module.js" in r.text
