@@ -57,6 +57,7 @@ COPY export/__init__.py ./export/__init__.py
 COPY service ./service
 COPY --from=viewer /src/node_modules/three/build ./node_modules/three/build
 COPY --from=viewer /src/node_modules/@mkkellogg/gaussian-splats-3d/build ./node_modules/@mkkellogg/gaussian-splats-3d/build
+COPY --from=viewer /src/node_modules/swagger-ui-dist ./node_modules/swagger-ui-dist
 # Runtime dependencies only (pyproject [project].dependencies): numpy, onnxruntime, fastapi, scipy, ...
 # The checks: no torch in the image; the app and the refine path import with what was installed.
 RUN pip install . \

@@ -29,7 +29,7 @@ from .jobs import REFINE_QUEUE, JobRegistry
 from .limits import BodySizeLimit, WorkGate
 from .metrics import RequestMetrics, ServiceMetrics
 from .model_files import ModelUnavailable
-from .routes import edits, health, jobs, scenes, viewer
+from .routes import docs, edits, health, jobs, scenes, viewer
 from .runtime import ModelRuntime
 from .store import SceneStore
 
@@ -112,7 +112,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 tg.cancel_scope.cancel()
         state.runtime.encoder = None
 
-    app = FastAPI(title="omnisplat", version=__version__, description=DESCRIPTION, lifespan=lifespan)
+    # /docs with its files served locally (routes/docs.py); no ReDoc, whose page loads from CDNs
+    app = FastAPI(title="omnisplat", version=__version__, description=DESCRIPTION, lifespan=lifespan,
+                  docs_url=None, redoc_url=None)
     app.state.settings = settings
     app.state.metrics = metrics
     app.state.admission = Admission(settings.max_requests, settings.max_body_readers)  # read by /readyz
@@ -122,6 +124,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(jobs.router)
     app.include_router(viewer.router)
     app.include_router(edits.router)
+    app.include_router(docs.router)
     # Last added = outermost: metrics see every request, including refusals by the guard and body limit.
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["GET", "POST", "DELETE"],

@@ -427,3 +427,31 @@ def test_viewer_unavailable_names_no_server_path(slots, slots_scene, monkeypatch
         r = c.get(f"/v1/scenes/{slots_scene}/viewer")
     assert r.status_code == 503 and r.json()["error"]["code"] == "viewer_unavailable"
     assert "nonexistent-omnisplat-test" not in r.text and "three/build/three.module.js" in r.text
+
+
+# -- the API docs, served locally ----------------------------------------------------------------------
+
+def test_docs_page_and_its_files_are_served_locally_without_a_key(model_path, tmp_path):  # noqa: F811
+    settings = make_settings(model_path, tmp_path / "store", api_key="s3cret", warmup=False)
+    with LiveServer(settings) as server, server.client() as c:
+        page = c.get("/docs")
+        assert page.status_code == 200 and "swagger-ui" in page.text
+        assert "http://" not in page.text and "https://" not in page.text, "the page loads nothing from elsewhere"
+        for asset in ("swagger-ui-bundle.js", "swagger-ui.css", "favicon-32x32.png"):
+            assert f"/docs/assets/{asset}" in page.text
+            r = c.get(f"/docs/assets/{asset}")
+            assert r.status_code == 200 and len(r.content) > 500, asset
+        assert c.get("/docs/assets/package.json").status_code == 404  # only the listed files
+        assert c.get("/openapi.json").status_code == 200  # open by design (see service.access)
+        assert c.get("/docs/oauth2-redirect").status_code == 200
+        assert c.get("/v1/info").status_code == 401  # the rest still needs the key
+        assert c.get("/redoc").status_code in (401, 404)  # not served (its page loads from CDNs)
+
+
+def test_docs_without_the_npm_package_is_503_json(slots, monkeypatch):
+    monkeypatch.setenv("OMNISPLAT_NODE_MODULES", "/nonexistent-omnisplat-test/node_modules")
+    with slots.client() as c:
+        r = c.get("/docs")
+        assert r.status_code == 503 and r.json()["error"]["code"] == "docs_unavailable"
+        assert "nonexistent-omnisplat-test" not in r.text
+        assert c.get("/openapi.json").status_code == 200
