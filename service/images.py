@@ -164,7 +164,12 @@ def _open(data: bytes, field: str, max_pixels: int) -> Image.Image:
             f"{field}: not a readable image (accepted formats: {', '.join(ACCEPTED_FORMATS)})"
         ) from None
     except Exception as exc:  # noqa: BLE001 - any decoder failure is the file's fault
-        raise InvalidImage(f"{field}: unreadable image header ({exc})") from None
+        raise InvalidImage(f"{field}: unreadable image header ({_fault(exc)})") from None
+
+
+def _fault(exc: Exception) -> str:
+    """What a decoder's exception says about the file, in the user's terms (no library internals)."""
+    return "the file is truncated" if "truncated" in str(exc).lower() else "the file is damaged or not what it claims to be"
 
 
 def check_header(data: bytes, field: str, *, max_pixels: int, min_height: int) -> ImageHeader:
@@ -203,7 +208,7 @@ def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> 
     except (PayloadTooLarge, InvalidImage):
         raise
     except Exception as exc:  # noqa: BLE001 - corrupt, truncated, unsupported mode...
-        raise InvalidImage(f"{field}: the image data is corrupt or truncated ({exc})") from None
+        raise InvalidImage(f"{field}: the image data is corrupt or truncated ({_fault(exc)})") from None
     finally:
         im.close()
     if arr.shape != (header.height, header.width, 3):

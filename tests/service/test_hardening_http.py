@@ -455,3 +455,25 @@ def test_docs_without_the_npm_package_is_503_json(slots, monkeypatch):
         assert r.status_code == 503 and r.json()["error"]["code"] == "docs_unavailable"
         assert "nonexistent-omnisplat-test" not in r.text
         assert c.get("/openapi.json").status_code == 200
+
+
+def test_image_errors_name_the_file_not_library_internals(monkeypatch):
+    import numpy as np
+    from PIL import Image
+
+    from service.errors import InvalidImage
+    from service.images import decode_rgb
+
+    buf = io.BytesIO()
+    Image.fromarray(np.full((64, 128, 3), 80, np.uint8)).save(buf, format="WEBP")
+    with pytest.raises(InvalidImage) as half:  # libwebp: "could not create decoder object"
+        decode_rgb(buf.getvalue()[: len(buf.getvalue()) // 2], "image_a", max_pixels=1 << 30, min_height=32)
+    assert half.value.message.startswith("image_a: ") and "decoder" not in half.value.message
+
+    def internal(*a, **k):
+        raise ValueError("ufunc 'isfinite' not supported for the input types")
+
+    monkeypatch.setattr(Image, "open", internal)
+    with pytest.raises(InvalidImage) as raised:
+        decode_rgb(_png(256, 128), "image_b", max_pixels=1 << 30, min_height=32)
+    assert "ufunc" not in raised.value.message and "image_b" in raised.value.message
