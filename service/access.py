@@ -33,7 +33,7 @@ from .errors import error_body
 OPEN_PATHS = frozenset({"/healthz", "/readyz", "/v2/health/live", "/v2/health/ready", "/docs", "/openapi.json",
                         "/docs/oauth2-redirect"})
 #: path prefix of the API docs' own files (open as the docs page is)
-DOCS_ASSETS = "/docs/assets/"
+DOCS_ASSETS_PREFIX = "/docs/assets/"
 #: the POST that queues a reconstruction (admission checked before its body is read)
 SCENES_PATH = "/v1/scenes"
 
@@ -55,7 +55,7 @@ KEY_COOKIE = "omnisplat_key"
 
 def is_open(path: str) -> bool:
     """True for the paths answered without a key and outside admission (probes, API docs)."""
-    return path in OPEN_PATHS or path.startswith(DOCS_ASSETS)
+    return path in OPEN_PATHS or path.startswith(DOCS_ASSETS_PREFIX)
 
 
 class DuplicateKey(ValueError):

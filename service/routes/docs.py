@@ -17,7 +17,7 @@ from fastapi import APIRouter, Request, Response
 from fastapi.openapi.docs import get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
 from fastapi.responses import FileResponse, HTMLResponse
 
-from ..access import DOCS_ASSETS as ASSETS_PREFIX
+from ..access import DOCS_ASSETS_PREFIX as ASSETS_PREFIX
 from ..errors import NotFound, ServiceError
 from .viewer import node_modules_dir
 
