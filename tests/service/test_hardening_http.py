@@ -477,3 +477,49 @@ def test_image_errors_name_the_file_not_library_internals(monkeypatch):
     with pytest.raises(InvalidImage) as raised:
         decode_rgb(_png(256, 128), "image_b", max_pixels=1 << 30, min_height=32)
     assert "ufunc" not in raised.value.message and "image_b" in raised.value.message
+
+
+def test_body_that_arrives_when_every_work_slot_is_taken_is_503():
+    import anyio
+
+    from service.access import AccessGuard
+
+    ran = []
+
+    async def app(scope, receive, send):
+        while (await receive()).get("more_body"):
+            pass
+        ran.append(scope["path"])
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"ran"})
+
+    class State:
+        inference_gate = None
+
+    guard = AccessGuard(app, Settings(max_requests=1, max_body_readers=2), State)
+    scope = {"type": "http", "method": "POST", "path": "/v1/scenes/x/refine", "query_string": b"",
+             "headers": [(b"host", b"127.0.0.1"), (b"content-length", b"2")]}
+    sent: list[dict] = []
+
+    async def main():
+        first = anyio.Event()
+        chunks = [{"type": "http.request", "body": b"a", "more_body": True},
+                  {"type": "http.request", "body": b"b", "more_body": False}]
+
+        async def receive():
+            if len(chunks) == 1:  # between the two chunks, another request takes the only work slot
+                first.set()
+                guard.admission.working += 1
+            return chunks.pop(0)
+
+        async def send(message):
+            sent.append(message)
+
+        assert guard.admission.problem() is None
+        await guard(scope, receive, send)
+        assert first.is_set() and guard.admission.reading == 0
+        guard.admission.working -= 1
+
+    anyio.run(main)
+    assert ran == [] and sent[0]["status"] == 503 and b"busy" in sent[1]["body"]
+    assert guard.admission.working == 0 and guard.admission.reading == 0
