@@ -10,7 +10,8 @@ in memory, so a file of millions of empty private chunks would cost seconds and 
 MB before any pixel check. At most :data:`MAX_PNG_ANCILLARY_CHUNKS` ancillary chunks of
 :data:`MAX_PNG_ANCILLARY_BYTES` in all, and :data:`MAX_PNG_CHUNKS` chunks in all plus one per
 :data:`PNG_BYTES_PER_EXTRA_CHUNK` bytes of file (image data split into small chunks) are
-accepted (413 beyond). Before the full decode, the PNG's compressed image data is inflated
+accepted (413 beyond); a JPEG's marker segments likewise (:func:`scan_jpeg`). Before the full
+decode, the PNG's compressed image data is inflated
 and counted (not kept): Pillow stops without an error when the compressed stream ends early,
 leaving the missing rows black, so a PNG whose data holds fewer rows than its header
 declares is refused (400).
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import io
 import math
+import re
 import struct
 import warnings
 import zlib
@@ -147,10 +149,60 @@ def check_png_data(data: bytes, layout: PngLayout, field: str) -> None:
                            f"the {layout.height} rows its header declares")
 
 
+#: segments a JPEG may hold before its image data, and bytes of padding or junk between them
+MAX_JPEG_SEGMENTS = 4096
+MAX_JPEG_GAP_BYTES = 1024 * 1024
+_NOT_FF = re.compile(rb"[^\xff]")
+
+
+def scan_jpeg(data: bytes, field: str) -> None:
+    """Walk a JPEG's marker segments up to the start of scan (headers only); 413 past the limits.
+
+    Pillow keeps every APPn/COM segment in memory and steps through padding byte by byte, so a
+    file of millions of empty APP segments costs as much as the PNG chunk bomb. The APPn/COM
+    segments count against the PNG's ancillary limits; at most :data:`MAX_JPEG_SEGMENTS`
+    segments and :data:`MAX_JPEG_GAP_BYTES` of fill or junk bytes between them are accepted."""
+    if not data.startswith(b"\xff\xd8"):
+        return
+    pos, segments, meta, meta_bytes, gap = 2, 0, 0, 0, 0
+    while pos + 4 <= len(data):
+        horizon = min(len(data), pos + MAX_JPEG_GAP_BYTES - gap + 2)  # no search past the limit
+        if data[pos] != 0xFF:  # junk up to the next marker
+            nxt = data.find(b"\xff", pos, horizon)
+            nxt = horizon if nxt < 0 else nxt
+            gap, pos = gap + nxt - pos, nxt
+        else:
+            found = _NOT_FF.search(data, pos + 1, horizon)  # fill bytes: 0xFF repeated before a marker
+            end = found.start() if found else horizon
+            gap, pos = gap + end - pos - 1, end - 1
+        if gap > MAX_JPEG_GAP_BYTES:
+            raise PayloadTooLarge(f"{field}: the JPEG holds more than {MAX_JPEG_GAP_BYTES} bytes of padding between "
+                                  "its segments", code="image_too_many_chunks")
+        if pos + 4 > len(data):
+            return
+        marker = data[pos + 1]
+        if marker in (0xDA, 0xD9):  # start of scan (or end): the headers are done
+            return
+        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
+            pos += 2
+            continue
+        length = (data[pos + 2] << 8) | data[pos + 3]
+        segments += 1
+        if 0xE0 <= marker <= 0xEF or marker == 0xFE:
+            meta += 1
+            meta_bytes += length
+        if segments > MAX_JPEG_SEGMENTS or meta > MAX_PNG_ANCILLARY_CHUNKS or meta_bytes > MAX_PNG_ANCILLARY_BYTES:
+            raise PayloadTooLarge(f"{field}: the JPEG holds more than {MAX_PNG_ANCILLARY_CHUNKS} metadata segments or "
+                                  f"{MAX_PNG_ANCILLARY_BYTES} bytes of them, or more than {MAX_JPEG_SEGMENTS} segments",
+                                  code="image_too_many_chunks")
+        pos += 2 + length
+
+
 def _open(data: bytes, field: str, max_pixels: int) -> Image.Image:
     if not data:
         raise InvalidImage(f"{field}: the file is empty")
     scan_png(data, field)  # before Pillow reads the chunks
+    scan_jpeg(data, field)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)

@@ -523,3 +523,26 @@ def test_body_that_arrives_when_every_work_slot_is_taken_is_503():
     anyio.run(main)
     assert ran == [] and sent[0]["status"] == 503 and b"busy" in sent[1]["body"]
     assert guard.admission.working == 0 and guard.admission.reading == 0
+
+
+def test_jpeg_with_millions_of_metadata_segments_or_padding_is_refused_before_pillow(monkeypatch):
+    import numpy as np
+    from PIL import Image
+
+    from service.errors import PayloadTooLarge
+    from service.images import check_header
+
+    buf = io.BytesIO()
+    Image.fromarray(np.full((128, 256, 3), 70, np.uint8)).save(buf, format="JPEG", icc_profile=b"p" * 100_000,
+                                                               comment=b"a comment")
+    jpeg = buf.getvalue()
+    assert check_header(jpeg, "image_a", max_pixels=1 << 30, min_height=32).format == "JPEG"  # real metadata passes
+    opened = []
+    monkeypatch.setattr(Image, "open", lambda *a, **k: opened.append(1))
+    for bomb in (jpeg[:2] + b"\xff\xef\x00\x02" * 300_000 + jpeg[2:],  # empty APP15 segments (Pillow keeps each)
+                 jpeg[:2] + b"\xff" * 5_000_000 + jpeg[2:], jpeg[:2] + b"\x00" * 5_000_000 + jpeg[2:]):
+        t0 = time.perf_counter()
+        with pytest.raises(PayloadTooLarge) as refused:
+            check_header(bomb, "image_a", max_pixels=1 << 30, min_height=32)
+        assert refused.value.code == "image_too_many_chunks" and time.perf_counter() - t0 < 1.0
+    assert opened == []
