@@ -63,6 +63,7 @@ RUN python -c 'import sys, tomllib; p = tomllib.load(open("pyproject.toml", "rb"
     && pip install -r deps.txt && rm deps.txt
 COPY --from=viewer /src/node_modules/three/build ./node_modules/three/build
 COPY --from=viewer /src/node_modules/@mkkellogg/gaussian-splats-3d/build ./node_modules/@mkkellogg/gaussian-splats-3d/build
+COPY --from=viewer /src/node_modules/swagger-ui-dist ./node_modules/swagger-ui-dist
 COPY README.md ./
 COPY rasterizer ./rasterizer
 COPY export/__init__.py ./export/__init__.py

@@ -2,18 +2,24 @@
 
     omnisplat-bench reliability [--model M.onnx] [--json out.json]
 
-Categories (bounded in count and time): bad inputs by kind (status codes), schemathesis on
-every operation, overload (503 + Retry-After), idle and trickling connections (health must
-stay 200, the connections must be closed), kill -9 during writes then restart (no lost or
-corrupt scene), and a full then read-only store on a small tmpfs (needs root; 507 and /readyz
-503, mounts removed afterwards). Without ``--model`` a small model (128x256, 8 planes) is
-exported first (needs torch). Prints JSON and a markdown table; exit status 1 when any
-answer was a 5xx other than 503, a scene was lost or corrupt, or health failed.
+Categories (bounded in count and time): bad inputs by kind (status codes), protocol abuse
+(oversized headers, Content-Length with Transfer-Encoding, HEAD), schemathesis on every
+operation, overload (503 + Retry-After), idle and trickling connections (health must stay
+200, the connections must be closed), slow request bodies against the upload slots (renders,
+info and metadata must keep answering 200 while ``--slow-bodies`` clients trickle one byte
+every 3 s), PNG chunk bombs posted at once (status, seconds, server RSS), kill -9 during
+writes then restart (no lost or corrupt scene), and a full then read-only store on a small
+tmpfs (needs root; 507 and /readyz 503, mounts removed afterwards). ``--sections`` runs a
+subset. Every client talks to 127.0.0.1 only. Without ``--model`` a small model (128x256,
+8 planes) is exported first (needs torch). Prints JSON and a markdown table; exit status 1
+when any answer was a 5xx other than 503/507, a scene was lost or corrupt, health failed, or
+a render/info/metadata request was not answered 200 under the slow bodies.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import os
 import signal
@@ -29,6 +35,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from bench.reliability_http import chunk_bombs, multipart, png_rows, protocol, slow_bodies
 from bench.service import free_port, post_inputs
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -113,6 +120,9 @@ def bad_inputs(srv: Server, imgs) -> dict:
     with httpx.Client(base_url=srv.url, timeout=120) as c:
         sid = _post(c, a, b, poses).json()["id"]
         eye = ",".join(str(v) for v in np.eye(4).ravel())
+        parts = [("image_a", a), ("image_b", b), ("poses", poses.encode())]
+        body_open, mp_headers = multipart(parts, close=False)
+        body_twice, _ = multipart([*parts, ("poses", poses.encode())])
         cases = {
             "huge_int_near": lambda: _post(c, a, b, poses, f'{{"near": {HUGE}}}'),
             "huge_int_margin": lambda: _post(c, a, b, poses, f'{{"adaptive_range": {{"margin": {HUGE}}}}}'),
@@ -137,6 +147,10 @@ def bad_inputs(srv: Server, imgs) -> dict:
             "method_put_scene": lambda: c.put(f"/v1/scenes/{sid}"),
             "foreign_origin_post": lambda: c.post("/v1/scenes", headers={"Origin": "http://evil.example"}),
             "rebinding_host": lambda: c.get("/v1/info", headers={"Host": "evil.example"}),
+            "png_8192x4096_3_rows": lambda: _post(c, a, png_rows(8192, 4096, 3), poses),
+            "multipart_no_closing_boundary": lambda: c.post("/v1/scenes", content=body_open, headers=mp_headers),
+            "multipart_poses_twice": lambda: c.post("/v1/scenes", content=body_twice, headers=mp_headers),
+            "viewer_key_twice": lambda: c.get(f"/v1/scenes/{sid}/viewer", params=[("key", "a"), ("key", "b")]),
         }
         for name, call in cases.items():
             r = call()
@@ -373,8 +387,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fuzz-seconds", type=float, default=90.0)
     p.add_argument("--kill-rounds", type=int, default=3)
     p.add_argument("--idle", type=int, default=100, help="idle connections held open")
+    p.add_argument("--slow-bodies", type=int, default=300, help="clients trickling a request body at once")
+    p.add_argument("--slow-seconds", type=float, default=20.0, help="how long the slow-body clients stay")
+    p.add_argument("--bomb-chunks", type=int, default=7_000_000, help="empty private chunks per PNG chunk bomb")
+    p.add_argument("--sections", default=",".join(SECTIONS), help=f"comma-separated subset of {', '.join(SECTIONS)}")
     p.add_argument("--json", type=Path, help="write the summary here too")
     args = p.parse_args(argv)
+    sections = set(args.sections.split(","))
+    if sections - set(SECTIONS):
+        p.error(f"unknown sections {sorted(sections - set(SECTIONS))}")
 
     t_start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="omnisplat-reliability-") as tmp:
@@ -389,16 +410,35 @@ def main(argv: list[str] | None = None) -> int:
         header_timeout = 2.0
         with Server(model, tmp / "store", header_timeout_s=header_timeout, body_timeout_s=10,
                     inference_queue=1, max_render_width=4096, max_render_pixels=4096 * 2048) as srv:
-            res["bad_inputs"] = bad_inputs(srv, imgs)
-            res["schemathesis"] = fuzz(srv, imgs, args.fuzz_examples, args.fuzz_seconds)
-            res["overload"] = overload(srv, imgs, 8)
-            res["idle_connections"] = idle_connections(srv, args.idle, 5, header_timeout)
-        res["kill_9_during_writes"] = kill_during_writes(model, tmp / "store-kill", imgs, args.kill_rounds)
-        res["store_full_and_read_only"] = full_and_read_only_store(model, imgs, 8)
-    kill = res["kill_9_during_writes"]
-    summary = {"server_errors_5xx": _server_errors(res), "lost_scenes": len(kill["lost"]),
+            if "bad_inputs" in sections:
+                res["bad_inputs"] = bad_inputs(srv, imgs)
+            if "protocol" in sections:
+                res["protocol"] = protocol(srv)
+            if "schemathesis" in sections:
+                res["schemathesis"] = fuzz(srv, imgs, args.fuzz_examples, args.fuzz_seconds)
+            if "overload" in sections:
+                res["overload"] = overload(srv, imgs, 8)
+            if "idle_connections" in sections:
+                res["idle_connections"] = idle_connections(srv, args.idle, 5, header_timeout)
+            if "chunk_bombs" in sections:
+                a, b, ca, cb = imgs
+                res["chunk_bombs"] = chunk_bombs(srv, lambda c, x, y: _post(c, x, y, _poses(ca, cb)), a, b, 3,
+                                                 args.bomb_chunks)
+        if "slow_bodies" in sections:  # the default slots and body rate (64 uploads, 1 kB/s over 10 s)
+            with Server(model, tmp / "store-slow") as srv, httpx.Client(base_url=srv.url, timeout=120) as c:
+                a, b, ca, cb = imgs
+                sid = _post(c, a, b, _poses(ca, cb)).json()["id"]
+                res["slow_bodies"] = slow_bodies(srv, sid, args.slow_bodies, args.slow_seconds)
+        if "kill_9_during_writes" in sections:
+            res["kill_9_during_writes"] = kill_during_writes(model, tmp / "store-kill", imgs, args.kill_rounds)
+        if "store_full_and_read_only" in sections:
+            res["store_full_and_read_only"] = full_and_read_only_store(model, imgs, 8)
+    kill = res.get("kill_9_during_writes", {"lost": [], "corrupt": []})
+    summary = {"sections": sorted(sections), "server_errors_5xx": _server_errors(res), "lost_scenes": len(kill["lost"]),
                "corrupt_scenes": len(kill["corrupt"]),
-               "health_non_200_under_idle_load": res["idle_connections"]["health_non_200"],
+               "health_non_200_under_idle_load": res.get("idle_connections", {}).get("health_non_200", 0),
+               "render_info_meta_not_200_under_slow_bodies": res.get("slow_bodies", {}).get("render_info_meta_not_200",
+                                                                                            0),
                "seconds": round(time.monotonic() - t_start, 1)}
     res["summary"] = summary
     text = json.dumps(res, indent=1, default=str)
@@ -406,13 +446,17 @@ def main(argv: list[str] | None = None) -> int:
     print("\n| check | result |\n|---|---|")
     for k, v in summary.items():
         print(f"| {k} | {v} |")
-    for name, case in res["bad_inputs"].items():
+    for name, case in res.get("bad_inputs", {}).items():
         print(f"| bad input `{name}` | {case['status']} |")
     if args.json:
         args.json.write_text(text + "\n")
     bad = summary["server_errors_5xx"] or summary["lost_scenes"] or summary["corrupt_scenes"] \
-        or summary["health_non_200_under_idle_load"]
+        or summary["health_non_200_under_idle_load"] or summary["render_info_meta_not_200_under_slow_bodies"]
     return 1 if bad else 0
+
+
+SECTIONS = ("bad_inputs", "protocol", "schemathesis", "overload", "idle_connections", "chunk_bombs", "slow_bodies",
+            "kill_9_during_writes", "store_full_and_read_only")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 # Sourced by scripts/serve.sh and scripts/test.sh (from the repository root): installs the web viewer's
-# pinned npm packages (package.json / package-lock.json -> node_modules, served by the service at
-# /v1/scenes/{id}/viewer, no CDN) and, for the tests, Debian's chromium. Uses apt-get (as root, or
+# and the API docs' pinned npm packages (package.json / package-lock.json -> node_modules, served by the
+# service at /v1/scenes/{id}/viewer and /docs, no CDN) and, for the tests, Debian's chromium. Uses apt-get (as root, or
 # through sudo) for what is missing.
 
 _as_root() {

@@ -21,7 +21,7 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
 from . import __version__
-from .access import AccessGuard
+from .access import AccessGuard, Admission
 from .config import Settings, get_settings
 from .errors import install_error_handlers
 from .job_state import JobFiles, identity
@@ -29,7 +29,7 @@ from .jobs import REFINE_QUEUE, JobRegistry
 from .limits import BodySizeLimit, WorkGate
 from .metrics import RequestMetrics, ServiceMetrics
 from .model_files import ModelUnavailable
-from .routes import edits, health, jobs, scenes, viewer
+from .routes import docs, edits, health, jobs, scenes, viewer
 from .runtime import ModelRuntime
 from .store import SceneStore
 
@@ -39,6 +39,27 @@ DESCRIPTION = """Two 360-degree ERP panoramas + their poses in, 3D Gaussians out
 the CPU); novel views rendered by a numpy rasterizer. Poses are camera-to-world, OpenCV axes
 (x right, y down, z forward) unless `convention` says `opengl`. Errors are JSON
 `{"error": {"code", "message"}}`."""
+
+
+class HeadAsGet:
+    """ASGI middleware: a ``HEAD`` request runs as the ``GET`` of its path and the body is dropped (RFC 9110
+    section 9.3.2: the same status and headers as the GET, ``Content-Length`` included). FastAPI registers GET
+    routes without HEAD; here every GET route, the probes included, answers HEAD."""
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http" or scope.get("method") != "HEAD":
+            await self.app(scope, receive, send)
+            return
+
+        async def no_body(message):
+            if message["type"] == "http.response.body":
+                message = {**message, "body": b""}
+            await send(message)
+
+        await self.app({**scope, "method": "GET"}, receive, no_body)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -91,21 +112,27 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 tg.cancel_scope.cancel()
         state.runtime.encoder = None
 
-    app = FastAPI(title="omnisplat", version=__version__, description=DESCRIPTION, lifespan=lifespan)
+    # /docs with its files served locally (routes/docs.py); no ReDoc, whose page loads from CDNs
+    app = FastAPI(title="omnisplat", version=__version__, description=DESCRIPTION, lifespan=lifespan,
+                  docs_url=None, redoc_url=None)
     app.state.settings = settings
     app.state.metrics = metrics
+    app.state.admission = Admission(settings.max_requests, settings.max_body_readers)  # read by /readyz
     install_error_handlers(app)
     app.include_router(health.router)
     app.include_router(scenes.router)
     app.include_router(jobs.router)
     app.include_router(viewer.router)
     app.include_router(edits.router)
+    app.include_router(docs.router)
     # Last added = outermost: metrics see every request, including refusals by the guard and body limit.
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["GET", "POST", "DELETE"],
                            allow_headers=["Authorization", "X-API-Key", "Content-Type"])
+    app.add_middleware(HeadAsGet)  # inside the guard and the metrics, which see the HEAD
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes, on_reject=metrics.body_rejected.inc,
-                       timeout_s=settings.body_timeout_s)
+                       timeout_s=settings.body_timeout_s, min_rate=settings.body_min_rate,
+                       rate_window_s=settings.body_rate_window_s)
     app.add_middleware(AccessGuard, settings=settings, state=app.state)
     app.add_middleware(RequestMetrics, metrics=metrics)
     return app

@@ -32,8 +32,17 @@ class Settings(BaseSettings):
     header_timeout_s: float = Field(10.0, gt=0, description="a connection must send complete request headers "
                                                             "within this many seconds (idle/slow clients closed)")
     body_timeout_s: float = Field(120.0, gt=0, description="a request body must arrive within this many seconds (408)")
-    max_requests: int = Field(256, ge=1, description="requests in progress at once; more get 503 JSON + "
-                                                     "Retry-After (health and readiness exempt)")
+    body_min_rate: float = Field(1024.0, ge=0, description="bytes per second a request body must arrive at, "
+                                 "measured over each body_rate_window_s while the service waits for it (408 "
+                                 "below; a body that ends sooner only needs its remaining bytes); 0 = off")
+    body_rate_window_s: float = Field(10.0, gt=0, description="window of the minimum body rate, seconds")
+    max_header_bytes: int = Field(64 * 1024, ge=4096, description="request line + headers; more get 431")
+    max_requests: int = Field(256, ge=1, description="requests being worked on at once (their body, if any, "
+                                                     "received); more get 503 JSON + Retry-After (health and "
+                                                     "readiness exempt)")
+    max_body_readers: int = Field(64, ge=1, description="requests whose body is still arriving, counted apart "
+                                                        "from max_requests so that slow uploads cannot hold the "
+                                                        "slots of renders and reads; more get 503 JSON")
 
     # -- access ---------------------------------------------------------------
     api_key: str | None = Field(None, description="if set, every /v1 request needs 'Authorization: Bearer KEY' "

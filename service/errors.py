@@ -194,7 +194,9 @@ def install_error_handlers(app: FastAPI) -> None:
         if mapped is not None:
             return error_response(mapped.status, mapped.code, mapped.message, mapped.headers)
         log.exception("unhandled error", exc_info=exc)
-        return error_response(500, "internal_error", "internal error; see the service log")
+        # Starlette re-raises after this answer and the server then closes the connection: say so, so that
+        # a pooled or pipelining client does not send its next request into a closing connection
+        return error_response(500, "internal_error", "internal error; see the service log", {"Connection": "close"})
 
 
 def translate(exc: Exception) -> Exception:

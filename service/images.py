@@ -3,12 +3,28 @@
 Checks, in order, so that nothing expensive happens before the cheap checks pass:
 the header (format, size, 2:1 aspect, minimum height, pixel cap against decompression
 bombs), then the full decode (corrupt or truncated data).
+
+A PNG's chunk list is walked first (:func:`scan_png`, a loop over chunk headers that stops at
+the first limit passed, no decoding): Pillow keeps every ancillary chunk before the image data
+in memory, so a file of millions of empty private chunks would cost seconds and hundreds of
+MB before any pixel check. At most :data:`MAX_PNG_ANCILLARY_CHUNKS` ancillary chunks of
+:data:`MAX_PNG_ANCILLARY_BYTES` in all, and :data:`MAX_PNG_CHUNKS` chunks in all plus one per
+:data:`PNG_BYTES_PER_EXTRA_CHUNK` bytes of file (image data split into small chunks) are
+accepted (413 beyond); a JPEG's marker segments likewise (:func:`scan_jpeg`). Before the full
+decode, the PNG's compressed image data is inflated
+and counted (not kept): Pillow stops without an error when the compressed stream ends early,
+leaving the missing rows black, so a PNG whose data holds fewer rows than its header
+declares is refused (400).
 """
 
 from __future__ import annotations
 
 import io
+import math
+import re
+import struct
 import warnings
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,9 +53,156 @@ def _too_many_pixels(field: str, w: int, h: int, max_pixels: int) -> PayloadTooL
                            code="image_too_many_pixels")
 
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: ancillary (lower-case first letter) chunks a PNG may hold, and their payload bytes in all
+MAX_PNG_ANCILLARY_CHUNKS = 1024
+MAX_PNG_ANCILLARY_BYTES = 16 * 1024 * 1024
+#: chunks of any kind a PNG may hold, plus one per this many bytes of file
+MAX_PNG_CHUNKS = 4096
+PNG_BYTES_PER_EXTRA_CHUNK = 1024
+#: channels per PNG colour type (greyscale, RGB, palette, grey + alpha, RGBA)
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+
+
+@dataclass(frozen=True)
+class PngLayout:
+    """What :func:`scan_png` found: the IHDR fields and where the compressed image data lies."""
+
+    width: int
+    height: int
+    bit_depth: int
+    colour_type: int
+    interlaced: bool
+    idat: tuple[tuple[int, int], ...]  # (offset, length) of each IDAT payload, in file order
+
+    def raw_bytes(self) -> int | None:
+        """Bytes of filtered scanlines the header promises (None: an IHDR this check does not know)."""
+        channels = _PNG_CHANNELS.get(self.colour_type)
+        if channels is None or self.bit_depth not in (1, 2, 4, 8, 16):
+            return None
+        bits = channels * self.bit_depth
+        passes = _ADAM7 if self.interlaced else ((0, 0, 1, 1),)
+        total = 0
+        for x0, y0, dx, dy in passes:
+            w, h = -(-(self.width - x0) // dx), -(-(self.height - y0) // dy)
+            if w > 0 and h > 0:
+                total += h * (1 + -(-(w * bits) // 8))
+        return total
+
+
+def scan_png(data: bytes, field: str) -> PngLayout | None:
+    """Walk a PNG's chunk list (headers only); 413 past the chunk limits. None: not a PNG, or
+    one this walk cannot follow (Pillow then reports it)."""
+    if not data.startswith(PNG_SIGNATURE):
+        return None
+    max_chunks = MAX_PNG_CHUNKS + len(data) // PNG_BYTES_PER_EXTRA_CHUNK
+    pos, chunks, ancillary, ancillary_bytes = len(PNG_SIGNATURE), 0, 0, 0
+    ihdr, idat = None, []
+    while pos + 8 <= len(data):
+        length, kind = struct.unpack_from(">I4s", data, pos)
+        start = pos + 8
+        chunks += 1
+        if chunks > max_chunks:
+            raise PayloadTooLarge(f"{field}: the PNG holds more than {max_chunks} chunks", code="image_too_many_chunks")
+        if kind[:1].islower():
+            ancillary += 1
+            ancillary_bytes += length
+            if ancillary > MAX_PNG_ANCILLARY_CHUNKS or ancillary_bytes > MAX_PNG_ANCILLARY_BYTES:
+                raise PayloadTooLarge(f"{field}: the PNG holds more than {MAX_PNG_ANCILLARY_CHUNKS} ancillary chunks "
+                                      f"or {MAX_PNG_ANCILLARY_BYTES} bytes of them (metadata, not pixels)",
+                                      code="image_too_many_chunks")
+        elif kind == b"IHDR" and length == 13 and start + 13 <= len(data):
+            ihdr = struct.unpack_from(">IIBBBBB", data, start)
+        elif kind == b"IDAT":
+            idat.append((start, min(length, max(0, len(data) - start))))
+        elif kind == b"IEND":
+            break
+        pos = start + length + 4  # payload and CRC
+    if ihdr is None:
+        return None
+    width, height, depth, colour, _, _, interlace = ihdr
+    return PngLayout(width, height, depth, colour, interlace == 1, tuple(idat))
+
+
+def check_png_data(data: bytes, layout: PngLayout, field: str) -> None:
+    """400 when the compressed image data inflates to fewer scanline bytes than the header declares."""
+    need = layout.raw_bytes()
+    if need is None:
+        return
+    inflate = zlib.decompressobj()
+    got = 0
+    view = memoryview(data)
+    try:
+        for offset, length in layout.idat:
+            pending = view[offset:offset + length]
+            while pending and got < need:
+                got += len(inflate.decompress(pending, 1 << 20))  # counted, not kept
+                pending = inflate.unconsumed_tail
+            if got >= need or inflate.eof:
+                break
+    except zlib.error:
+        raise InvalidImage(f"{field}: the PNG's image data is corrupt (it does not inflate)") from None
+    if got < need:
+        per_row = need / max(layout.height, 1)
+        raise InvalidImage(f"{field}: the PNG's image data is truncated: it holds about {math.floor(got / per_row)} of "
+                           f"the {layout.height} rows its header declares")
+
+
+#: segments a JPEG may hold before its image data, and bytes of padding or junk between them
+MAX_JPEG_SEGMENTS = 4096
+MAX_JPEG_GAP_BYTES = 1024 * 1024
+_NOT_FF = re.compile(rb"[^\xff]")
+
+
+def scan_jpeg(data: bytes, field: str) -> None:
+    """Walk a JPEG's marker segments up to the start of scan (headers only); 413 past the limits.
+
+    Pillow keeps every APPn/COM segment in memory and steps through padding byte by byte, so a
+    file of millions of empty APP segments costs as much as the PNG chunk bomb. The APPn/COM
+    segments count against the PNG's ancillary limits; at most :data:`MAX_JPEG_SEGMENTS`
+    segments and :data:`MAX_JPEG_GAP_BYTES` of fill or junk bytes between them are accepted."""
+    if not data.startswith(b"\xff\xd8"):
+        return
+    pos, segments, meta, meta_bytes, gap = 2, 0, 0, 0, 0
+    while pos + 4 <= len(data):
+        horizon = min(len(data), pos + MAX_JPEG_GAP_BYTES - gap + 2)  # no search past the limit
+        if data[pos] != 0xFF:  # junk up to the next marker
+            nxt = data.find(b"\xff", pos, horizon)
+            nxt = horizon if nxt < 0 else nxt
+            gap, pos = gap + nxt - pos, nxt
+        else:
+            found = _NOT_FF.search(data, pos + 1, horizon)  # fill bytes: 0xFF repeated before a marker
+            end = found.start() if found else horizon
+            gap, pos = gap + end - pos - 1, end - 1
+        if gap > MAX_JPEG_GAP_BYTES:
+            raise PayloadTooLarge(f"{field}: the JPEG holds more than {MAX_JPEG_GAP_BYTES} bytes of padding between "
+                                  "its segments", code="image_too_many_chunks")
+        if pos + 4 > len(data):
+            return
+        marker = data[pos + 1]
+        if marker in (0xDA, 0xD9):  # start of scan (or end): the headers are done
+            return
+        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
+            pos += 2
+            continue
+        length = (data[pos + 2] << 8) | data[pos + 3]
+        segments += 1
+        if 0xE0 <= marker <= 0xEF or marker == 0xFE:
+            meta += 1
+            meta_bytes += length
+        if segments > MAX_JPEG_SEGMENTS or meta > MAX_PNG_ANCILLARY_CHUNKS or meta_bytes > MAX_PNG_ANCILLARY_BYTES:
+            raise PayloadTooLarge(f"{field}: the JPEG holds more than {MAX_PNG_ANCILLARY_CHUNKS} metadata segments or "
+                                  f"{MAX_PNG_ANCILLARY_BYTES} bytes of them, or more than {MAX_JPEG_SEGMENTS} segments",
+                                  code="image_too_many_chunks")
+        pos += 2 + length
+
+
 def _open(data: bytes, field: str, max_pixels: int) -> Image.Image:
     if not data:
         raise InvalidImage(f"{field}: the file is empty")
+    scan_png(data, field)  # before Pillow reads the chunks
+    scan_jpeg(data, field)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
@@ -53,7 +216,12 @@ def _open(data: bytes, field: str, max_pixels: int) -> Image.Image:
             f"{field}: not a readable image (accepted formats: {', '.join(ACCEPTED_FORMATS)})"
         ) from None
     except Exception as exc:  # noqa: BLE001 - any decoder failure is the file's fault
-        raise InvalidImage(f"{field}: unreadable image header ({exc})") from None
+        raise InvalidImage(f"{field}: unreadable image header ({_fault(exc)})") from None
+
+
+def _fault(exc: Exception) -> str:
+    """What a decoder's exception says about the file, in the user's terms (no library internals)."""
+    return "the file is truncated" if "truncated" in str(exc).lower() else "the file is damaged or not what it claims to be"
 
 
 def check_header(data: bytes, field: str, *, max_pixels: int, min_height: int) -> ImageHeader:
@@ -82,6 +250,9 @@ def check_header(data: bytes, field: str, *, max_pixels: int, min_height: int) -
 def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> tuple[np.ndarray, ImageHeader]:
     """Fully decode to uint8 RGB (H, W, 3) after :func:`check_header`; corrupt data -> 400."""
     header = check_header(data, field, max_pixels=max_pixels, min_height=min_height)
+    layout = scan_png(data, field)
+    if layout is not None:
+        check_png_data(data, layout, field)
     im = _open(data, field, max_pixels)
     try:
         im.load()  # raises on truncated or corrupt data (LOAD_TRUNCATED_IMAGES stays False)
@@ -89,7 +260,7 @@ def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> 
     except (PayloadTooLarge, InvalidImage):
         raise
     except Exception as exc:  # noqa: BLE001 - corrupt, truncated, unsupported mode...
-        raise InvalidImage(f"{field}: the image data is corrupt or truncated ({exc})") from None
+        raise InvalidImage(f"{field}: the image data is corrupt or truncated ({_fault(exc)})") from None
     finally:
         im.close()
     if arr.shape != (header.height, header.width, 3):

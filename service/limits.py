@@ -5,6 +5,10 @@
   refused the moment it passes the cap (whatever the app answered is replaced by the 413).
   Before answering, the rest of the body is discarded (bounded in bytes and seconds, never
   buffered) so the client reads the 413 rather than a connection reset.
+* The same middleware follows a ``multipart/form-data`` body as it streams (:class:`MultipartFraming`,
+  nothing kept): a body that ends without its closing boundary is refused (400), since the
+  form parser would silently drop its last part, and so is a field sent twice (422 naming it),
+  where the parser would silently keep one of them.
 * :class:`WorkGate` runs blocking work in worker threads through its own anyio
   ``CapacityLimiter`` (not Starlette's shared pool), with at most ``concurrency`` jobs
   running and ``queue`` waiting; one more is refused at once with 503 + Retry-After.
@@ -18,6 +22,7 @@ from typing import Any, Callable, TypeVar
 
 import anyio
 import anyio.to_thread
+from python_multipart.multipart import MultipartParseError, MultipartParser, MultipartState, parse_options_header
 
 from .errors import Busy, error_body, translate
 
@@ -54,16 +59,89 @@ class _Refused(Exception):
         self.status, self.code, self.message = status, code, message
 
 
+class MultipartFraming:
+    """Follows a multipart/form-data body chunk by chunk: the field names seen and whether the
+    closing boundary arrived. ``broken`` when the parser gave up (the form parser reports that)."""
+
+    def __init__(self, boundary: bytes) -> None:
+        self.boundary = boundary
+        self.names: set[bytes] = set()
+        self.duplicate: bytes | None = None
+        self.broken = False
+        self._field, self._value = bytearray(), bytearray()
+        self._name: bytes | None = None
+
+        def field(data, start, end):
+            self._field += data[start:end]
+
+        def value(data, start, end):
+            self._value += data[start:end]
+
+        def header_end():
+            if bytes(self._field).strip().lower() == b"content-disposition":
+                _, params = parse_options_header(bytes(self._value))
+                self._name = params.get(b"name")
+            self._field, self._value = bytearray(), bytearray()
+
+        def headers_finished():
+            if self._name is not None:
+                if self._name in self.names and self.duplicate is None:
+                    self.duplicate = self._name
+                self.names.add(self._name)
+            self._name = None
+
+        self.parser = MultipartParser(boundary, {"on_header_field": field, "on_header_value": value,
+                                                 "on_header_end": header_end, "on_headers_finished": headers_finished})
+
+    @classmethod
+    def for_request(cls, scope) -> "MultipartFraming | None":
+        """The tracker of a multipart/form-data request with a boundary, else None."""
+        for name, value in scope.get("headers", ()):
+            if name == b"content-type":
+                kind, params = parse_options_header(value)
+                if kind == b"multipart/form-data" and params.get(b"boundary"):
+                    return cls(params[b"boundary"])
+        return None
+
+    def feed(self, chunk: bytes) -> None:
+        if chunk and not self.broken:
+            try:
+                self.parser.write(chunk)
+            except MultipartParseError:
+                self.broken = True
+
+    @property
+    def complete(self) -> bool:
+        return self.broken or self.parser.state == MultipartState.END
+
+    def duplicate_refusal(self) -> "_Refused":
+        name = self.duplicate.decode("utf-8", "replace")[:100] if self.duplicate else "?"
+        return _Refused(422, "duplicate_field", f"form field {name!r} is sent more than once; send each field once")
+
+    def incomplete_refusal(self) -> "_Refused":
+        return _Refused(400, "incomplete_multipart", "the multipart body ends without its closing boundary "
+                        f"('--{self.boundary.decode('latin-1')[:70]}--'): the upload is incomplete")
+
+
 class BodySizeLimit:
-    """ASGI middleware: 413 JSON error for request bodies over ``max_bytes``, 408 for bodies
-    that take longer than ``timeout_s`` to arrive (a client trickling its upload)."""
+    """ASGI middleware: 413 JSON error for request bodies over ``max_bytes``; 408 for bodies that
+    take longer than ``timeout_s`` to arrive, or that arrive slower than ``min_rate`` bytes/s.
+
+    The rate is measured in windows of ``rate_window_s`` seconds of *waiting* for the body (time
+    the app spends between reads does not count against the client): each window must bring
+    ``min_rate * rate_window_s`` bytes, or the rest of a body whose ``Content-Length`` says it
+    is shorter. A client trickling its upload is cut off after one window, not after the whole
+    ``timeout_s``, so slow clients cannot hold the upload slots of :class:`service.access.AccessGuard`.
+    """
 
     def __init__(self, app, max_bytes: int, on_reject: Callable[[], None] | None = None,
-                 timeout_s: float = 120.0) -> None:
+                 timeout_s: float = 120.0, min_rate: float = 0.0, rate_window_s: float = 10.0) -> None:
         self.app = app
         self.max_bytes = max_bytes
         self.on_reject = on_reject
         self.timeout_s = timeout_s
+        self.min_rate = min_rate
+        self.rate_window_s = rate_window_s
 
     async def _drain(self, receive) -> None:
         """Read and discard what the client is still sending, at most ``DRAIN_LIMITS`` limits' worth
@@ -95,6 +173,7 @@ class BodySizeLimit:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        declared: int | None = None
         for name, value in scope.get("headers", ()):
             if name == b"content-length":
                 try:
@@ -109,24 +188,67 @@ class BodySizeLimit:
         refused: _Refused | None = None
         started = False
         body_done = False
+        framing = MultipartFraming.for_request(scope)
         deadline = anyio.current_time() + self.timeout_s
+        window = self.rate_window_s
+        window_waited = 0.0  # seconds spent waiting for the body in the current rate window
+        window_bytes = 0  # received in it
+
+        def too_slow() -> _Refused:
+            return _Refused(408, "request_timeout", f"the request body arrived slower than {self.min_rate:g} bytes/s "
+                                                    f"(measured over {window:g} s)")
+
+        def window_ok() -> bool:
+            need = self.min_rate * window
+            if declared is not None and declared >= 0:
+                need = min(need, declared - (received - window_bytes))  # the rest of the body, at the window's start
+            return window_bytes >= need
 
         async def counting_receive():
-            nonlocal received, refused, body_done
+            nonlocal received, refused, body_done, window_waited, window_bytes
             if body_done:  # after the body: disconnect polling, no deadline
                 return await receive()
-            try:
-                with anyio.fail_after(max(0.0, deadline - anyio.current_time())):
-                    message = await receive()
-            except TimeoutError:
-                refused = _Refused(408, "request_timeout", f"the request body did not arrive within {self.timeout_s:g} s")
-                raise refused from None
+            while True:
+                now = anyio.current_time()
+                wait = deadline - now
+                if self.min_rate > 0:
+                    wait = min(wait, window - window_waited)
+                try:
+                    with anyio.fail_after(max(0.0, wait)):
+                        message = await receive()
+                    window_waited += anyio.current_time() - now
+                    break
+                except TimeoutError:
+                    window_waited += anyio.current_time() - now
+                    if anyio.current_time() >= deadline:
+                        refused = _Refused(408, "request_timeout",
+                                           f"the request body did not arrive within {self.timeout_s:g} s")
+                        raise refused from None
+                    if not window_ok():
+                        refused = too_slow()
+                        raise refused from None
+                    window_waited, window_bytes = 0.0, 0  # this window brought enough: the next one
             if message["type"] == "http.request":
-                received += len(message.get("body", b""))
+                size = len(message.get("body", b""))
+                received += size
+                window_bytes += size
                 body_done = not message.get("more_body", False)
                 if received > self.max_bytes:
                     refused = self._too_large()
                     raise refused
+                if framing is not None:
+                    framing.feed(message.get("body", b""))
+                    if framing.duplicate is not None:
+                        refused = framing.duplicate_refusal()
+                        raise refused
+                    if body_done and not framing.complete:
+                        refused = framing.incomplete_refusal()
+                        raise refused
+                if not body_done and self.min_rate > 0 and window_waited >= window:
+                    if not window_ok():
+                        refused = too_slow()
+                        raise refused
+                    window_waited, window_bytes = 0.0, 0
             return message
 
         async def guarded_send(message):
@@ -145,7 +267,7 @@ class BodySizeLimit:
             if refused is None:
                 raise
         if refused is not None and not started:
-            if refused.status == 413:
+            if refused.status != 408 and not body_done:  # the client still sends: read it, then answer
                 await self._drain(receive)
             await self._reject(send, refused)
 

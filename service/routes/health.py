@@ -20,13 +20,17 @@ async def healthz() -> Health:
     return Health(status="ok")
 
 
-@router.get("/readyz", response_model=Ready, summary="Readiness: model loaded and warmed up",
-            responses={503: {"model": Ready, "description": "not ready yet (or the model failed to load)"}})
+@router.get("/readyz", response_model=Ready, summary="Readiness: model loaded and warmed up, work can be taken",
+            responses={503: {"model": Ready, "description": "not ready: the model is loading (or failed to load), "
+                                                            "the store cannot take a scene, or every request or "
+                                                            "upload slot is in use; `error` says which"}})
 @router.get("/v2/health/ready", response_model=Ready, include_in_schema=False)
-async def readyz(runtime: RuntimeDep, settings: SettingsDep, store: StoreDep) -> Response:
+async def readyz(request: Request, runtime: RuntimeDep, settings: SettingsDep, store: StoreDep) -> Response:
     problem = None
-    if runtime.ready:  # and the store can take a new scene
-        problem = await anyio.to_thread.run_sync(store.write_problem, settings.min_free_store_bytes)
+    if runtime.ready:  # and the request slots are not all taken, and the store can take a new scene
+        problem = request.app.state.admission.problem()
+        if problem is None:
+            problem = await anyio.to_thread.run_sync(store.write_problem, settings.min_free_store_bytes)
     body = Ready(ready=runtime.ready and problem is None, error=runtime.error or problem)
     if body.ready:
         return JSONResponse(body.model_dump())

@@ -7,27 +7,35 @@ page files in ``service/viewer/`` are served. Without them the page answers 503 
 shape saying how to install them; the rest of the API does not depend on them.
 
 The page and its assets are sent with cross-origin isolation headers (COOP/COEP), which the
-viewer's sort worker needs for SharedArrayBuffer.
+viewer's sort worker needs for SharedArrayBuffer, and ``Referrer-Policy: no-referrer``.
+
+A browser cannot send the API key as a header, so the page takes it once as ``?key=``: the
+answer is a 303 to the same URL without it, setting a same-site, HTTP-only cookie that the
+page's later requests (the redirect's target, assets, PLY) carry. The key thus leaves the
+address bar and history at once; the access log shows it redacted (:mod:`service.server`).
 """
 
 from __future__ import annotations
 
 import html
 import json
+import logging
 import os
 from pathlib import Path
 from typing import Annotated
+from urllib.parse import urlencode
 
 import anyio.to_thread
-from fastapi import APIRouter, Query, Response
-from fastapi.responses import FileResponse, HTMLResponse
+from fastapi import APIRouter, Query, Request, Response
+from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 
-from ..access import KEY_COOKIE
+from ..access import KEY_COOKIE, DuplicateKey, query_key
 from ..deps import SceneId, SettingsDep, StoreDep
-from ..errors import NotFound, ServiceError
+from ..errors import BadInput, NotFound, ServiceError
 from ..schemas import error_responses
 
 router = APIRouter(tags=["viewer"])
+log = logging.getLogger("omnisplat.service")
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 PAGE_DIR = Path(__file__).resolve().parents[1] / "viewer"
@@ -45,6 +53,7 @@ ISOLATION_HEADERS = {
     "Cross-Origin-Opener-Policy": "same-origin",
     "Cross-Origin-Embedder-Policy": "require-corp",
     "Cross-Origin-Resource-Policy": "same-origin",
+    "Referrer-Policy": "no-referrer",
 }
 _MEDIA = {".js": "text/javascript; charset=utf-8", ".css": "text/css; charset=utf-8"}
 INSTALL_HINT = ("the web viewer's npm packages are not installed: run `npm ci` in the repository root "
@@ -65,7 +74,8 @@ def missing_assets() -> list[str]:
 
 def _viewer_unavailable() -> ServiceError:
     missing = missing_assets()
-    return ServiceError(f"{INSTALL_HINT} (missing under {node_modules_dir()}: {', '.join(missing)})",
+    log.warning("web viewer unavailable: missing under %s: %s", node_modules_dir(), ", ".join(missing))
+    return ServiceError(f"{INSTALL_HINT} (missing npm files: {', '.join(missing)})",  # no server paths
                         code="viewer_unavailable", status=503)
 
 
@@ -96,22 +106,33 @@ def _page(scene_id: str, meta: dict) -> str:
                 "OpenCV), `fov_deg` (horizontal), `width`, `height` (canvas pixels). 503 `viewer_unavailable` "
                 "when the npm packages are not installed (`npm ci`).",
     responses={200: {"content": {"text/html": {}}, "description": "the viewer page"},
-               **error_responses(404, 422, 503)},
+               303: {"description": "with `key`: this URL without it, and a cookie holding the key"},
+               **error_responses(400, 404, 422, 503)},
 )
-async def viewer_page(scene_id: SceneId, store: StoreDep, settings: SettingsDep,
+async def viewer_page(request: Request, scene_id: SceneId, store: StoreDep, settings: SettingsDep,
                       key: Annotated[str | None, Query(description="the API key, when the service has one: a "
-                                                                     "browser cannot send a header, so the page "
-                                                                     "keeps it in a same-site cookie")] = None,
-                      ) -> HTMLResponse:
+                                                                     "browser cannot send a header, so the answer "
+                                                                     "is a 303 to this URL without it that sets a "
+                                                                     "same-site cookie")] = None,
+                      ) -> Response:
+    try:
+        key = query_key(request.scope).decode("utf-8", "replace") if key is not None else None
+    except DuplicateKey as exc:
+        raise BadInput(str(exc), code="duplicate_query_parameter", status=400) from None
     if not store.exists(scene_id):
         raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
+    if key is not None:  # the guard already checked it: into the cookie, out of the URL
+        rest = [(k, v) for k, v in request.query_params.multi_items() if k != "key"]
+        target = request.url.path + (f"?{urlencode(rest)}" if rest else "")
+        moved = RedirectResponse(target, status_code=303, headers={"Referrer-Policy": "no-referrer",
+                                                                   "Cache-Control": "no-store"})
+        if settings.api_key:
+            moved.set_cookie(KEY_COOKIE, key, httponly=True, samesite="strict", path="/")
+        return moved
     if missing_assets():
         raise _viewer_unavailable()
     meta = await anyio.to_thread.run_sync(store.meta, scene_id)
-    page = HTMLResponse(_page(scene_id, meta), headers={**ISOLATION_HEADERS, "Cache-Control": "no-cache"})
-    if key and settings.api_key:  # the guard already checked it
-        page.set_cookie(KEY_COOKIE, key, httponly=True, samesite="strict", path="/")
-    return page
+    return HTMLResponse(_page(scene_id, meta), headers={**ISOLATION_HEADERS, "Cache-Control": "no-cache"})
 
 
 @router.get("/viewer-assets/{name}", include_in_schema=False)

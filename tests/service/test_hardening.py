@@ -117,17 +117,30 @@ def test_trickled_body_gets_408_json(guarded):
 
 
 def test_overload_is_json_503_with_retry_after_and_health_exempt(guarded):
+    admission = guarded.app.state.admission
+    admission.working += admission.max_requests  # every work slot taken
+    try:
+        with guarded.client() as c:
+            r = c.get("/v1/info")
+            assert r.status_code == 503 and r.headers["retry-after"] and r.json()["error"]["code"] == "busy"
+            assert c.get("/healthz").status_code == 200
+            ready = c.get("/readyz")
+            assert ready.status_code == 503 and "request slots" in ready.json()["error"]
+    finally:
+        admission.working -= admission.max_requests
+
+
+def test_slow_uploads_do_not_take_work_slots(guarded):
     socks = []
     try:
-        for _ in range(3):  # three requests in progress (bodies still arriving): the limit
+        for _ in range(3):  # as many uploads arriving as there are work slots (max_requests=3)
             s = _connect(guarded.url)
             s.sendall(b"POST /v1/scenes HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: multipart/form-data; "
                       b"boundary=x\r\nContent-Length: 1000\r\n\r\n--x\r\n")
             socks.append(s)
         time.sleep(0.3)
         with guarded.client() as c:
-            r = c.get("/v1/info")
-            assert r.status_code == 503 and r.headers["retry-after"] and r.json()["error"]["code"] == "busy"
+            assert c.get("/v1/info").status_code == 200
             assert c.get("/healthz").status_code == 200 and c.get("/readyz").status_code == 200
     finally:
         for s in socks:
@@ -328,11 +341,18 @@ def test_viewer_page_takes_the_key_once_and_keeps_it_in_a_same_site_cookie(model
         del c.headers["Authorization"]
         assert c.get("/v1/info", params={"key": "s3cret"}).status_code == 401  # the query key opens the page only
         assert c.get(f"/v1/scenes/{sid}/viewer", params={"key": "wrong"}).status_code == 401
-        page = c.get(f"/v1/scenes/{sid}/viewer", params={"key": "s3cret"})
-        assert page.status_code == 200, page.text
-        cookie = page.headers["set-cookie"].lower()
+        moved = c.get(f"/v1/scenes/{sid}/viewer", params={"key": "s3cret", "fov_deg": "70"})
+        assert moved.status_code == 303, moved.text  # the key leaves the URL at once
+        assert moved.headers["location"] == f"/v1/scenes/{sid}/viewer?fov_deg=70"
+        assert moved.headers["referrer-policy"] == "no-referrer"
+        cookie = moved.headers["set-cookie"].lower()
         assert "omnisplat_key=s3cret" in cookie and "httponly" in cookie and "samesite=strict" in cookie
+        page = c.get(moved.headers["location"])  # the browser follows, with the cookie
+        assert page.status_code == 200 and page.headers["referrer-policy"] == "no-referrer", page.text
         assert c.get(f"/v1/scenes/{sid}/gaussians.ply").status_code == 200  # the browser's next requests
+        for keys in (["s3cret", "other"], ["other", "s3cret"], ["s3cret", "s3cret"]):  # one rule: refused
+            twice = c.get(f"/v1/scenes/{sid}/viewer", params=[("key", k) for k in keys])
+            assert twice.status_code == 400 and twice.json()["error"]["code"] == "duplicate_query_parameter"
 
 
 # -- D10: one error shape ------------------------------------------------------------------------------
