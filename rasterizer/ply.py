@@ -65,7 +65,7 @@ def _table(g: Gaussians, drop_invalid: bool) -> np.ndarray:
     col = 9
     if k > 1:
         # (N, K-1, 3) -> channel-major (N, 3, K-1) -> (N, 3(K-1))
-        table[:, col:col + 3 * (k - 1)] = np.transpose(g.sh[:, 1:, :], (0, 2, 1)).reshape(n, -1)
+        table[:, col:col + 3 * (k - 1)] = np.transpose(g.sh[:, 1:, :], (0, 2, 1)).reshape(n, 3 * (k - 1))
         col += 3 * (k - 1)
     a = np.clip(g.opacities.astype(np.float64), _OPACITY_EPS, 1.0 - _OPACITY_EPS)
     table[:, col] = np.log(a) - np.log1p(-a)
