@@ -260,6 +260,9 @@ def create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict, 
     if op == "keep":
         selected = selected & ~shell
     edited = edit_gaussians(g, selected, op, color=request.get("color"), offset=request.get("offset"))
+    if len(edited) == 0:  # a scene without Gaussians has no PLY rows, segments or renders worth storing
+        raise BadInput(f"the {op} edit would leave a scene without any Gaussian (the selection holds "
+                       f"{int(selected.sum())} of {len(g)}); select less", code="empty_scene")
     timings = {"edit": time.perf_counter() - t0}
     info = {"op": op, "selection": request["selection"], "num_selected": int(selected.sum())}
     data = _edit_data(store, scene_id)
