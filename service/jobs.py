@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from .job_state import ACTIVE, HEARTBEAT_S, JobFiles
-from .references import REFERENCES_ARTIFACT, load_references
+from .references import REFERENCES_ARTIFACT, load_references, references_artifact
 from .store import SceneStore, canonical_json, content_id
 
 log = logging.getLogger("omnisplat.jobs")
@@ -68,6 +68,8 @@ def refine_scene(store: SceneStore, parent_id: str, result_id: str, params: dict
     timings: dict[str, float] = {}
     parent_meta = store.meta(parent_id)
     gaussians = store.gaussians(parent_id)
+    # read once, now: the result keeps them even when the parent is deleted while the job runs
+    references = references_artifact(store, parent_id)
     images, c2ws = load_references(store, parent_id)
     timings["load"] = time.perf_counter() - t0
     t1 = time.perf_counter()
@@ -99,9 +101,7 @@ def refine_scene(store: SceneStore, parent_id: str, result_id: str, params: dict
     t1 = time.perf_counter()
     timings["total"] = time.perf_counter() - t0
     meta["timings"] = timings
-    ref = store.artifact(parent_id, REFERENCES_ARTIFACT)
-    artifacts = {REFERENCES_ARTIFACT: ref.read_bytes()} if ref is not None else None
-    stored = store.put(result_id, result.gaussians, meta, artifacts=artifacts)
+    stored = store.put(result_id, result.gaussians, meta, artifacts={REFERENCES_ARTIFACT: references})
     report(1.0)
     return stored
 
