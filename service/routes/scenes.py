@@ -24,6 +24,7 @@ from ..deps import (
 from ..errors import NotFound
 from ..images import MEDIA_TYPES
 from ..inputs import Compositing, ImageFormat, Projection, check_render_query, check_sweep_range, parse_options, parse_poses
+from ..options import options_json_schema, options_markdown
 from ..schemas import SceneCreated, SceneMeta, error_responses
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
@@ -32,6 +33,9 @@ _IDENTITY = "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1"
 _POSES_EXAMPLE = json.dumps({"convention": "opencv", "c2w": [
     [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
     [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]]})
+_OPTIONS_DOC = ("optional JSON object (schema `SceneOptions`, strict types: a wrong type or an unknown key is a "
+                "422), e.g. `{\"near\": 0.5, \"far\": 20, \"sh_degree\": 0}`. Every key:\n\n" + options_markdown())
+_OPTIONS_SCHEMA = {"contentMediaType": "application/json", "contentSchema": options_json_schema()}
 _IMMUTABLE = "public, max-age=31536000, immutable"
 _COMPOSITING_DOC = ("`plain` (default): front-to-back alpha compositing over a black background, what every "
                     "3DGS viewer shows of `gaussians.ply`. `va`: colour divided by accumulated alpha (V/A, the "
@@ -62,20 +66,7 @@ async def create_scene(
     runtime: ReadyRuntimeDep,
     gate: InferenceGateDep,
     metrics: MetricsDep,
-    options: Annotated[str | None, Form(description='optional JSON object, e.g. {"near": 0.5, "far": 20, '
-                                                          '"min_opacity": 0.05, "compaction": {"resolve_overlap": "split", '
-                                                          '"merge_duplicates": true, "max_count": null}, '
-                                                          '"adaptive_range": false}; "compaction": false keeps '
-                                                          'every Gaussian; without poses: "camera_height" or '
-                                                          '"baseline" (metres) sets the scale; "refine_poses": true '
-                                                          'refines given poses against the images; "sh_degree": 0 '
-                                                          'keeps one colour per Gaussian (default 1: view-dependent '
-                                                          'colour, each reference sees its own image); '
-                                                          '"rig_cap_deg": 20 re-colours the pixels within 20 deg of '
-                                                          "each camera's nadir, where tripod captures show the rig, "
-                                                          'from the other panorama (0: off; default: 20 where both '
-                                                          "references show a rig at their nadir, the metadata's "
-                                                          '"rig", else 0)')] = None,
+    options: Annotated[str | None, Form(description=_OPTIONS_DOC, json_schema_extra=_OPTIONS_SCHEMA)] = None,
     poses: Annotated[str | None, Form(description='JSON {"convention": "opencv"|"opengl", "c2w": [A, B]}, '
                                                   "each camera-to-world 4x4 or 3x4; leave out (or c2w null) to "
                                                   "estimate them from the images (world = camera A)",
