@@ -1,7 +1,7 @@
-"""Refinement jobs (+opt), independent of HTTP: the blocking work and an in-memory job registry.
+"""Refinement jobs, independent of HTTP: the blocking work and an in-memory job registry.
 
 * :func:`refine_scene` (blocking, runs in a worker thread): load a stored scene and its
-  reference images, refine colour/opacity (:mod:`rasterizer.refine`), store the result
+  reference images, refine the colours (:mod:`rasterizer.refine`), store the result
   as a *new* scene ``result_id`` (atomic ``store.put``; the parent stays) with
   ``meta["parent"] = parent_id``, and copy the references to it so it can be refined again.
 * :class:`JobRegistry`: jobs keyed by their result id (``job_id == result scene id``, the
@@ -55,8 +55,8 @@ def refine_scene(store: SceneStore, parent_id: str, result_id: str, params: dict
                  progress: Callable[[float], None] | None = None) -> dict:
     """Refine ``parent_id`` with ``params`` and store it as ``result_id``; returns the new scene's meta.
 
-    ``params``: iterations, height (Yin/Yang working height), sh_degree, colour_reg,
-    optimise_opacity, opacity_lr, holdout, patience (see :class:`rasterizer.refine.RefineOptions`).
+    ``params``: iterations, height (Yin/Yang working height), sh_degree, colour_reg, holdout,
+    patience, cross_check (see :class:`rasterizer.refine.RefineOptions`; the rest keep its defaults).
     """
     from rasterizer.refine import RefineOptions, reference_views, refine
 
@@ -78,8 +78,7 @@ def refine_scene(store: SceneStore, parent_id: str, result_id: str, params: dict
     timings["footprints"] = time.perf_counter() - t1
     report(0.1)
     opts = RefineOptions(iterations=int(params["iterations"]), sh_degree=int(params["sh_degree"]),
-                         colour_reg=float(params["colour_reg"]), optimise_opacity=bool(params["optimise_opacity"]),
-                         opacity_lr=float(params["opacity_lr"]), patience=int(params["patience"]),
+                         colour_reg=float(params["colour_reg"]), patience=int(params["patience"]),
                          cross_check=bool(params.get("cross_check", True)))
     t1 = time.perf_counter()
     result = refine(gaussians, views, opts, progress=lambda f: report(0.1 + 0.85 * f))

@@ -78,3 +78,23 @@ def test_scene_post_form_field_documents_the_schema(tmp_path):
     assert field["contentSchema"]["properties"]["compaction"]
     assert "`compaction.merge_duplicates` (bool, default `False`)" in field["description"]
     assert '"resolve_overlap": "split"' not in field["description"]
+
+
+@pytest.mark.parametrize("body", [{"optimise_opacity": True}, {"opacity_lr": 0.1}, {"loss": "l2"}, {"loss": "huber"},
+                                  {"cross_check": "no"}, {"iterations": True}, {"colour_reg": float("inf")}])
+def test_refine_request_has_no_experiment_switches_and_strict_types(body):
+    from pydantic import ValidationError
+
+    from service.routes.jobs import RefineRequest
+
+    with pytest.raises(ValidationError):
+        RefineRequest.model_validate(body)
+    assert set(RefineRequest.model_fields) == {"iterations", "height", "sh_degree", "colour_reg", "holdout",
+                                               "patience", "cross_check"}
+
+
+def test_refine_solver_default_loss_is_the_documented_one():
+    from rasterizer.refine import solver
+
+    assert solver.RefineOptions().loss == "l1"
+    assert "L2 stays the default" not in solver.__doc__ and 'default "l1"' in solver.__doc__
