@@ -262,7 +262,7 @@ def create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict, 
 
     Returns (its metadata, created). Idempotent: the same request on the same scene gives the same id.
     """
-    with scene_reads(store, scene_id):
+    with store.hold(scene_id), scene_reads(store, scene_id):  # the budget never evicts the scene being edited
         return _create_edit(store, scene_id, request)
 
 

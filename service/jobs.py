@@ -27,9 +27,10 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from .errors import StoreUnavailable
 from .job_state import ACTIVE, HEARTBEAT_S, JobFiles
 from .references import REFERENCES_ARTIFACT, load_references, references_artifact
-from .store import SceneStore, canonical_json, content_id
+from .store import SceneStore, StoreFull, canonical_json, content_id
 
 log = logging.getLogger("omnisplat.jobs")
 
@@ -58,12 +59,17 @@ def refine_scene(store: SceneStore, parent_id: str, result_id: str, params: dict
     ``params``: iterations, height (Yin/Yang working height), sh_degree, colour_reg, holdout,
     patience, cross_check (see :class:`rasterizer.refine.RefineOptions`; the rest keep its defaults).
     """
-    from rasterizer.refine import RefineOptions, reference_views, refine
-
     report = progress or (lambda f: None)
     if store.exists(result_id):
         report(1.0)
         return store.meta(result_id)
+    with store.hold(parent_id):  # the budget never evicts the scene being refined
+        return _refine(store, parent_id, result_id, params, report)
+
+
+def _refine(store: SceneStore, parent_id: str, result_id: str, params: dict, report: Callable[[float], None]) -> dict:
+    from rasterizer.refine import RefineOptions, reference_views, refine
+
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
     parent_meta = store.meta(parent_id)
@@ -254,7 +260,10 @@ async def run_job(registry: JobRegistry, job: Job, gate, store: SceneStore) -> N
 
     def work() -> dict:
         registry.mark_running(job)
-        return refine_scene(store, job.parent_id, job.id, job.params, report)
+        try:
+            return refine_scene(store, job.parent_id, job.id, job.params, report)
+        except StoreFull as exc:  # the job record says which store limit refused the result
+            raise StoreUnavailable(exc.message, code="store_full") from None
 
     try:
         await gate.run(work)

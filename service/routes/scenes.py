@@ -87,7 +87,7 @@ async def create_scene(
         return SceneCreated(id=scene_id, num_gaussians=meta["num_gaussians"], timings=meta.get("timings", {}),
                             links=work.links(scene_id), cached=True)
     await anyio.to_thread.run_sync(work.check_free_space, store, settings.min_free_store_bytes)
-    meta, timings = await gate.run(work.create_scene, runtime, store, scene_id, data_a, data_b,
+    meta, timings = await gate.run(work.storing, work.create_scene, runtime, store, scene_id, data_a, data_b,
                                    parsed_poses, parsed_options, pipeline_options, pose_options, limits)
     metrics.observe_stages(timings)
     metrics.scenes_created.inc()
@@ -137,25 +137,19 @@ async def render_scene(
                              "Server-Timing": ", ".join(f"{k};dur={v * 1000:.1f}" for k, v in timings.items())})
 
 
-_PLY_CHUNK = 1 << 20
-
-
 @router.get(
     "/{scene_id}/gaussians.ply", response_class=StreamingResponse, summary="The Gaussians as a 3DGS PLY",
     responses={200: {"content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
                      "description": "binary little-endian INRIA 3DGS PLY in the input world frame"},
-               **error_responses(404, 422, 503, 507)},
+               **error_responses(404, 422, 503)},
 )
 async def scene_ply(scene_id: SceneId, store: StoreDep, gate: RenderGateDep) -> StreamingResponse:
     _require_scene(store, scene_id)
-    fh, size = await gate.run(work.open_ply, store, scene_id)
+    size, blocks = await gate.run(work.ply_stream, store, scene_id)
 
-    async def chunks():
-        try:  # from the open file: a deletion meanwhile does not cut the download short
-            while block := await anyio.to_thread.run_sync(fh.read, _PLY_CHUNK):
-                yield block
-        finally:
-            fh.close()
+    async def chunks():  # made from the stored arrays block by block, in a worker thread
+        while (block := await anyio.to_thread.run_sync(next, blocks, None)) is not None:
+            yield block
 
     return StreamingResponse(chunks(), media_type="application/octet-stream",
                              headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{scene_id}-ply"',

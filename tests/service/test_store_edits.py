@@ -105,3 +105,53 @@ def test_refine_whose_parent_is_deleted_mid_run_keeps_its_references(client, liv
     assert SceneStore(live.store).artifact(result, "references.npz") is not None
     again = client.post(f"/v1/scenes/{result}/refine", json={"iterations": 1, "height": 32})
     assert again.status_code == 202, again.text
+
+
+def test_edit_flood_stays_within_the_store_budget_and_metrics_show_it(client, live):
+    store = live.app.state.store
+    scene_id = _scene(client, 24)
+    sel = _selection(client, scene_id)
+    one = store.usage() // max(1, len(store.ids()))
+    saved = store.budget_bytes
+    store.budget_bytes = store.usage() + 2 * one
+    try:
+        statuses = []
+        for k in range(6):
+            r = client.post(f"/v1/scenes/{scene_id}/edits",
+                            json={"selection": sel, "op": "recolor", "color": [k / 6, 0.5, 0.5]})
+            statuses.append(r.status_code)
+            assert r.status_code in (201, 507), r.text
+            if r.status_code == 507:
+                assert r.json()["error"]["code"] == "store_full"
+            assert store.usage() <= store.budget_bytes
+        assert statuses.count(201) >= 2 and store.exists(scene_id)  # the edited scene is held, never evicted
+        values = {line.split()[0]: float(line.split()[1]) for line in client.get("/metrics").text.splitlines()
+                  if line.startswith("omnisplat_store")}
+        assert values["omnisplat_store_budget_bytes"] == store.budget_bytes
+        assert 0 < values["omnisplat_store_bytes"] <= store.budget_bytes
+        assert values["omnisplat_store_evictions"] == store.evictions > 0
+    finally:
+        store.budget_bytes = saved
+
+
+def test_selection_below_the_free_space_margin_is_507(client, live, monkeypatch):
+    import shutil
+    from collections import namedtuple
+
+    scene_id = _scene(client, 25)
+    store = live.app.state.store
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(1 << 40, 1 << 39, store.min_free_bytes + 10))
+    r = client.post(f"/v1/scenes/{scene_id}/selections", json={"view": "a", "points": [[0.4, 0.5]]})
+    assert r.status_code == 507, r.text
+    assert r.json()["error"]["code"] == "store_full" and "margin" in r.json()["error"]["message"]
+
+
+def test_ply_is_streamed_from_the_stored_arrays_without_a_copy_on_disk(client, live):
+    from rasterizer.ply import ply_bytes
+
+    scene_id = _scene(client, 21)
+    r = client.get(f"/v1/scenes/{scene_id}/gaussians.ply")
+    assert r.status_code == 200 and int(r.headers["content-length"]) == len(r.content)
+    assert r.content == ply_bytes(SceneStore(live.store).gaussians(scene_id))
+    assert sorted(p.name for p in (live.store / "scenes" / scene_id).iterdir() if p.name.endswith(".ply")) == []
