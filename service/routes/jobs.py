@@ -100,7 +100,7 @@ async def job_status(job_id: Annotated[str, Path(pattern=SCENE_ID_PATTERN)], req
     if job is None:
         if store.exists(job_id):  # finished before a restart: the result is in the store
             meta = store.meta(job_id)
-            if meta.get("parent"):
+            if meta.get("parent") and meta.get("refine"):  # a refinement's result (not an edit's)
                 return JobStatus(id=job_id, status="done", progress=1.0, scene_id=job_id,
                                  parent_id=meta["parent"], error=None)
         raise NotFound(f"no job with id {job_id!r}", code="job_not_found")

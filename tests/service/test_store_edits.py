@@ -155,3 +155,13 @@ def test_ply_is_streamed_from_the_stored_arrays_without_a_copy_on_disk(client, l
     assert r.status_code == 200 and int(r.headers["content-length"]) == len(r.content)
     assert r.content == ply_bytes(SceneStore(live.store).gaussians(scene_id))
     assert sorted(p.name for p in (live.store / "scenes" / scene_id).iterdir() if p.name.endswith(".ply")) == []
+
+
+def test_job_status_of_an_edited_scene_is_404_not_an_invented_refine_job(client, live):
+    scene_id = _scene(client, 26)
+    sel = _selection(client, scene_id)
+    r = client.post(f"/v1/scenes/{scene_id}/edits", json={"selection": sel, "op": "recolor", "color": [0, 1, 0]})
+    assert r.status_code == 201, r.text
+    edited = r.json()["id"]
+    job = client.get(f"/v1/jobs/{edited}")
+    assert job.status_code == 404 and job.json()["error"]["code"] == "job_not_found"
