@@ -29,6 +29,7 @@ from typing import Any, Callable
 
 from .errors import StoreUnavailable
 from .job_state import ACTIVE, HEARTBEAT_S, JobFiles
+from .memory import release_memory
 from .references import REFERENCES_ARTIFACT, load_references, references_artifact
 from .store import SceneStore, StoreFull, canonical_json, content_id
 
@@ -264,6 +265,8 @@ async def run_job(registry: JobRegistry, job: Job, gate, store: SceneStore) -> N
             return refine_scene(store, job.parent_id, job.id, job.params, report)
         except StoreFull as exc:  # the job record says which store limit refused the result
             raise StoreUnavailable(exc.message, code="store_full") from None
+        finally:
+            release_memory(force=True)
 
     try:
         await gate.run(work)

@@ -24,6 +24,7 @@ from .edits import edit_artifacts
 from .errors import BadInput, PayloadTooLarge, ServiceError, StoreUnavailable
 from .images import check_header, decode_rgb, encode
 from .inputs import Poses, RenderQuery, check_sweep_range
+from .memory import release_memory
 from .pipeline import PipelineOptions, build_scene
 from .poses import PoseOptions, poses_for_scene
 from .references import REFERENCES_ARTIFACT, load_references, references_bytes
@@ -39,11 +40,13 @@ NEAR_CULL_PER_SWEEP_NEAR = 0.1
 def storing(fn: Callable[..., T], *args: Any) -> T:
     """``fn(*args)``, where a write the store's budget or free-space margin refused
     (:class:`service.store.StoreFull`) is a 507 saying which limit refused it. Runs in the worker:
-    ``WorkGate.run(storing, fn, ...)``."""
+    ``WorkGate.run(storing, fn, ...)``; afterwards free memory goes back to the system."""
     try:
         return fn(*args)
     except StoreFull as exc:
         raise StoreUnavailable(exc.message, code="store_full") from None
+    finally:
+        release_memory(force=True)  # after a reconstruction or an edit: its arrays are freed now
 
 
 def links(scene_id: str) -> dict[str, str]:

@@ -24,6 +24,7 @@ from ..deps import (
 from ..errors import NotFound
 from ..images import MEDIA_TYPES
 from ..inputs import Compositing, ImageFormat, Projection, check_render_query, check_sweep_range, parse_options, parse_poses
+from ..memory import trimmed
 from ..options import options_json_schema, options_markdown
 from ..schemas import SceneCreated, SceneMeta, error_responses
 
@@ -128,7 +129,7 @@ async def render_scene(
     cost = work.check_render_cost(store, scene_id, query, settings.max_render_cost)
     if cost > settings.heavy_render_cost:  # big renders queue with reconstructions: their peaks never add
         gate = heavy_gate
-    data, timings = await gate.run(work.render_scene, store, scene_id, query)
+    data, timings = await gate.run(trimmed, work.render_scene, store, scene_id, query)
     metrics.observe_stages({f"render_{k}": v for k, v in timings.items()})
     etag = hashlib.sha256(f"{scene_id}|{query.c2w.round(9).tolist()}|{projection}|{width}|{height}|"
                           f"{fov_deg}|{format}|{compositing}|{rig}".encode()).hexdigest()[:32]
