@@ -30,3 +30,11 @@ def test_streamed_ply_is_the_same_bytes_in_chunks(sh_degree, rows):
     blocks = list(chunks)
     assert b"".join(blocks) == ply_bytes(g) and size == len(ply_bytes(g))
     assert len(blocks) == 1 + -(-(n - 1) // rows)
+
+
+def test_compaction_byte_cap_counts_the_header_of_an_sh_degree_1_ply():
+    from rasterizer.compaction import ply_count_for_bytes
+
+    per = 4 * len(property_names(4))
+    header = len(ply_bytes(Gaussians.empty(1)))
+    assert ply_count_for_bytes(header + 12 + 10 * per, 4) == 10
