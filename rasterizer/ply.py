@@ -7,7 +7,8 @@ scale_0..2 rot_0..3``. Stored pre-activation: ``opacity = logit(alpha)``,
 channel-major (all R coefficients, then G, then B). Normals are written as 0.
 
 Writing builds one contiguous (N, F) float32 array and calls ``tobytes`` (no
-Python object per value). Rows with NaN/Inf in any field are dropped (or
+Python object per value); :func:`ply_stream` makes the same bytes a block of
+rows at a time. Rows with NaN/Inf in any field are dropped (or
 refused with ``drop_invalid=False``); opacity is clamped to
 [1e-12, 1 - 1e-12] before the logit and scales to >= 1e-30 before the log,
 so 0, 1 and rank-deficient Gaussians stay finite on disk.
@@ -16,6 +17,7 @@ so 0, 1 and rank-deficient Gaussians stay finite on disk.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -51,37 +53,67 @@ def finite_rows(g: Gaussians) -> np.ndarray:
     return ok
 
 
-def _table(g: Gaussians, drop_invalid: bool) -> np.ndarray:
-    """The (N', F) float32 property table of ``g``."""
+def _valid(g: Gaussians, drop_invalid: bool) -> Gaussians:
+    """``g`` without rows holding NaN/Inf (or GaussiansError when ``drop_invalid`` is False)."""
     ok = finite_rows(g)
-    if not ok.all():
-        if not drop_invalid:
-            raise GaussiansError(f"{int((~ok).sum())} Gaussian rows contain NaN or Inf")
-        g = g.subset(ok)
-    n, k = len(g), g.sh.shape[1]
+    if ok.all():
+        return g
+    if not drop_invalid:
+        raise GaussiansError(f"{int((~ok).sum())} Gaussian rows contain NaN or Inf")
+    return g.subset(ok)
+
+
+def _table(g: Gaussians, start: int = 0, stop: int | None = None) -> np.ndarray:
+    """The (rows, F) float32 property table of ``g[start:stop]`` (rows already finite)."""
+    stop = len(g) if stop is None else min(stop, len(g))
+    n, k = max(0, stop - start), g.sh.shape[1]
+    rows = slice(start, start + n)
     table = np.zeros((n, 17 + 3 * (k - 1)), dtype=np.float32)
-    table[:, 0:3] = g.means
-    table[:, 6:9] = g.sh[:, 0, :]
+    table[:, 0:3] = g.means[rows]
+    table[:, 6:9] = g.sh[rows, 0, :]
     col = 9
     if k > 1:
-        # (N, K-1, 3) -> channel-major (N, 3, K-1) -> (N, 3(K-1))
-        table[:, col:col + 3 * (k - 1)] = np.transpose(g.sh[:, 1:, :], (0, 2, 1)).reshape(n, -1)
+        # (n, K-1, 3) -> channel-major (n, 3, K-1) -> (n, 3(K-1))
+        table[:, col:col + 3 * (k - 1)] = np.transpose(g.sh[rows, 1:, :], (0, 2, 1)).reshape(n, 3 * (k - 1))
         col += 3 * (k - 1)
-    a = np.clip(g.opacities.astype(np.float64), _OPACITY_EPS, 1.0 - _OPACITY_EPS)
+    a = np.clip(g.opacities[rows].astype(np.float64), _OPACITY_EPS, 1.0 - _OPACITY_EPS)
     table[:, col] = np.log(a) - np.log1p(-a)
-    table[:, col + 1:col + 4] = np.log(np.maximum(g.scales.astype(np.float64), _MIN_SCALE))
-    table[:, col + 4:col + 8] = g.quats
+    table[:, col + 1:col + 4] = np.log(np.maximum(g.scales[rows].astype(np.float64), _MIN_SCALE))
+    table[:, col + 4:col + 8] = g.quats[rows]
     return table
+
+
+def ply_header(count: int, sh_coeffs: int) -> bytes:
+    """The header of a PLY of ``count`` Gaussians with ``sh_coeffs`` SH coefficients per channel."""
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {count}"]
+    header += [f"property float {name}" for name in property_names(sh_coeffs)]
+    header += ["end_header"]
+    return ("\n".join(header) + "\n").encode("ascii")
+
+
+#: Gaussians per chunk of :func:`ply_stream` (about 7 MB of float32 rows at SH degree 1)
+PLY_CHUNK_ROWS = 1 << 16
+
+
+def ply_stream(g: Gaussians, *, drop_invalid: bool = True, rows: int = PLY_CHUNK_ROWS) -> tuple[int, Iterator[bytes]]:
+    """(size in bytes, chunks) of the PLY of ``g``, made ``rows`` Gaussians at a time: the same bytes as
+    :func:`ply_bytes`, never more than one chunk's table in memory."""
+    g = _valid(g, drop_invalid)
+    header = ply_header(len(g), g.sh.shape[1])
+    size = len(header) + len(g) * 4 * len(property_names(g.sh.shape[1]))
+
+    def chunks() -> Iterator[bytes]:
+        yield header
+        for start in range(0, len(g), max(1, int(rows))):
+            yield _table(g, start, start + rows).astype("<f4", copy=False).tobytes()
+
+    return size, chunks()
 
 
 def ply_bytes(g: Gaussians, *, drop_invalid: bool = True) -> bytes:
     """The binary PLY file of ``g`` as bytes (see the module docstring)."""
-    table = _table(g, drop_invalid)
-    names = property_names(g.sh.shape[1])
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {table.shape[0]}"]
-    header += [f"property float {name}" for name in names]
-    header += ["end_header"]
-    return ("\n".join(header) + "\n").encode("ascii") + table.astype("<f4", copy=False).tobytes()
+    g = _valid(g, drop_invalid)
+    return ply_header(len(g), g.sh.shape[1]) + _table(g).astype("<f4", copy=False).tobytes()
 
 
 def write_ply(path: str | os.PathLike, g: Gaussians, *, drop_invalid: bool = True) -> Path:

@@ -15,6 +15,7 @@ from pydantic import Field, computed_field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from .model_files import default_model_name
+from .store import DEFAULT_BUDGET_BYTES
 
 DEFAULT_HOME = Path.home() / ".omnisplat"
 
@@ -93,6 +94,12 @@ class Settings(BaseSettings):
     render_concurrency: int = Field(1, ge=1, description="renders/PLY encodes running at once")
     render_queue: int = Field(4, ge=0, description="renders waiting; more get 503")
     retry_after_s: int = Field(5, ge=1, description="Retry-After seconds sent with 503")
+
+    # -- scene store budget ----------------------------------------------------
+    store_budget_bytes: int = Field(DEFAULT_BUDGET_BYTES, ge=0, description="bytes the stored scenes may take on "
+                                    "disk; a write beyond it first evicts the least recently used scenes no job is "
+                                    "using (507 when that cannot make room); 0 = no cap. Every write (scene, edit, "
+                                    "refinement, selection) also keeps min_free_store_bytes free on the disk")
 
     @model_validator(mode="after")
     def _check(self) -> "Settings":

@@ -18,18 +18,20 @@ selection is graph work only.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Iterator
 
 import numpy as np
 
 from .errors import BadInput, NotFound, ServiceError
 from .images import encode
 from .inputs import RenderQuery
-from .references import REFERENCES_ARTIFACT, load_references
-from .store import SceneStore, canonical_json, content_id
+from .references import REFERENCES_ARTIFACT, ReferencesMissing, load_references
+from .store import SceneNotFound, SceneStore, canonical_json, content_id
 
 EDIT_ARTIFACT = "edit.npz"
 INDEX_ARTIFACT = "edit_index.npz"
@@ -47,6 +49,25 @@ class CorrespondencesMissing(ServiceError):
 
 _cache: OrderedDict = OrderedDict()
 _cache_lock = threading.Lock()
+
+
+@contextlib.contextmanager
+def scene_reads(store: SceneStore, scene_id: str) -> Iterator[None]:
+    """Reads of ``scene_id``'s files: a file that vanishes because the scene was deleted meanwhile is a 404
+    (:class:`service.store.SceneNotFound`), not a missing-artifact 409 or a 500."""
+    try:
+        yield
+    except (FileNotFoundError, ReferencesMissing, CorrespondencesMissing):
+        if not store.exists(scene_id):
+            raise SceneNotFound(scene_id) from None
+        raise
+
+
+def _artifact_bytes(store: SceneStore, scene_id: str, name: str) -> bytes:
+    path = store.artifact(scene_id, name)
+    if path is None:
+        raise FileNotFoundError(name)
+    return path.read_bytes()
 
 
 def edit_artifacts(edit) -> dict[str, bytes]:
@@ -75,13 +96,14 @@ def scene_index(store: SceneStore, scene_id: str):
         if hit is not None:
             _cache.move_to_end(scene_id)
             return hit
-    data = _edit_data(store, scene_id)
-    images, _ = load_references(store, scene_id)
-    stored = store.artifact(scene_id, INDEX_ARTIFACT)
-    saved = None
-    if stored is not None:
-        with np.load(stored, allow_pickle=False) as z:
-            saved = {k: z[k] for k in z.files}
+    with scene_reads(store, scene_id):
+        data = _edit_data(store, scene_id)
+        images, _ = load_references(store, scene_id)
+        stored = store.artifact(scene_id, INDEX_ARTIFACT)
+        saved = None
+        if stored is not None:
+            with np.load(stored, allow_pickle=False) as z:
+                saved = {k: z[k] for k in z.files}
     index = build_index(data, images, labels=None if saved is None else saved["superpixels"])
     if saved is not None and "segments" in saved:
         index.set_segments(saved["segments"], saved["segment_sizes"])
@@ -155,7 +177,7 @@ def load_selection(store: SceneStore, scene_id: str, sel_id: str) -> tuple[np.nd
     path = store.artifact(scene_id, _selection_artifact(sel_id)) if len(sel_id) == 32 and sel_id.isalnum() else None
     if path is None:
         raise NotFound(f"no selection {sel_id!r} on scene {scene_id}", code="selection_not_found")
-    with np.load(path, allow_pickle=False) as z:
+    with scene_reads(store, scene_id), np.load(path, allow_pickle=False) as z:
         shape = tuple(int(s) for s in z["shape"])
         masks = np.unpackbits(z["masks"], axis=-1, count=shape[-1]).astype(bool)
         gauss = np.unpackbits(z["gaussians"], count=int(z["count"])).astype(bool)
@@ -240,6 +262,11 @@ def create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict, 
 
     Returns (its metadata, created). Idempotent: the same request on the same scene gives the same id.
     """
+    with store.hold(scene_id), scene_reads(store, scene_id):  # the budget never evicts the scene being edited
+        return _create_edit(store, scene_id, request)
+
+
+def _create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict, bool]:
     from rasterizer.edit.ops import edit_gaussians
 
     _edit_data(store, scene_id)  # 409 before anything else when the scene cannot be edited
@@ -260,6 +287,9 @@ def create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict, 
     if op == "keep":
         selected = selected & ~shell
     edited = edit_gaussians(g, selected, op, color=request.get("color"), offset=request.get("offset"))
+    if len(edited) == 0:  # a scene without Gaussians has no PLY rows, segments or renders worth storing
+        raise BadInput(f"the {op} edit would leave a scene without any Gaussian (the selection holds "
+                       f"{int(selected.sum())} of {len(g)}); select less", code="empty_scene")
     timings = {"edit": time.perf_counter() - t0}
     info = {"op": op, "selection": request["selection"], "num_selected": int(selected.sum())}
     data = _edit_data(store, scene_id)
@@ -276,7 +306,9 @@ def create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict, 
     meta = {k: v for k, v in parent.items() if k not in ("id", "num_gaussians", "created_at", "links", "timings")}
     meta.update({"parent": scene_id, "shell": int(shell.sum()), "edit": {**info, "request": request, "version": EDIT_VERSION},
                  "timings": timings, "created_at": time.time()})
-    artifacts = {REFERENCES_ARTIFACT: store.artifact(scene_id, REFERENCES_ARTIFACT).read_bytes(),
+    artifacts = {REFERENCES_ARTIFACT: _artifact_bytes(store, scene_id, REFERENCES_ARTIFACT),
                  EDIT_ARTIFACT: data.to_bytes(),
                  INDEX_ARTIFACT: index_bytes(scene_index(store, scene_id), keep)}  # same references: same segments
+    if not store.exists(scene_id):  # deleted while the edit ran: its result is not wanted either
+        raise SceneNotFound(scene_id)
     return store.put(new_id, edited, meta, artifacts=artifacts), True

@@ -12,11 +12,13 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
+from pydantic import ValidationError
 
 from rasterizer.geometry import PoseError, as_c2w
 from rasterizer.sweep import MIN_BASELINE, SweepRangeError, check_scene_scale
 
 from .errors import BadInput
+from .options import SceneOptions, describe_error
 from .pipeline import STEP_OPTION_KEYS, PipelineOptions
 from .poses import POSE_OPTION_KEYS, PoseOptions
 
@@ -112,47 +114,32 @@ def parse_options(text: str | bytes | None, accepted: set[str] | None = None,
                   ) -> tuple[dict[str, Any], PipelineOptions, PoseOptions]:
     """(options JSON object, its :class:`PipelineOptions`, its :class:`~service.poses.PoseOptions`), parsed once.
 
-    ``near``/``far`` must be positive, near < far.
-
-    ``compaction`` and ``adaptive_range`` hold JSON objects of step options
-    (see :class:`service.pipeline.PipelineOptions`); ``{"compaction": false}``
-    turns compaction off.
-
-    ``accepted`` restricts the top-level keys further (None: every pipeline option).
+    The object is validated against :class:`service.options.SceneOptions` (strict types, no unknown
+    keys, finite numbers; near < far); ``accepted`` restricts the top-level keys further (None: every
+    option). The object itself is returned as sent: scene ids are hashed from it.
     """
     if text is None or (isinstance(text, (str, bytes)) and not text.strip()):
-        return {}, PipelineOptions.from_dict({}), PoseOptions.pop_from({})
+        return {}, PipelineOptions.from_dict({}), PoseOptions()
     obj = _json_object(text, "options")
     if not isinstance(obj, dict):
         raise BadInput("options: expected a JSON object", code="invalid_options")
     if len(obj) > 32:
         raise BadInput("options: too many keys", code="invalid_options")
-    for key, value in obj.items():
-        if key in STEP_OPTION_KEYS or key in POSE_OPTION_KEYS:
-            continue
-        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
-                                  or not math.isfinite(value)):
-            raise BadInput(f"options.{key}: expected a finite number or null", code="invalid_options")
     if accepted is not None:
         unknown = sorted(set(obj) - accepted - set(STEP_OPTION_KEYS) - set(POSE_OPTION_KEYS))
         if unknown:
             raise BadInput(f"options: unknown option(s) {unknown}; accepted: {sorted(accepted)}",
                            code="invalid_options")
-    for key in ("near", "far"):
-        v = obj.get(key)
-        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0):
-            raise BadInput(f"options.{key}: expected a positive number of metres", code="invalid_options")
-    mo = obj.get("min_opacity")
-    if mo is not None and not 0 <= mo < 1:
-        raise BadInput("options.min_opacity: expected a number in [0, 1)", code="invalid_options")
-    if obj.get("near") is not None and obj.get("far") is not None and not obj["near"] < obj["far"]:
-        raise BadInput("options: near must be smaller than far", code="invalid_options")
-    rest = dict(obj)
-    pose_options = PoseOptions.pop_from(rest)
     try:
-        return obj, PipelineOptions.from_dict(rest), pose_options
+        scene = SceneOptions.model_validate(obj)
+    except ValidationError as exc:
+        raise BadInput(describe_error(exc), code="invalid_options") from None
+    pose_options = PoseOptions(scene.camera_height, scene.baseline, scene.refine_poses)
+    try:
+        return obj, PipelineOptions.from_dict({k: v for k, v in obj.items() if k not in POSE_OPTION_KEYS}), pose_options
     except (TypeError, ValueError, OverflowError) as exc:
-        raise BadInput(f"options: {exc}", code="invalid_options") from None
+        raise BadInput(f"{exc}" if str(exc).startswith("options") else f"options: {exc}",
+                       code="invalid_options") from None
 
 
 def parse_c2w_query(text: str) -> np.ndarray:

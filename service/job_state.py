@@ -5,7 +5,8 @@
 written atomically (temporary file + ``os.replace``). The owner rewrites its queued/running
 records every :data:`HEARTBEAT_S`; any reader sees such a record as *lost* when its heartbeat is
 older than :data:`STALE_S`, or at once when the owner ran on this host and its process is gone.
-Nothing here knows about HTTP or the model.
+At start-up (:meth:`JobFiles.sweep`) such records are rewritten as failed, and finished ones older than
+:data:`RETENTION_S` (or beyond :data:`MAX_RECORDS`) are removed. Nothing here knows about HTTP or the model.
 """
 
 from __future__ import annotations
@@ -23,6 +24,10 @@ from .store import check_scene_id
 HEARTBEAT_S = 2.0
 #: an unfinished record whose heartbeat is older than this is reported failed
 STALE_S = 30.0
+#: finished records (done / failed) older than this are removed at start-up
+RETENTION_S = 7 * 24 * 3600.0
+#: at most this many records are kept (the oldest finished ones go first)
+MAX_RECORDS = 10_000
 ACTIVE = ("queued", "running")
 
 
@@ -30,6 +35,13 @@ def identity(replica: str | None = None) -> dict:
     """This process as a job owner: host, pid and a replica name (default ``host:pid``)."""
     host, pid = socket.gethostname(), os.getpid()
     return {"host": host, "pid": pid, "replica": replica or f"{host}:{pid}"}
+
+
+def _mtime(path: Path) -> float:
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return float("inf")
 
 
 def _process_gone(pid: int) -> bool:
@@ -45,11 +57,57 @@ def _process_gone(pid: int) -> bool:
 class JobFiles:
     """Job records in one folder shared by every replica (a ReadWriteMany volume on a cluster)."""
 
-    def __init__(self, root: str | Path, owner: dict | None = None, stale_s: float = STALE_S) -> None:
+    def __init__(self, root: str | Path, owner: dict | None = None, stale_s: float = STALE_S,
+                 retention_s: float = RETENTION_S, max_records: int = MAX_RECORDS) -> None:
         self.dir = Path(root)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.owner = owner or identity()
         self.stale_s = stale_s
+        self.retention_s = retention_s
+        self.max_records = max_records
+        self.sweep()
+
+    def sweep(self, now: float | None = None) -> dict[str, int]:
+        """Start-up housekeeping: a record whose owner is gone (killed while queued or running) is rewritten
+        as ``failed`` (``replica_lost``); finished records older than ``retention_s``, records beyond
+        ``max_records`` (oldest finished first) and interrupted writes are removed. Returns the counts."""
+        now = time.time() if now is None else now
+        out = {"failed": 0, "removed": 0}
+        for leftover in self.dir.glob(".*.tmp"):
+            if now - _mtime(leftover) > self.stale_s:  # another replica's write may be in flight
+                leftover.unlink(missing_ok=True)
+        finished: list[tuple[float, Path]] = []
+        for path in self.dir.glob("*.json"):
+            record = self.read(path.stem) if len(path.stem) == 32 else None
+            if record is None:
+                continue
+            reason = self.lost(record, now)
+            if reason is not None:
+                owner = record.get("owner") or {}
+                record.update(status="failed", finished_at=now, error={"code": "replica_lost", "message": reason})
+                self._write_as(record, owner)
+                out["failed"] += 1
+            if record.get("status") not in ACTIVE:
+                when = float(record.get("finished_at") or record.get("heartbeat") or 0.0)
+                finished.append((when, path))
+        finished.sort()
+        total = len(list(self.dir.glob("*.json")))
+        for when, path in finished:
+            if now - when > self.retention_s or total > self.max_records:
+                path.unlink(missing_ok=True)
+                total -= 1
+                out["removed"] += 1
+        return out
+
+    def _write_as(self, record: dict, owner: dict) -> None:
+        """Rewrite a record keeping its owner and heartbeat (start-up marks another process's lost job)."""
+        target = self.path(record["id"])
+        tmp = self.dir / f".{target.name}.{uuid.uuid4().hex}.tmp"
+        try:
+            tmp.write_bytes(json.dumps({**record, "owner": owner}).encode())
+            os.replace(tmp, target)
+        finally:
+            tmp.unlink(missing_ok=True)
 
     def path(self, job_id: str) -> Path:
         return self.dir / f"{check_scene_id(job_id)}.json"

@@ -1,7 +1,7 @@
-"""Refinement jobs (+opt), independent of HTTP: the blocking work and an in-memory job registry.
+"""Refinement jobs, independent of HTTP: the blocking work and an in-memory job registry.
 
 * :func:`refine_scene` (blocking, runs in a worker thread): load a stored scene and its
-  reference images, refine colour/opacity (:mod:`rasterizer.refine`), store the result
+  reference images, refine the colours (:mod:`rasterizer.refine`), store the result
   as a *new* scene ``result_id`` (atomic ``store.put``; the parent stays) with
   ``meta["parent"] = parent_id``, and copy the references to it so it can be refined again.
 * :class:`JobRegistry`: jobs keyed by their result id (``job_id == result scene id``, the
@@ -27,9 +27,11 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from .errors import StoreUnavailable
 from .job_state import ACTIVE, HEARTBEAT_S, JobFiles
-from .references import REFERENCES_ARTIFACT, load_references
-from .store import SceneStore, canonical_json, content_id
+from .memory import release_memory
+from .references import REFERENCES_ARTIFACT, load_references, references_artifact
+from .store import SceneStore, StoreFull, canonical_json, content_id
 
 log = logging.getLogger("omnisplat.jobs")
 
@@ -55,19 +57,26 @@ def refine_scene(store: SceneStore, parent_id: str, result_id: str, params: dict
                  progress: Callable[[float], None] | None = None) -> dict:
     """Refine ``parent_id`` with ``params`` and store it as ``result_id``; returns the new scene's meta.
 
-    ``params``: iterations, height (Yin/Yang working height), sh_degree, colour_reg,
-    optimise_opacity, opacity_lr, holdout, patience (see :class:`rasterizer.refine.RefineOptions`).
+    ``params``: iterations, height (Yin/Yang working height), sh_degree, colour_reg, holdout,
+    patience, cross_check (see :class:`rasterizer.refine.RefineOptions`; the rest keep its defaults).
     """
-    from rasterizer.refine import RefineOptions, reference_views, refine
-
     report = progress or (lambda f: None)
     if store.exists(result_id):
         report(1.0)
         return store.meta(result_id)
+    with store.hold(parent_id):  # the budget never evicts the scene being refined
+        return _refine(store, parent_id, result_id, params, report)
+
+
+def _refine(store: SceneStore, parent_id: str, result_id: str, params: dict, report: Callable[[float], None]) -> dict:
+    from rasterizer.refine import RefineOptions, reference_views, refine
+
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
     parent_meta = store.meta(parent_id)
     gaussians = store.gaussians(parent_id)
+    # read once, now: the result keeps them even when the parent is deleted while the job runs
+    references = references_artifact(store, parent_id)
     images, c2ws = load_references(store, parent_id)
     timings["load"] = time.perf_counter() - t0
     t1 = time.perf_counter()
@@ -76,8 +85,7 @@ def refine_scene(store: SceneStore, parent_id: str, result_id: str, params: dict
     timings["footprints"] = time.perf_counter() - t1
     report(0.1)
     opts = RefineOptions(iterations=int(params["iterations"]), sh_degree=int(params["sh_degree"]),
-                         colour_reg=float(params["colour_reg"]), optimise_opacity=bool(params["optimise_opacity"]),
-                         opacity_lr=float(params["opacity_lr"]), patience=int(params["patience"]),
+                         colour_reg=float(params["colour_reg"]), patience=int(params["patience"]),
                          cross_check=bool(params.get("cross_check", True)))
     t1 = time.perf_counter()
     result = refine(gaussians, views, opts, progress=lambda f: report(0.1 + 0.85 * f))
@@ -99,9 +107,7 @@ def refine_scene(store: SceneStore, parent_id: str, result_id: str, params: dict
     t1 = time.perf_counter()
     timings["total"] = time.perf_counter() - t0
     meta["timings"] = timings
-    ref = store.artifact(parent_id, REFERENCES_ARTIFACT)
-    artifacts = {REFERENCES_ARTIFACT: ref.read_bytes()} if ref is not None else None
-    stored = store.put(result_id, result.gaussians, meta, artifacts=artifacts)
+    stored = store.put(result_id, result.gaussians, meta, artifacts={REFERENCES_ARTIFACT: references})
     report(1.0)
     return stored
 
@@ -255,7 +261,12 @@ async def run_job(registry: JobRegistry, job: Job, gate, store: SceneStore) -> N
 
     def work() -> dict:
         registry.mark_running(job)
-        return refine_scene(store, job.parent_id, job.id, job.params, report)
+        try:
+            return refine_scene(store, job.parent_id, job.id, job.params, report)
+        except StoreFull as exc:  # the job record says which store limit refused the result
+            raise StoreUnavailable(exc.message, code="store_full") from None
+        finally:
+            release_memory(force=True)
 
     try:
         await gate.run(work)

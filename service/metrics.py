@@ -2,7 +2,8 @@
 
 Exposed at ``GET /metrics``: request counts and latencies by route template, method and
 status; seconds per pipeline stage (decode, the encoder's stages, store, render, encode);
-scenes stored; work in flight / waiting / rejected; scene-cache hits and misses; build info.
+scenes stored, their bytes against the store budget, evictions and refused writes; work in flight /
+waiting / rejected; scene-cache hits and misses; build info.
 """
 
 from __future__ import annotations
@@ -37,6 +38,12 @@ class ServiceMetrics:
         self.cache_hits = Gauge("omnisplat_scene_cache_hits", "Scene cache hits since start", registry=r)
         self.cache_misses = Gauge("omnisplat_scene_cache_misses", "Scene cache misses since start", registry=r)
         self.cache_bytes = Gauge("omnisplat_scene_cache_bytes", "Bytes held by the scene cache", registry=r)
+        self.store_bytes = Gauge("omnisplat_store_bytes", "Bytes the stored scenes take on disk", registry=r)
+        self.store_budget = Gauge("omnisplat_store_budget_bytes", "Store budget in bytes (0: no cap)", registry=r)
+        self.store_evictions = Gauge("omnisplat_store_evictions", "Scenes evicted for the budget since start",
+                                     registry=r)
+        self.store_refusals = Gauge("omnisplat_store_refusals", "Writes refused by the budget or the free-space "
+                                    "margin since start", registry=r)
         self.body_rejected = Counter("omnisplat_upload_rejected_total", "Bodies refused with 413", registry=r)
         self.build = Gauge("omnisplat_build_info", "Model loaded (value 1)",
                            ["model_name", "model_version", "model_sha256"], registry=r)
@@ -57,6 +64,10 @@ class ServiceMetrics:
             self.cache_hits.set(store.cache.hits)
             self.cache_misses.set(store.cache.misses)
             self.cache_bytes.set(store.cache.nbytes)
+            self.store_bytes.set(store.usage())
+            self.store_budget.set(store.budget_bytes)
+            self.store_evictions.set(store.evictions)
+            self.store_refusals.set(store.refusals)
         for gate in gates:
             self.in_flight.labels(kind=gate.name).set(gate.running)
             self.waiting.labels(kind=gate.name).set(gate.waiting)

@@ -18,13 +18,15 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+from pydantic import ValidationError
+
 from rasterizer.compaction import CompactionOptions, Provenance, compact_result
 from rasterizer.edit.scene import EditData
 from rasterizer.gaussians import Gaussians
 from rasterizer.ply import finite_rows
-from rasterizer.rig import check_rig_cap
-from rasterizer.view_colour import DEFAULT_SH_DEGREE, check_sh_degree
+from rasterizer.view_colour import DEFAULT_SH_DEGREE
 
+from .options import PipelineSettings, describe_error
 from .scene_adaptive import AdaptiveRangeOptions, reconstruct_adaptive
 
 #: Options keys that hold a JSON object of step options.
@@ -42,36 +44,28 @@ class PipelineOptions:
 
     @classmethod
     def from_dict(cls, options: dict[str, Any] | None) -> "PipelineOptions":
-        """Parse an options object; raises ``ValueError`` naming a bad or unknown key.
+        """Parse an options object (:class:`service.options.PipelineSettings`, strict types); raises
+        ``ValueError`` naming a bad or unknown key.
 
-        ``{"compaction": false}`` turns every compaction step off.
+        ``{"compaction": false}`` turns every compaction step off; a null ``compaction`` or
+        ``adaptive_range`` means its defaults.
         """
-        opts = dict(options or {})
-        near, far = opts.pop("near", None), opts.pop("far", None)
-        sh_degree, rig_cap = opts.pop("sh_degree", None), opts.pop("rig_cap_deg", None)
+        opts = {k: v for k, v in (options or {}).items()
+                if not (v is None and k in STEP_OPTION_KEYS)}
         try:
-            sh_degree = check_sh_degree(DEFAULT_SH_DEGREE if sh_degree is None else sh_degree)
-            rig_cap = check_rig_cap(rig_cap)
+            settings = PipelineSettings.model_validate(opts)
+        except ValidationError as exc:
+            raise ValueError(describe_error(exc)) from None
+        try:
+            compaction = settings.compaction_options()
         except ValueError as exc:
-            raise ValueError(f"options.{exc}") from None
-        comp = opts.pop("compaction", None)
-        if comp is False:
-            compaction = CompactionOptions.off()
-        elif comp is None or isinstance(comp, dict):
-            compaction = CompactionOptions.from_dict(comp)
-        else:
-            raise ValueError("options.compaction: expected a JSON object or false")
-        if "min_opacity" in opts:
-            compaction = CompactionOptions.from_dict({**compaction.to_dict(), "min_opacity": opts.pop("min_opacity")})
-        adaptive = opts.pop("adaptive_range", None)
-        if isinstance(adaptive, bool):
-            adaptive = {"enabled": adaptive}
-        if adaptive is not None and not isinstance(adaptive, dict):
-            raise ValueError("options.adaptive_range: expected a JSON object or a boolean")
-        if opts:
-            raise ValueError(f"unknown option(s) {sorted(opts)}; accepted: near, far, min_opacity, sh_degree, rig_cap_deg, "
-                             f"{', '.join(STEP_OPTION_KEYS)}")
-        return cls(near, far, compaction, AdaptiveRangeOptions.from_dict(adaptive), sh_degree, rig_cap)
+            raise ValueError(f"options.compaction: {exc}") from None
+        try:
+            adaptive = settings.adaptive_options()
+        except ValueError as exc:
+            raise ValueError(f"options.adaptive_range: {exc}") from None
+        sh_degree = DEFAULT_SH_DEGREE if settings.sh_degree is None else settings.sh_degree
+        return cls(settings.near, settings.far, compaction, adaptive, sh_degree, settings.rig_cap_deg)
 
 
 @dataclass(frozen=True)

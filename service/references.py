@@ -1,4 +1,4 @@
-"""The reference images a scene keeps: what +opt refines on and what edits re-select in.
+"""The reference images a scene keeps: what refinement refines on and what edits re-select in.
 
 Artifact ``references.npz``: uint8 ERP arrays ``image_a``, ``image_b`` (H x 2H x 3, at the
 encoder's input size, what it was fed); the poses are the scene metadata's ``poses.c2w`` (OpenCV).
@@ -13,7 +13,7 @@ import numpy as np
 from rasterizer.render import to_uint8
 
 from .errors import ServiceError
-from .store import SceneStore
+from .store import SceneNotFound, SceneStore
 
 #: the reference images a scene keeps for refinement: uint8 ERP arrays ``image_a``, ``image_b``
 #: at the encoder's input size (what it was fed)
@@ -45,13 +45,23 @@ def has_references(store: SceneStore, scene_id: str) -> bool:
     return store.artifact(scene_id, REFERENCES_ARTIFACT) is not None
 
 
+def references_artifact(store: SceneStore, scene_id: str) -> bytes:
+    """The scene's ``references.npz`` bytes; 404 when the scene is gone, 409 when it keeps no references."""
+    path = store.artifact(scene_id, REFERENCES_ARTIFACT)
+    try:
+        if path is not None:
+            return path.read_bytes()
+    except FileNotFoundError:
+        pass
+    if not store.exists(scene_id):
+        raise SceneNotFound(scene_id)
+    raise ReferencesMissing(f"scene {scene_id} has no stored reference images ({REFERENCES_ARTIFACT}); "
+                            "refinement, edits and rig renders need them")
+
+
 def load_references(store: SceneStore, scene_id: str) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """([erp_a, erp_b] uint8, [c2w_a, c2w_b] 4x4 OpenCV) of a stored scene; 409 when not kept."""
-    path = store.artifact(scene_id, REFERENCES_ARTIFACT)
-    if path is None:
-        raise ReferencesMissing(f"scene {scene_id} has no stored reference images ({REFERENCES_ARTIFACT}); "
-                                "+opt, edits and rig renders need them")
-    with np.load(path, allow_pickle=False) as z:
+    with np.load(io.BytesIO(references_artifact(store, scene_id)), allow_pickle=False) as z:
         images = [z["image_a"], z["image_b"]]
     c2w = store.meta(scene_id)["poses"]["c2w"]
     return images, [np.asarray(m, dtype=np.float64) for m in c2w]

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import BinaryIO
+from typing import Any, Callable, TypeVar
 
 import numpy as np
 
@@ -25,14 +25,29 @@ from .errors import BadInput, PayloadTooLarge, ServiceError, StoreUnavailable
 from .images import check_header, decode_rgb, encode
 from .inputs import Poses, RenderQuery, check_sweep_range
 from .limits import render_cost
+from .memory import release_memory
 from .pipeline import PipelineOptions, build_scene
 from .poses import PoseOptions, poses_for_scene
 from .references import REFERENCES_ARTIFACT, load_references, references_bytes
 from .runtime import ModelRuntime
-from .store import SceneNotFound, SceneStore, content_id
+from .store import SceneStore, StoreFull, content_id
+
+T = TypeVar("T")
 
 #: render near cull as a fraction of the scene's sweep near (scenes smaller than a room)
 NEAR_CULL_PER_SWEEP_NEAR = 0.1
+
+
+def storing(fn: Callable[..., T], *args: Any) -> T:
+    """``fn(*args)``, where a write the store's budget or free-space margin refused
+    (:class:`service.store.StoreFull`) is a 507 saying which limit refused it. Runs in the worker:
+    ``WorkGate.run(storing, fn, ...)``; afterwards free memory goes back to the system."""
+    try:
+        return fn(*args)
+    except StoreFull as exc:
+        raise StoreUnavailable(exc.message, code="store_full") from None
+    finally:
+        release_memory(force=True)  # after a reconstruction or an edit: its arrays are freed now
 
 
 def links(scene_id: str) -> dict[str, str]:
@@ -180,21 +195,12 @@ def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[
     return data, timings
 
 
-def open_ply(store: SceneStore, scene_id: str) -> tuple[BinaryIO, int]:
-    """(open file, size) of the scene's PLY, written (atomically) on first request.
+def ply_stream(store: SceneStore, scene_id: str) -> tuple[int, Iterator[bytes]]:
+    """(size, chunks) of the scene's PLY, made from its stored arrays as it is sent (no second copy on disk).
 
-    The caller streams from the open file: a scene deleted (or evicted) meanwhile still
-    sends the complete file, and one deleted before it opened is a 404.
+    The Gaussians are read (or taken from the cache) here, so a scene deleted or evicted while the
+    download runs still sends the whole file; one deleted before is a 404.
     """
-    from rasterizer.ply import ply_bytes
+    from rasterizer.ply import ply_stream as stream
 
-    for _ in range(2):
-        path = store.artifact(scene_id, "gaussians.ply")
-        if path is None:
-            path = store.put_artifact(scene_id, "gaussians.ply", ply_bytes(store.gaussians(scene_id)))
-        try:
-            fh = open(path, "rb")
-        except FileNotFoundError:  # deleted between the write and the open: look again
-            continue
-        return fh, os.fstat(fh.fileno()).st_size
-    raise SceneNotFound(scene_id)
+    return stream(store.gaussians(scene_id))

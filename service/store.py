@@ -2,11 +2,16 @@
 
 Layout under ``root``::
 
-    scenes/<id>/gaussians.npz   # means, scales, quats, opacities, sh (float32, uncompressed)
+    scenes/<id>/gaussians.npz   # means, scales (float32); quats, opacities, sh (float16): :data:`STORED_DTYPES`
     scenes/<id>/meta.json       # inputs, poses, options, model, timings, parent...
-    scenes/<id>/gaussians.ply   # written on first download (atomic), optional
+    scenes/<id>/<artifact>      # references, correspondences, selections (added atomically)
     tmp/                        # scenes being written; cleared at start-up
     trash/                      # scenes being deleted; cleared at start-up
+
+Budget: the scenes together stay within ``budget_bytes`` (0: no cap). A write that would pass it
+first evicts the least recently used scenes that no job holds (:meth:`SceneStore.hold`); when
+that cannot make room, or when the disk would keep less than ``min_free_bytes`` free, the write
+is refused with :class:`StoreFull` (the service answers 507) and nothing is stored.
 
 A scene is written into ``tmp/<random>/`` (each file fsynced), then renamed to
 ``scenes/<id>`` in one ``os.replace`` and the parent directory fsynced: a crash leaves
@@ -20,6 +25,7 @@ with ``meta["parent"] = parent_id``.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import logging
@@ -29,7 +35,8 @@ import shutil
 import threading
 import time
 import uuid
-from collections import OrderedDict
+from collections import Counter, OrderedDict
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Callable
 
@@ -40,6 +47,18 @@ from rasterizer.gaussians import Gaussians
 log = logging.getLogger("omnisplat.store")
 
 _FIELDS = ("means", "scales", "quats", "opacities", "sh")
+#: On-disk dtype of each field. Positions and scales keep float32 (a scene may span kilometres or
+#: millimetres, and a scale of 1e-6 m is a float16 subnormal); rotations, opacities and SH colour
+#: coefficients are float16 (relative error <= 2**-11): renders move by less than
+#: :data:`STORED_RENDER_TOLERANCE` (tests/service/test_store_budget.py checks it).
+STORED_DTYPES = {"means": np.float32, "scales": np.float32, "quats": np.float16, "opacities": np.float16,
+                 "sh": np.float16}
+#: Default cap of the scenes' bytes on disk (``OMNISPLAT_STORE_BUDGET_BYTES``): about 400 scenes of 470k Gaussians.
+DEFAULT_BUDGET_BYTES = 16 << 30
+#: Default free disk every store write must leave (``OMNISPLAT_MIN_FREE_STORE_BYTES``).
+DEFAULT_MIN_FREE_BYTES = 256 << 20
+#: Largest change of any rendered pixel (colour in [0, 1]) that storing a scene may cause.
+STORED_RENDER_TOLERANCE = 2.0 / 255.0
 _META_CACHE = 1024  # metadata dicts kept in memory
 
 
@@ -72,6 +91,28 @@ class SceneNotFound(KeyError):
 
 class StoreCorrupt(RuntimeError):
     """A stored scene cannot be read back (disk damage or outside interference)."""
+
+
+class StoreFull(OSError):
+    """A write refused by the store's budget or free-space margin; nothing was written.
+
+    An ``ENOSPC`` error, so that any handler of a full disk also handles it; ``code`` and
+    ``message`` say which limit refused it.
+    """
+
+    code = "store_full"
+
+    def __init__(self, message: str) -> None:
+        super().__init__(errno.ENOSPC, message)
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+def stored_form(g: Gaussians) -> Gaussians:
+    """``g`` as it reads back from the store: each field rounded to its :data:`STORED_DTYPES` dtype."""
+    return Gaussians(*(getattr(g, f).astype(STORED_DTYPES[f]) for f in _FIELDS))
 
 
 def content_id(*parts: bytes | str) -> str:
@@ -107,6 +148,20 @@ def _age(path: Path) -> float:
         return time.time() - path.stat().st_mtime
     except OSError:
         return float("inf")
+
+
+def _tree_bytes(path: Path) -> int:
+    """Bytes of the files directly in ``path`` (a scene folder); 0 when it is gone."""
+    total = 0
+    try:
+        with os.scandir(path) as entries:
+            for entry in entries:
+                with contextlib.suppress(OSError):
+                    if entry.is_file(follow_symlinks=False):
+                        total += entry.stat(follow_symlinks=False).st_size
+    except OSError:
+        return 0
+    return total
 
 
 def _write_file(path: Path, writer: Callable[[Any], None]) -> None:
@@ -184,7 +239,8 @@ class SceneStore:
     """Scenes on local disk (durable, atomic) plus a bounded in-memory LRU of their Gaussians."""
 
     def __init__(self, root: str | Path, *, cache_scenes: int = 8, cache_bytes: int = 1 << 30,
-                 max_scenes: int = 0, tmp_grace_s: float = 0.0) -> None:
+                 max_scenes: int = 0, tmp_grace_s: float = 0.0, budget_bytes: int = DEFAULT_BUDGET_BYTES,
+                 min_free_bytes: int = DEFAULT_MIN_FREE_BYTES) -> None:
         self.root = Path(root)
         self.scenes_dir = self.root / "scenes"
         self.tmp_dir = self.root / "tmp"
@@ -196,10 +252,28 @@ class SceneStore:
                 if tmp_grace_s and _age(child) < tmp_grace_s:
                     continue  # another process sharing the store may still be writing it
                 shutil.rmtree(child, ignore_errors=True) if child.is_dir() else child.unlink(missing_ok=True)
+        for folder in self.scenes_dir.iterdir():  # artifact writes a crash cut short (.<name>.<hex>.tmp)
+            for leftover in folder.glob(".*.tmp") if folder.is_dir() else ():
+                if not (tmp_grace_s and _age(leftover) < tmp_grace_s):
+                    leftover.unlink(missing_ok=True)
         self.max_scenes = max_scenes
+        self.budget_bytes = int(budget_bytes)
+        self.min_free_bytes = int(min_free_bytes)
         self.cache = _LRU(cache_scenes, cache_bytes)
         self._meta_cache: OrderedDict[str, dict] = OrderedDict()  # small; bounded by _META_CACHE
         self._lock = threading.Lock()
+        self._room = threading.Lock()  # eviction + the write it makes room for happen together
+        self._used: dict[str, float] = {}  # scene id -> last use (unix time); absent: the folder's mtime
+        self._holds: Counter[str] = Counter()  # scene id -> jobs using it (never evicted meanwhile)
+        self.evictions = 0
+        self.refusals = 0
+
+    @classmethod
+    def from_settings(cls, settings) -> "SceneStore":
+        """The store a :class:`service.config.Settings` describes."""
+        return cls(settings.store_dir, cache_scenes=settings.cache_scenes, cache_bytes=settings.cache_bytes,
+                   max_scenes=settings.max_scenes, tmp_grace_s=settings.store_tmp_grace_s,
+                   budget_bytes=settings.store_budget_bytes, min_free_bytes=settings.min_free_store_bytes)
 
     # -- paths ------------------------------------------------------------------
     def _dir(self, scene_id: str) -> Path:
@@ -213,6 +287,75 @@ class SceneStore:
 
     def count(self) -> int:
         return len(self.ids())
+
+    def usage(self) -> int:
+        """Bytes the stored scenes take on disk (every file of every scene folder)."""
+        return sum(_tree_bytes(self.scenes_dir / i) for i in self.ids())
+
+    @contextlib.contextmanager
+    def hold(self, *scene_ids: str) -> Iterator[None]:
+        """Keep ``scene_ids`` from eviction while the block runs (a job reading them); DELETE still removes them."""
+        with self._lock:
+            self._holds.update(scene_ids)
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._holds.subtract(scene_ids)
+                for sid in scene_ids:
+                    if self._holds[sid] <= 0:
+                        del self._holds[sid]
+
+    def _touch(self, scene_id: str) -> None:
+        self._used[scene_id] = time.time()
+
+    def _last_used(self, scene_id: str) -> float:
+        used = self._used.get(scene_id)
+        if used is not None:
+            return used
+        try:
+            return (self.scenes_dir / scene_id).stat().st_mtime
+        except OSError:  # deleted meanwhile: first in line, and delete() then finds nothing
+            return float("-inf")
+
+    def _check_margin(self, need: int) -> None:
+        """Refuse a write of ``need`` bytes that would leave less than ``min_free_bytes`` on the disk."""
+        if self.min_free_bytes <= 0:
+            return
+        try:
+            free = shutil.disk_usage(self.root).free
+        except OSError:
+            return  # the write itself reports an unreadable store
+        if free - need < self.min_free_bytes:
+            self.refusals += 1
+            raise StoreFull(f"the scene store's disk has {free} bytes free; writing {need} more would leave less "
+                            f"than the {self.min_free_bytes}-byte margin; nothing was stored")
+
+    def _make_room(self, need: int, keep: str | None = None) -> None:
+        """Evict least recently used scenes (not held, not ``keep``) until ``need`` more bytes fit the budget
+        and the scene count fits ``max_scenes``; :class:`StoreFull` when they cannot. Call with ``_room`` held."""
+        if self.budget_bytes <= 0 and self.max_scenes <= 0:
+            return
+        ids = self.ids()
+        sizes = {i: _tree_bytes(self.scenes_dir / i) for i in ids} if self.budget_bytes > 0 else {}
+        used = sum(sizes.values())
+        count = len(ids) + (1 if keep is None else 0)  # a new scene counts once it is renamed in
+        with self._lock:
+            held = set(self._holds)
+        victims = sorted((i for i in ids if i not in held and i != keep), key=self._last_used)
+        while (self.budget_bytes > 0 and used + need > self.budget_bytes) or \
+                (self.max_scenes > 0 and count > self.max_scenes):
+            if not victims:
+                self.refusals += 1
+                raise StoreFull(f"the scene store's budget ({self.budget_bytes} bytes, {self.max_scenes or 'any'} "
+                                f"scenes) cannot take {need} more bytes: {used} are used by scenes that jobs are "
+                                "using; nothing was stored")
+            victim = victims.pop(0)
+            log.info("store budget: evicting %s (least recently used)", victim)
+            if self.delete(victim):
+                self.evictions += 1
+                count -= 1
+            used -= sizes.get(victim, 0)
 
     def write_problem(self, min_free: int = 0) -> str | None:
         """Why the store cannot take a new scene now (not writable, under ``min_free`` bytes free), or None."""
@@ -241,10 +384,11 @@ class SceneStore:
             return self.meta(scene_id)
         meta = json_safe({**meta, "id": scene_id, "num_gaussians": len(gaussians),
                           "created_at": meta.get("created_at", time.time())})
+        arrays = {f: getattr(gaussians, f).astype(STORED_DTYPES[f]) for f in _FIELDS}
+        self._check_margin(sum(a.nbytes for a in arrays.values()) + sum(len(d) for d in (artifacts or {}).values()))
         staging = self.tmp_dir / f"{scene_id}-{uuid.uuid4().hex}"
         staging.mkdir()
         try:
-            arrays = {f: getattr(gaussians, f) for f in _FIELDS}
             _write_file(staging / "gaussians.npz", lambda f: np.savez(f, **arrays))
             for name, data in (artifacts or {}).items():
                 if "/" in name or name.startswith(".") or name in ("meta.json", "gaussians.npz"):
@@ -253,19 +397,21 @@ class SceneStore:
             text = json.dumps(meta, indent=1, sort_keys=True).encode()
             _write_file(staging / "meta.json", lambda f: f.write(text))
             _fsync_dir(staging)
-            try:
-                os.replace(staging, final)
-            except OSError:
-                if (final / "meta.json").is_file():  # a concurrent writer of the same id won
-                    shutil.rmtree(staging, ignore_errors=True)
-                    return self.meta(scene_id)
-                raise
+            with self._room:
+                self._make_room(_tree_bytes(staging))
+                try:
+                    os.replace(staging, final)
+                except OSError:
+                    if (final / "meta.json").is_file():  # a concurrent writer of the same id won
+                        shutil.rmtree(staging, ignore_errors=True)
+                        return self.meta(scene_id)
+                    raise
+                self._touch(scene_id)
             _fsync_dir(self.scenes_dir)
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
             raise
-        self.cache.put(scene_id, gaussians)
-        self._evict()
+        self.cache.put(scene_id, Gaussians(*arrays.values()))  # what reads back from disk, not the unrounded input
         return meta
 
     def put_artifact(self, scene_id: str, name: str, data: bytes) -> Path:
@@ -275,18 +421,25 @@ class SceneStore:
             raise SceneNotFound(scene_id)
         target = folder / name
         tmp = folder / f".{name}.{uuid.uuid4().hex}.tmp"
+        self._check_margin(len(data))
         try:
-            _write_file(tmp, lambda f: f.write(data))
-            os.replace(tmp, target)
+            with self._room:
+                self._make_room(len(data) - (target.stat().st_size if target.is_file() else 0), keep=scene_id)
+                _write_file(tmp, lambda f: f.write(data))
+                os.replace(tmp, target)
         except FileNotFoundError:  # the scene was deleted meanwhile
             raise SceneNotFound(scene_id) from None
         finally:
             tmp.unlink(missing_ok=True)
+        self._touch(scene_id)
         return target
 
     def artifact(self, scene_id: str, name: str) -> Path | None:
         path = self._dir(scene_id) / name
-        return path if path.is_file() else None
+        if not path.is_file():
+            return None
+        self._touch(scene_id)
+        return path
 
     def delete(self, scene_id: str) -> bool:
         """Remove a scene; it disappears in one rename, the files go afterwards."""
@@ -294,6 +447,7 @@ class SceneStore:
         self.cache.drop(scene_id)
         with self._lock:
             self._meta_cache.pop(scene_id, None)
+        self._used.pop(scene_id, None)
         grave = self.trash_dir / f"{scene_id}-{uuid.uuid4().hex}"
         try:
             os.replace(folder, grave)
@@ -302,17 +456,6 @@ class SceneStore:
         _fsync_dir(self.scenes_dir)
         shutil.rmtree(grave, ignore_errors=True)
         return True
-
-    def _evict(self) -> None:
-        if self.max_scenes <= 0:
-            return
-        ids = self.ids()
-        if len(ids) <= self.max_scenes:
-            return
-        ids.sort(key=lambda i: (self.scenes_dir / i).stat().st_mtime)
-        for victim in ids[: len(ids) - self.max_scenes]:
-            log.info("store full (%d scenes): evicting %s", self.max_scenes, victim)
-            self.delete(victim)
 
     # -- read -------------------------------------------------------------------
     def meta(self, scene_id: str) -> dict:
@@ -334,8 +477,10 @@ class SceneStore:
         return meta
 
     def gaussians(self, scene_id: str) -> Gaussians:
+        """The scene's Gaussians as float32 arrays (from the cache, else read and cached)."""
         g = self.cache.get(check_scene_id(scene_id))
         if g is not None:
+            self._touch(scene_id)
             return g
         path = self._dir(scene_id) / "gaussians.npz"
         try:
@@ -345,5 +490,6 @@ class SceneStore:
             raise SceneNotFound(scene_id) from None
         except Exception as exc:  # noqa: BLE001 - zip/shape errors all mean a damaged file
             raise StoreCorrupt(f"scene {scene_id}: gaussians.npz unreadable ({exc})") from None
+        self._touch(scene_id)
         self.cache.put(scene_id, g)
         return g

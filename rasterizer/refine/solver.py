@@ -1,4 +1,4 @@
-"""+opt: refine the colour (SH) and opacity of Gaussians against their reference views.
+"""Refinement (the paper's +opt): refine the colour (SH) and opacity of Gaussians against their reference views.
 
 OmniSplat+opt (paper Sec. 4.1 / Supp. A) starts from the feed-forward Gaussians
 and optimises only colour and opacity on the two reference views, positions
@@ -12,9 +12,13 @@ re-composites them (:func:`rasterizer.composite.accumulate`).
 
 Method (chosen by measurement on m3d, encoder Gaussians, see ``docs/bench/refine.md``):
 
-* Loss: squared error of the *alpha-normalised* colour C/A (what the ERP
-  renderer shows after its Yin/Yang merge) on the fitted reference pixels.
-  L2 makes the colour sub-problem a linear least-squares problem.
+* Loss (``loss``, default "l1"): the error of the *alpha-normalised* colour
+  C/A (what the ERP renderer shows after its Yin/Yang merge) on the fitted
+  reference pixels, solved as a weighted linear least-squares problem: "l1"
+  weights each fitted pixel once by 1 / its initial residual norm (IRLS),
+  "huber" by min(1, delta / residual), "l2" equally. L1 measured best with
+  view-dependent colour (docs/bench/refine.md); "l2" and "huber" stay for
+  that comparison (bench/refine.py).
 * Colour (default, ``optimise_opacity=False``): with opacities fixed, C/A is
   linear in the SH coefficients
   (:class:`~rasterizer.refine.backward.BlendOperator`); one iteration is
@@ -49,9 +53,6 @@ Method (chosen by measurement on m3d, encoder Gaussians, see ``docs/bench/refine
   split 0 +4.7% (reject; unguarded -0.78 dB), split 1 +0.6% (reject;
   unguarded would have gained +0.15 dB: a missed small gain). Costs
   ~2 x ``cross_steps`` CG steps (+3-7 s on the shared 2-core machine).
-* Loss variants (``loss`` "huber" / "l1"): one IRLS re-weighting of the
-  fitted pixels by their initial residual; measured worse than L2 at the m3d
-  target (Huber 24.61, L1 24.47 vs L2 24.94 dB), so L2 stays the default.
 
 Shapes: Gaussians N; per grid P = h * 3h pixels; M contributions.
 """
@@ -113,8 +114,7 @@ class RefineOptions:
     cross_check: bool = True      # colour mode: fit each reference alone, score the other (cross-view guard)
     cross_steps: int = 3          # guard: at most this many CG steps per single-reference fit
     cross_covis: float = 0.0      # guard fits only Gaussians seen by both references (>= this x mean strength); 0: all
-    loss: str = "l1"              # "l2" | "huber" | "l1": robust variants as fixed IRLS weights (initial residual);
-    # l1 measured best with view-dependent colour (docs/bench/refine.md; l2 until session 7)
+    loss: str = "l1"              # "l1" (measured best) | "huber" | "l2": fixed IRLS weights of the initial residual
     huber_delta: float = 0.1      # Huber threshold on the per-pixel colour error (RGB norm, [0, 1] units)
 
 

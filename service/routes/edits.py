@@ -14,6 +14,7 @@ from .. import edits as work
 from ..deps import RenderGateDep, SceneId, SettingsDep, StoreDep
 from ..errors import BadInput, NotFound
 from ..inputs import Projection, check_render_query
+from ..scenes import storing
 from ..schemas import SceneCreated, error_responses
 from ..store import SCENE_ID_PATTERN
 
@@ -106,19 +107,19 @@ def _require(store, scene_id: str) -> None:
 
 @router.post("/{scene_id}/selections", status_code=201, response_model=SelectionCreated,
              summary="Select an object from points (or a segment) in both references",
-             responses=error_responses(404, 409, 422))
+             responses=error_responses(404, 409, 422, 507))
 async def create_selection(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, response: Response,
                            body: Annotated[SelectionRequest, Body()]) -> SelectionCreated:
     _check_points(body.points or [], "points")
     _check_points(body.negative, "negative")
     _require(store, scene_id)
-    out = await gate.run(work.create_selection, store, scene_id, body.canonical())
+    out = await gate.run(storing, work.create_selection, store, scene_id, body.canonical())
     response.headers["Location"] = out["links"]["self"]
     return SelectionCreated(**out)
 
 
 @router.get("/{scene_id}/selections/{sel_id}/mask", response_class=Response, summary="Selection mask (PNG)",
-            responses={200: {"content": {"image/png": {}}}, **error_responses(404, 409, 422)})
+            responses={200: {"content": {"image/png": {}}}, **error_responses(404, 409, 422, 507)})
 async def selection_mask(scene_id: SceneId, sel_id: Annotated[str, Path(pattern=SCENE_ID_PATTERN)],
                          store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
                          view: Literal["a", "b"] | None = None, c2w: str | None = None,
@@ -126,30 +127,30 @@ async def selection_mask(scene_id: SceneId, sel_id: Annotated[str, Path(pattern=
                          height: int | None = None, fov_deg: float = 90.0) -> Response:
     query = _view_or_query(store, settings, view, c2w, width, projection, height, fov_deg)
     _require(store, scene_id)
-    data = await gate.run(work.mask_png, store, scene_id, sel_id, view, width, query)
+    data = await gate.run(storing, work.mask_png, store, scene_id, sel_id, view, width, query)
     return Response(data, media_type="image/png")
 
 
 @router.get("/{scene_id}/segments", response_class=Response, summary="Automatic segments (PNG)",
-            responses={200: {"content": {"image/png": {}}}, **error_responses(404, 409, 422)})
+            responses={200: {"content": {"image/png": {}}}, **error_responses(404, 409, 422, 507)})
 async def segments(scene_id: SceneId, store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
                    view: Literal["a", "b"] | None = None, c2w: str | None = None,
                    width: Annotated[int, Query()] = 1024, projection: Annotated[Projection, Query()] = "erp",
                    height: int | None = None, fov_deg: float = 90.0) -> Response:
     query = _view_or_query(store, settings, view, c2w, width, projection, height, fov_deg)
     _require(store, scene_id)
-    data = await gate.run(work.segments_png, store, scene_id, view, width, query)
+    data = await gate.run(storing, work.segments_png, store, scene_id, view, width, query)
     return Response(data, media_type="image/png")
 
 
 @router.post("/{scene_id}/edits", status_code=201, response_model=SceneCreated,
              summary="Edit the selected Gaussians; the result is a new scene (idempotent id)",
-             responses=error_responses(404, 409, 422))
+             responses=error_responses(404, 409, 422, 507))
 async def create_edit(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, response: Response,
                       body: Annotated[EditRequest, Body()]) -> SceneCreated:
     _require(store, scene_id)
     request = body.model_dump(exclude_none=True)
-    meta, created = await gate.run(work.create_edit, store, scene_id, request)
+    meta, created = await gate.run(storing, work.create_edit, store, scene_id, request)
     response.headers["Location"] = f"/v1/scenes/{meta['id']}"
     base = f"/v1/scenes/{meta['id']}"
     links = {"self": base, "render": f"{base}/render", "ply": f"{base}/gaussians.ply", "parent": f"/v1/scenes/{scene_id}"}

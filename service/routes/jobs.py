@@ -29,19 +29,15 @@ from ..store import SCENE_ID_PATTERN
 router = APIRouter(tags=["jobs"])
 
 class RefineRequest(BaseModel):
-    """Options of the +opt refinement (colour/opacity on the reference views, geometry fixed)."""
+    """Options of the refinement (colour on the reference views, geometry fixed); strict types."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
-    iterations: int = Field(100, ge=0, le=2000, description="conjugate-gradient steps on colour (or Adam steps "
-                                                             "on opacity when optimise_opacity); early-stopped "
+    iterations: int = Field(100, ge=0, le=2000, description="conjugate-gradient steps on colour; early-stopped "
                                                              "on held-out reference pixels")
     height: int = Field(128, ge=16, le=1024, description="Yin/Yang working height h (grids h x 3h per reference)")
     sh_degree: int = Field(0, ge=0, le=1, description="0: colour (SH DC) only; 1: also degree-1 SH")
     colour_reg: float = Field(2.0, ge=0.0, le=1e4, description="pull toward the initial colours (relative)")
-    optimise_opacity: bool = Field(False, description="also optimise opacity (Adam on logit; slower, "
-                                                      "did not help on the dev scenes)")
-    opacity_lr: float = Field(0.01, gt=0.0, le=1.0)
     holdout: float = Field(0.1, ge=0.0, le=0.5, description="fraction of reference pixels held out for early stop")
     patience: int = Field(5, ge=0, le=2000, description="stop after this many steps without held-out gain (0: off)")
     cross_check: bool = Field(True, description="cross-view guard: fit each reference alone and score the other; "
@@ -68,7 +64,7 @@ def _gate(request: Request) -> WorkGate:
 
 
 @router.post("/v1/scenes/{scene_id}/refine", status_code=202, response_model=JobStatus,
-             summary="Refine colour and opacity on the reference views (+opt); runs as a job",
+             summary="Refine the colours on the reference views; runs as a job",
              responses=error_responses(404, 409, 422, 503))
 async def refine_scene(scene_id: SceneId, request: Request, response: Response, store: StoreDep,
                        body: Annotated[RefineRequest | None, Body()] = None) -> JobStatus:
@@ -104,7 +100,7 @@ async def job_status(job_id: Annotated[str, Path(pattern=SCENE_ID_PATTERN)], req
     if job is None:
         if store.exists(job_id):  # finished before a restart: the result is in the store
             meta = store.meta(job_id)
-            if meta.get("parent"):
+            if meta.get("parent") and meta.get("refine"):  # a refinement's result (not an edit's)
                 return JobStatus(id=job_id, status="done", progress=1.0, scene_id=job_id,
                                  parent_id=meta["parent"], error=None)
         raise NotFound(f"no job with id {job_id!r}", code="job_not_found")

@@ -24,6 +24,8 @@ from ..deps import (
 from ..errors import NotFound
 from ..images import MEDIA_TYPES
 from ..inputs import Compositing, ImageFormat, Projection, check_render_query, check_sweep_range, parse_options, parse_poses
+from ..memory import trimmed
+from ..options import options_json_schema, options_markdown
 from ..schemas import SceneCreated, SceneMeta, error_responses
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
@@ -32,6 +34,9 @@ _IDENTITY = "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1"
 _POSES_EXAMPLE = json.dumps({"convention": "opencv", "c2w": [
     [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
     [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]]})
+_OPTIONS_DOC = ("optional JSON object (schema `SceneOptions`, strict types: a wrong type or an unknown key is a "
+                "422), e.g. `{\"near\": 0.5, \"far\": 20, \"sh_degree\": 0}`. Every key:\n\n" + options_markdown())
+_OPTIONS_SCHEMA = {"contentMediaType": "application/json", "contentSchema": options_json_schema()}
 _IMMUTABLE = "public, max-age=31536000, immutable"
 _COMPOSITING_DOC = ("`plain` (default): front-to-back alpha compositing over a black background, what every "
                     "3DGS viewer shows of `gaussians.ply`. `va`: colour divided by accumulated alpha (V/A, the "
@@ -62,20 +67,7 @@ async def create_scene(
     runtime: ReadyRuntimeDep,
     gate: InferenceGateDep,
     metrics: MetricsDep,
-    options: Annotated[str | None, Form(description='optional JSON object, e.g. {"near": 0.5, "far": 20, '
-                                                          '"min_opacity": 0.05, "compaction": {"resolve_overlap": "split", '
-                                                          '"merge_duplicates": true, "max_count": null}, '
-                                                          '"adaptive_range": false}; "compaction": false keeps '
-                                                          'every Gaussian; without poses: "camera_height" or '
-                                                          '"baseline" (metres) sets the scale; "refine_poses": true '
-                                                          'refines given poses against the images; "sh_degree": 0 '
-                                                          'keeps one colour per Gaussian (default 1: view-dependent '
-                                                          'colour, each reference sees its own image); '
-                                                          '"rig_cap_deg": 20 re-colours the pixels within 20 deg of '
-                                                          "each camera's nadir, where tripod captures show the rig, "
-                                                          'from the other panorama (0: off; default: 20 where both '
-                                                          "references show a rig at their nadir, the metadata's "
-                                                          '"rig", else 0)')] = None,
+    options: Annotated[str | None, Form(description=_OPTIONS_DOC, json_schema_extra=_OPTIONS_SCHEMA)] = None,
     poses: Annotated[str | None, Form(description='JSON {"convention": "opencv"|"opengl", "c2w": [A, B]}, '
                                                   "each camera-to-world 4x4 or 3x4; leave out (or c2w null) to "
                                                   "estimate them from the images (world = camera A)",
@@ -96,7 +88,7 @@ async def create_scene(
         return SceneCreated(id=scene_id, num_gaussians=meta["num_gaussians"], timings=meta.get("timings", {}),
                             links=work.links(scene_id), cached=True)
     await anyio.to_thread.run_sync(work.check_free_space, store, settings.min_free_store_bytes)
-    meta, timings = await gate.run(work.create_scene, runtime, store, scene_id, data_a, data_b,
+    meta, timings = await gate.run(work.storing, work.create_scene, runtime, store, scene_id, data_a, data_b,
                                    parsed_poses, parsed_options, pipeline_options, pose_options, limits)
     metrics.observe_stages(timings)
     metrics.scenes_created.inc()
@@ -137,7 +129,7 @@ async def render_scene(
     cost = work.check_render_cost(store, scene_id, query, settings.max_render_cost)
     if cost > settings.heavy_render_cost:  # big renders queue with reconstructions: their peaks never add
         gate = heavy_gate
-    data, timings = await gate.run(work.render_scene, store, scene_id, query)
+    data, timings = await gate.run(trimmed, work.render_scene, store, scene_id, query)
     metrics.observe_stages({f"render_{k}": v for k, v in timings.items()})
     etag = hashlib.sha256(f"{scene_id}|{query.c2w.round(9).tolist()}|{projection}|{width}|{height}|"
                           f"{fov_deg}|{format}|{compositing}|{rig}".encode()).hexdigest()[:32]
@@ -146,25 +138,19 @@ async def render_scene(
                              "Server-Timing": ", ".join(f"{k};dur={v * 1000:.1f}" for k, v in timings.items())})
 
 
-_PLY_CHUNK = 1 << 20
-
-
 @router.get(
     "/{scene_id}/gaussians.ply", response_class=StreamingResponse, summary="The Gaussians as a 3DGS PLY",
     responses={200: {"content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
                      "description": "binary little-endian INRIA 3DGS PLY in the input world frame"},
-               **error_responses(404, 422, 503, 507)},
+               **error_responses(404, 422, 503)},
 )
 async def scene_ply(scene_id: SceneId, store: StoreDep, gate: RenderGateDep) -> StreamingResponse:
     _require_scene(store, scene_id)
-    fh, size = await gate.run(work.open_ply, store, scene_id)
+    size, blocks = await gate.run(work.ply_stream, store, scene_id)
 
-    async def chunks():
-        try:  # from the open file: a deletion meanwhile does not cut the download short
-            while block := await anyio.to_thread.run_sync(fh.read, _PLY_CHUNK):
-                yield block
-        finally:
-            fh.close()
+    async def chunks():  # made from the stored arrays block by block, in a worker thread
+        while (block := await anyio.to_thread.run_sync(next, blocks, None)) is not None:
+            yield block
 
     return StreamingResponse(chunks(), media_type="application/octet-stream",
                              headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{scene_id}-ply"',

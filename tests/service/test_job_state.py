@@ -74,11 +74,12 @@ def test_an_owner_process_that_exited_is_reported_at_once(tmp_path):
             f"r = JobRegistry(files=JobFiles(sys.argv[1], identity('doomed'))); j, _ = r.submit('{JOB}', '{PARENT}', {{}});"
             " r.mark_running(j)")
     subprocess.run([sys.executable, "-c", code, str(tmp_path)], check=True)
-    files = JobFiles(tmp_path, identity("survivor"))
-    assert json.loads((tmp_path / f"{JOB}.json").read_text())["status"] == "running"
+    files = JobFiles(tmp_path, identity("survivor"))  # start-up rewrites the lost record as failed
+    on_disk = json.loads((tmp_path / f"{JOB}.json").read_text())
+    assert on_disk["status"] == "failed" and on_disk["owner"]["replica"] == "doomed"
     seen = JobRegistry(files=files).get(JOB)
     assert seen.status == "failed" and "exited while the job was running" in seen.error["message"]
-    assert files.lost(json.loads((tmp_path / f"{JOB}.json").read_text())) is not None
+    assert files.lost({**on_disk, "status": "running"}) is not None
 
 
 def test_the_heartbeat_keeps_a_slow_job_alive(tmp_path, monkeypatch):

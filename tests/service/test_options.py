@@ -1,0 +1,100 @@
+"""The options model (service.options): strict types, one schema, and the dataclasses built from it."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from rasterizer.compaction import CompactionOptions
+from service.errors import BadInput
+from service.inputs import parse_options
+from service.options import SceneOptions, options_json_schema, options_markdown
+from service.pipeline import PipelineOptions
+from service.scene_adaptive import AdaptiveRangeOptions
+
+
+@pytest.mark.parametrize("options, field", [
+    ('{"compaction": {"merge_duplicates": "no"}}', "compaction.merge_duplicates"),
+    ('{"adaptive_range": {"enabled": "no"}}', "adaptive_range.enabled"),
+    ('{"compaction": {"max_count": true}}', "compaction.max_count"),
+    ('{"compaction": {"max_count": 2.5}}', "compaction.max_count"),
+    ('{"compaction": {"min_opacity": 1e400}}', "compaction.min_opacity"),
+    ('{"adaptive_range": {"margin": 1e400}}', "adaptive_range.margin"),
+    ('{"near": 1e400}', "near"),
+    ('{"compaction": {"merge_smooth": 1}}', "compaction.merge_smooth"),
+    ('{"compaction": {"resolve_overlap": true}}', "compaction.resolve_overlap"),
+    ('{"compaction": {"smooth_levels": 2}}', "compaction.smooth_levels"),
+    ('{"refine_poses": "yes"}', "refine_poses"),
+    ('{"sh_degree": true}', "sh_degree"),
+    ('{"compaction": true}', "compaction"),
+    ('{"adaptive_range": "on"}', "adaptive_range"),
+])
+def test_wrong_types_are_422_naming_the_field(options, field):
+    with pytest.raises(BadInput) as info:
+        parse_options(options, None)
+    assert info.value.status == 422 and info.value.code == "invalid_options"
+    assert f"options.{field}" in info.value.message, info.value.message
+
+
+def test_typed_values_build_the_rasterizer_dataclasses_by_keyword():
+    raw, pipeline, poses = parse_options(json.dumps({
+        "near": 1, "far": 20.5, "min_opacity": 0.02, "sh_degree": 0, "baseline": 0.5,
+        "compaction": {"merge_duplicates": True, "max_count": 1000, "resolve_overlap": "split"},
+        "adaptive_range": {"enabled": True, "margin": 0.3}}), None)
+    assert raw["near"] == 1  # the object as sent: scene ids hash it
+    assert (pipeline.near, pipeline.far, pipeline.sh_degree) == (1.0, 20.5, 0)
+    assert pipeline.compaction == CompactionOptions(min_opacity=0.02, merge_duplicates=True, max_count=1000,
+                                                    resolve_overlap="split")
+    assert pipeline.adaptive_range == AdaptiveRangeOptions(enabled=True, margin=0.3)
+    assert poses.baseline == 0.5 and poses.camera_height is None
+    assert parse_options('{"compaction": false}', None)[1].compaction == CompactionOptions.off()
+    assert parse_options('{"adaptive_range": true}', None)[1].adaptive_range.enabled is True
+    assert PipelineOptions.from_dict({}) == parse_options(None, None)[1]
+    assert PipelineOptions.from_dict({}).compaction == CompactionOptions()
+
+
+def test_defaults_are_the_dataclasses_and_the_schema_lists_every_field():
+    assert SceneOptions().compaction_options() == CompactionOptions()
+    assert SceneOptions().adaptive_options() == AdaptiveRangeOptions()
+    schema = options_json_schema()
+    assert "$ref" not in json.dumps(schema)
+    comp = next(s for s in schema["properties"]["compaction"]["anyOf"] if s.get("type") == "object")
+    assert comp["properties"]["merge_smooth"]["default"] is True
+    assert comp["properties"]["max_count"]["anyOf"][0]["type"] == "integer"
+    text = options_markdown()
+    for name in ("near", "far", "sh_degree", "rig_cap_deg", "compaction.max_bytes", "adaptive_range.margin"):
+        assert f"`{name}`" in text
+    assert "smooth_levels" not in text and "merge_duplicates\": true" not in text
+
+
+def test_scene_post_form_field_documents_the_schema(tmp_path):
+    from service.app import create_app
+    from service.config import Settings
+
+    spec = create_app(Settings(model_path=tmp_path / "m.onnx", store_dir=tmp_path / "s")).openapi()
+    body = next(v for k, v in spec["components"]["schemas"].items() if k.startswith("Body_create_scene"))
+    field = body["properties"]["options"]
+    assert field["contentSchema"]["properties"]["compaction"]
+    assert "`compaction.merge_duplicates` (bool, default `False`)" in field["description"]
+    assert '"resolve_overlap": "split"' not in field["description"]
+
+
+@pytest.mark.parametrize("body", [{"optimise_opacity": True}, {"opacity_lr": 0.1}, {"loss": "l2"}, {"loss": "huber"},
+                                  {"cross_check": "no"}, {"iterations": True}, {"colour_reg": float("inf")}])
+def test_refine_request_has_no_experiment_switches_and_strict_types(body):
+    from pydantic import ValidationError
+
+    from service.routes.jobs import RefineRequest
+
+    with pytest.raises(ValidationError):
+        RefineRequest.model_validate(body)
+    assert set(RefineRequest.model_fields) == {"iterations", "height", "sh_degree", "colour_reg", "holdout",
+                                               "patience", "cross_check"}
+
+
+def test_refine_solver_default_loss_is_the_documented_one():
+    from rasterizer.refine import solver
+
+    assert solver.RefineOptions().loss == "l1"
+    assert "L2 stays the default" not in solver.__doc__ and 'default "l1"' in solver.__doc__
