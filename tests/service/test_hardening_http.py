@@ -24,13 +24,7 @@ from service.config import Settings
 from service.errors import install_error_handlers
 from service.limits import BodySizeLimit
 from service.server import server_config
-from tests.service.test_service_api import (  # noqa: F401 - model_path is a fixture
-    LiveServer,
-    make_settings,
-    model_path,
-    panorama,
-    post_scene,
-)
+from tests.service._support import LiveServer, make_settings, panorama, post_scene
 
 
 class TinyServer:

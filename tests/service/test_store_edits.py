@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from service.store import SceneStore
-from tests.service.test_service_api import LiveServer, make_settings, model_path, panorama, post_scene  # noqa: F401
+from tests.service._support import LiveServer, make_settings, panorama, post_scene
 
 
 @pytest.fixture(scope="module")
