@@ -32,7 +32,7 @@ import httpx
 import numpy as np
 
 from bench import DEV_DATA
-from bench.service import _free_port
+from bench.service import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -61,7 +61,7 @@ uvicorn.Server(server_config(app_module.create_app(settings), settings, log_leve
 
 class Server:
     def __init__(self, model: Path, store: Path, trim: bool = True, **env) -> None:
-        self.port = _free_port()
+        self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.env = {k: v for k, v in os.environ.items() if not k.startswith("OMNISPLAT_")}
         self.env.update({"OMNISPLAT_MODEL_PATH": str(model), "OMNISPLAT_STORE_DIR": str(store),

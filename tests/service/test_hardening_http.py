@@ -24,7 +24,7 @@ from service.config import Settings
 from service.errors import install_error_handlers
 from service.limits import BodySizeLimit
 from service.server import server_config
-from tests.service._support import LiveServer, make_settings, panorama, post_scene
+from tests.service._support import POSES, LiveServer, make_settings, panorama, post_scene
 
 
 class TinyServer:
@@ -377,8 +377,6 @@ def _post_multipart(server, body: bytes, boundary: str = "b0undary") -> httpx.Re
 
 
 def test_multipart_without_its_closing_boundary_is_400(slots):
-    from tests.service.test_service_api import POSES
-
     parts = [("image_a", panorama(seed=143)), ("image_b", panorama(seed=144)), ("poses", POSES.encode())]
     r = _post_multipart(slots, _multipart(parts, close=False))
     assert r.status_code == 400, r.text
@@ -388,8 +386,6 @@ def test_multipart_without_its_closing_boundary_is_400(slots):
 
 
 def test_duplicate_form_fields_are_422_naming_the_field(slots):
-    from tests.service.test_service_api import POSES
-
     for dup in ("poses", "image_a"):
         parts = [("image_a", panorama(seed=145)), ("image_b", panorama(seed=146)), ("poses", POSES.encode())]
         parts.append(next(p for p in parts if p[0] == dup))
