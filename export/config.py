@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import Literal, get_args
 
 from rasterizer.depth_gaussians import SURFEL_MAX_STRETCH, SURFEL_SCALE_FACTOR
+from rasterizer.sweep import FAR_PER_BASELINE, NEAR_PER_BASELINE
 
 Matcher = Literal["window", "descriptor"]
 Readout = Literal["wta", "softargmin"]
@@ -109,10 +110,10 @@ class EncoderConfig:
     opacity_max: float = 0.99
     opacity_gamma: float = 2.0
     # default runtime sweep range in units of the baseline (rasterizer.sweep.default_near_far)
-    near_per_baseline: float = 0.3
-    far_per_baseline: float = 20.0
+    near_per_baseline: float = NEAR_PER_BASELINE
+    far_per_baseline: float = FAR_PER_BASELINE
     name: str = "omnisplat-trainingfree"
-    version: str = "0.14.0"
+    version: str = "0.15.0"
 
     def __post_init__(self) -> None:
         if self.width != 2 * self.height:

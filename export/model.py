@@ -62,7 +62,7 @@ from .fine_sweep import FineSweep
 from .gaussian_head import GaussianHead
 from .layout import clamp_below_floor, fit_planes, plane_prior, with_plane_prior
 from .matches import Matches
-from .readout import DepthReadout, index_to_inverse
+from .readout import DepthReadout, baseline_of, index_to_inverse, plane_step
 from .yin_yang_sampling import YinYangSampler
 
 
@@ -121,7 +121,7 @@ class OmniSplatEncoder(nn.Module):
             return erps.unsqueeze(1)
         return self.sampler(erps)
 
-    def lr_consistency(self, k, inv, warp_grids, rel_rt, inv_depths):
+    def lr_consistency(self, k, inv, warp_grids, rel_rt, inv_depths, b):
         """1 where the A->B and B->A depths agree within ``lr_tol_planes``, else 0.
 
         k, inv: (2, G, 1, h, w) plane index and inverse range per target map.
@@ -132,7 +132,6 @@ class OmniSplatEncoder(nn.Module):
         """
         g_count, h, w = self.num_grids, self.feat_h, self.feat_w
         d_count = inv_depths.shape[0]
-        step = (inv_depths[d_count - 1] - inv_depths[0]) / (d_count - 1)
         idx = k.round().clamp(0, d_count - 1).to(torch.int64)  # (2, G, 1, h, w)
         # expected inverse range from the source camera, all (direction, target grid) at once
         rng = 1.0 / inv.clamp(min=1e-6)  # (2, G, 1, h, w)
@@ -151,6 +150,7 @@ class OmniSplatEncoder(nn.Module):
         else:
             m = domain_mask(loc).reshape(2, g_count, g_count, h, w)
         seen = (seen * m).sum(dim=2) / m.sum(dim=2).clamp(min=1e-6)
+        step = plane_step(expected, inv_depths, b)  # one candidate step at the source's inverse range
         ok = ((seen - expected).abs() <= self.cfg.lr_tol_planes * step).to(k.dtype)
         return ok.reshape(2, g_count, 1, h, w)
 
@@ -192,7 +192,7 @@ class OmniSplatEncoder(nn.Module):
             return inv
         return clamp_below_floor(planes, inv, rays, c2w, self.cfg.floor_clamp_tol)
 
-    def cascade(self, inv, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes):
+    def cascade(self, inv, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes, b):
         """Coarse inverse range (2G, 1, h, w) -> refined on the fine grid, with that grid's grey guide.
 
         Guided upsampling of the coarse map seeds :class:`FineSweep`; with
@@ -206,11 +206,12 @@ class OmniSplatEncoder(nn.Module):
         size = (self.fine_h, self.fine_w)
         grey = F.avg_pool2d(grey_full, cfg.fine_downscale) if cfg.fine_downscale > 1 else grey_full
         seed = guided_upsample(grey_low, inv, grey, cfg.upsample_radius, cfg.upsample_eps, wrap).clamp(min=lo, max=hi)
-        plane_step = (hi - lo) / (d_count - 1)
-        refined, _, conf_fill = self.fine(seed, grey, self.fine_rays, rel_rt, plane_step * cfg.fine_step, lo, hi)
+        step = plane_step(seed, inv_depths, b)  # (2G, 1, h, w) one coarse candidate step at each pixel
+        refined, _, conf_fill = self.fine(seed, grey, self.fine_rays, rel_rt, step * cfg.fine_step, lo, hi)
         if not cfg.fine_fill:
             return refined, grey
-        ok = self.fine.lr_consistency(refined, self.fine_rays, rel_rt, plane_step * cfg.fine_lr_tol)
+        ok = self.fine.lr_consistency(refined, self.fine_rays, rel_rt,
+                                      lambda e: plane_step(e, inv_depths, b) * cfg.fine_lr_tol)
         obs = F.interpolate(obs.reshape(2 * g_count, 1, *obs.shape[-2:]), size=size, mode="bilinear",
                             align_corners=False)
         guide = self.fine_plane_guide.unsqueeze(0).expand(2, g_count, 3, *size).reshape(2 * g_count, 3, *size)
@@ -235,10 +236,11 @@ class OmniSplatEncoder(nn.Module):
         d_count = cost.shape[2]
         cost = self.aggregation(cost.reshape(2 * g_count, d_count, h, w), grey_low)
         k, conf, conf_fill = self.readout(cost)  # (2G, 1, h, w)
-        inv = index_to_inverse(k, inv_depths)
+        b = baseline_of(c2w)
+        inv = index_to_inverse(k, inv_depths, b)
 
         ok = self.lr_consistency(k.reshape(2, g_count, 1, h, w), inv.reshape(2, g_count, 1, h, w),
-                                 warp_grids, rel_rt, inv_depths)
+                                 warp_grids, rel_rt, inv_depths, b)
         obs = self.observability(rel_rt, inv_depths)
         reliable = (ok * obs).reshape(2 * g_count, 1, h, w)
         weight = conf * reliable
@@ -264,7 +266,7 @@ class OmniSplatEncoder(nn.Module):
 
         size = (self.full_h, self.full_w)
         if self.fine is not None:
-            filled, grey_low = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes)
+            filled, grey_low = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes, b)
         if cfg.upsample == "guided" and filled.shape[-2:] != size:
             inv_full = guided_upsample(grey_low, filled, grey_full, cfg.upsample_radius, cfg.upsample_eps, wrap)
         elif filled.shape[-2:] != size:
@@ -278,6 +280,9 @@ class OmniSplatEncoder(nn.Module):
         conf_full = conf_full.reshape(2, g_count, *size)
 
         means, scales, quats, opac, sh_dc = self.head(rng, conf_full, full, c2w, cam_quats)
-        tol = self.cfg.lr_tol_planes * (inv_depths[d_count - 1] - inv_depths[0]) / (d_count - 1)
+
+        def tol(expected):  # lr_tol_planes candidate steps at the other view's inverse range
+            return self.cfg.lr_tol_planes * plane_step(expected, inv_depths, b)
+
         matches = self.matches(rng, conf_full, self.head.rays, rel_rt, tol)
         return means, scales, quats, opac, sh_dc, rng, conf_full, matches
