@@ -74,3 +74,78 @@ def ssim(pred: np.ndarray, target: np.ndarray) -> float:
             channel_axis=-1 if pred.ndim == 3 else None,
         )
     )
+
+
+#: Luma weights of conventions section 6 (sharpness, GMSD).
+LUMA = (0.299, 0.587, 0.114)
+#: GMSD's stability constant for images in [0, 1] (Xue et al. 2014: 170 for [0, 255] -> 170 / 255^2).
+GMSD_C = 0.0026
+
+
+def luma(image: np.ndarray) -> np.ndarray:
+    """(H, W) luma of an (H, W, 3) image clipped to [0, 1]."""
+    return np.clip(np.asarray(image, dtype=np.float64), 0.0, 1.0) @ np.asarray(LUMA)
+
+
+def above_nadir_rows(height: int, cap_deg: float = NADIR_CAP_DEG) -> np.ndarray:
+    """(H,) bool: ERP rows whose pixel-centre latitude lies above -(90 - cap_deg) degrees."""
+    return (np.arange(height) + 0.5) / height * 180.0 < 180.0 - cap_deg
+
+
+def box5_erp(y: np.ndarray) -> np.ndarray:
+    """5x5 box mean of an (H, W) ERP map, wrapping in longitude and clamped (edge rows repeated) in latitude."""
+    p = np.pad(y, ((2, 2), (0, 0)), mode="edge")
+    p = np.pad(p, ((0, 0), (2, 2)), mode="wrap")
+    c = np.cumsum(np.cumsum(np.pad(p, ((1, 0), (1, 0))), 0), 1)
+    h, w = y.shape
+    return (c[5:5 + h, 5:5 + w] - c[:h, 5:5 + w] - c[5:5 + h, :w] + c[:h, :w]) / 25.0
+
+
+def detail(image: np.ndarray, rows: np.ndarray | None = None) -> float:
+    """Mean |Y - box5(Y)| of an ERP image over ``rows`` (default all): its high-frequency energy."""
+    y = luma(image)
+    d = np.abs(y - box5_erp(y))
+    return float(d[rows].mean() if rows is not None else d.mean())
+
+
+def sharpness(pred: np.ndarray, target: np.ndarray, cap_deg: float = NADIR_CAP_DEG) -> float:
+    """detail(pred) / detail(target) over the rows above the nadir cap: 1 = as sharp as the target,
+    blur and ghosts fall towards 0 (conventions section 6)."""
+    pred, target = _check_pair(pred, target)
+    rows = above_nadir_rows(pred.shape[0], cap_deg)
+    return detail(pred, rows) / max(detail(target, rows), 1e-12)
+
+
+def _prewitt(y: np.ndarray) -> np.ndarray:
+    """Gradient magnitude of an (H, W) map with 3x3 Prewitt kernels (/3), edges replicated."""
+    p = np.pad(y, 1, mode="edge")
+    gx = (p[:-2, 2:] + p[1:-1, 2:] + p[2:, 2:] - p[:-2, :-2] - p[1:-1, :-2] - p[2:, :-2]) / 3.0
+    gy = (p[2:, :-2] + p[2:, 1:-1] + p[2:, 2:] - p[:-2, :-2] - p[:-2, 1:-1] - p[:-2, 2:]) / 3.0
+    return np.sqrt(gx * gx + gy * gy)
+
+
+def gmsd(pred: np.ndarray, target: np.ndarray, cap_deg: float = NADIR_CAP_DEG) -> float:
+    """Gradient magnitude similarity deviation (Xue et al., IEEE TIP 2014) over the rows above the nadir cap.
+
+    Luma, 2x2 average pooling, Prewitt 3x3 gradient magnitudes m_r, m_t; GMS = (2 m_r m_t + c) /
+    (m_r^2 + m_t^2 + c) with c = ``GMSD_C``; GMSD = the standard deviation of GMS. 0 = identical structure.
+    """
+    pred, target = _check_pair(pred, target)
+    rows = above_nadir_rows(pred.shape[0], cap_deg)
+
+    def pooled(img):
+        y = luma(img)
+        h, w = (y.shape[0] // 2) * 2, (y.shape[1] // 2) * 2
+        return y[:h, :w].reshape(h // 2, 2, w // 2, 2).mean(axis=(1, 3))
+
+    mp, mt = _prewitt(pooled(pred)), _prewitt(pooled(target))
+    gms = (2.0 * mp * mt + GMSD_C) / (mp * mp + mt * mt + GMSD_C)
+    keep = rows[: 2 * gms.shape[0]].reshape(-1, 2).all(axis=1)  # pooled rows wholly above the cap
+    return float(gms[keep].std())
+
+
+def real_capture_scores(pred: np.ndarray, target: np.ndarray) -> dict:
+    """The per-target figures of conventions section 6 for real captures: PSNR above the nadir cap (the
+    headline), full PSNR, WS-PSNR, sharpness and GMSD."""
+    return {"psnr_above_nadir": psnr_above_nadir(pred, target), "psnr": psnr(pred, target),
+            "ws_psnr": ws_psnr(pred, target), "sharpness": sharpness(pred, target), "gmsd": gmsd(pred, target)}

@@ -12,7 +12,9 @@ A :class:`Setting` is one point of the error-against-run-time plot. Kinds:
 
 A model setting with ``rig`` composites the capture rig both references show at their nadir over each
 render (``rig=true`` of the render API, :mod:`rasterizer.rig`); on a scene without a detected rig it is
-the plain render.
+the plain render. A model setting with ``api`` reconstructs through the service's own path
+(``service.pipeline.build_scene`` with default options: encoder, compaction) and renders as the render API does
+(its near cull scaled to the sweep's near plane): what a user gets from POST + GET render.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ class Setting:
     rasterizer: Rasterizer = "yinyang"
     downscale: int | None = None  # feature grid = Gaussian grid / downscale; None = exporter preset
     rig: bool = False  # composite the capture rig over the render (module docstring)
+    api: bool = False  # the service's pipeline and render API (module docstring)
 
     @property
     def name(self) -> str:
@@ -54,7 +57,9 @@ class Setting:
         enc = "ERP" if self.erp_encoder else "YY"
         ds = "" if self.downscale is None else f", features /{self.downscale}"
         rig = ", capture rig layer" if self.rig else ""
-        return f"{self.height}x{self.width}, {self.planes} planes{ds}, {enc} encoder, {self._raster_label()} rasterizer{rig}"
+        api = ", service pipeline" if self.api else ""
+        return (f"{self.height}x{self.width}, {self.planes} planes{ds}, {enc} encoder, {self._raster_label()} "
+                f"rasterizer{rig}{api}")
 
     @property
     def slug(self) -> str:
@@ -64,7 +69,8 @@ class Setting:
             return f"oracle_{self.rasterizer}"
         enc = "erp" if self.erp_encoder else "yy"
         ds = "" if self.downscale is None else f"_d{self.downscale}"
-        return f"{self.height}x{self.width}_p{self.planes}{ds}_{enc}enc_{self.rasterizer}{'_rig' if self.rig else ''}"
+        tail = ("_rig" if self.rig else "") + ("_api" if self.api else "")
+        return f"{self.height}x{self.width}_p{self.planes}{ds}_{enc}enc_{self.rasterizer}{tail}"
 
     @property
     def model_key(self) -> tuple[int, int, int, bool, int | None] | None:
@@ -102,11 +108,15 @@ def short_grid(height: int = 64, width: int = 128, planes: int = 16, downscale: 
 
 
 def parse_setting(text: str) -> Setting:
-    """Parse ``HxW:planes[:erp|yy][:yinyang|direct][:dK][:rig]``, ``oracle[:direct]`` or ``copy``.
+    """Parse ``HxW:planes[:erp|yy][:yinyang|direct][:dK][:rig][:api]``, ``oracle[:direct]`` or ``copy``.
 
-    ``dK`` sets the feature downscale K (default: the exporter's preset); ``rig`` the capture rig layer.
+    ``dK`` sets the feature downscale K (default: the exporter's preset); ``rig`` the capture rig layer;
+    ``api`` the service's pipeline and render API.
     """
     parts = text.strip().lower().split(":")
+    api = len(parts) > 2 and parts[-1] == "api"
+    if api:
+        parts.pop()
     if parts[0] == "copy":
         return Setting("copy")
     if parts[0] == "oracle":
@@ -132,7 +142,7 @@ def parse_setting(text: str) -> Setting:
     if len(parts) > 4:
         raise ValueError(f"bad setting {text!r}: too many fields")
     return Setting("model", h, w, planes, enc == "erp", _raster(parts[3] if len(parts) > 3 else "yinyang", text),
-                   downscale, rig)
+                   downscale, rig, api)
 
 
 def _raster(value: str, text: str) -> Rasterizer:

@@ -101,7 +101,7 @@ def sample_other_view(maps: torch.Tensor, pts: torch.Tensor, grids, erp_width: i
 
 class FineSweep(nn.Module):
     """inv (2G, 1, h, w) coarse inverse range on the fine grid, grey (2G, 1, h, w),
-    rays (G, h, w, 3), rel_rt (2, 3, 4), step (scalar: one fine hypothesis apart)
+    rays (G, h, w, 3), rel_rt (2, 3, 4), step (scalar or (2G, 1, h, w): one fine hypothesis apart)
     -> refined inverse range and one confidence per margin scale of ``readout``, each (2G, 1, h, w).
 
     Hypotheses inv + (j - J // 2) * step, j = 0 .. J - 1, clamped to
@@ -139,14 +139,19 @@ class FineSweep(nn.Module):
         return sample_other_view(maps, pts, self.grids, self.erp_width)[0].reshape(2 * g_count, 1, j_count, h, w)
 
     def lr_consistency(self, inv: torch.Tensor, rays: torch.Tensor, rel_rt: torch.Tensor, tol) -> torch.Tensor:
-        """1 where the other view's inverse range at a pixel's 3D point matches that point's (within ``tol``)."""
+        """1 where the other view's inverse range at a pixel's 3D point matches that point's (within ``tol``:
+        a scalar, or a function of that point's inverse range from the other camera)."""
         pts = self.points(inv.unsqueeze(2), rays, rel_rt)  # (2, G, 1, h, w, 3)
         expected = 1.0 / torch.sqrt((pts * pts).sum(-1)).clamp(min=1e-6)
         seen = self.sample(inv, pts)
-        return ((seen - expected.reshape(seen.shape)).abs() <= tol).to(inv.dtype).squeeze(2)
+        expected = expected.reshape(seen.shape)
+        tol = tol(expected) if callable(tol) else tol
+        return ((seen - expected).abs() <= tol).to(inv.dtype).squeeze(2)
 
     def forward(self, inv, grey, rays, rel_rt, step, inv_min, inv_max):
-        inv_h = (inv.unsqueeze(2) + self.offsets * step).clamp(min=inv_min, max=inv_max)  # (2G, 1, J, h, w)
+        step = torch.as_tensor(step, dtype=inv.dtype)
+        step_h = step.unsqueeze(2) if step.dim() == 4 else step
+        inv_h = (inv.unsqueeze(2) + self.offsets * step_h).clamp(min=inv_min, max=inv_max)  # (2G, 1, J, h, w)
         warped = self.sample(grey, self.points(inv_h, rays, rel_rt))
         cost = self.matcher(grey, warped)  # (2G, J, h, w)
         cost = self.aggregation(cost, grey)

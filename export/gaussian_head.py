@@ -149,7 +149,8 @@ class GaussianHead(nn.Module):
         self.opacity_gamma = float(opacity_gamma)
         self.max_stretch = float(max_stretch)
 
-    def forward(self, rng, conf, colour, c2w, cam_quats):
+    def forward(self, rng, conf, colour, c2w, cam_quats, opaque=None):
+        """``opaque`` (2, G, H, W) in [0, 1], optional: moves each opacity that far to ``opacity_max``."""
         rot = c2w[:, :3, :3]  # (2, 3, 3)
         centre = c2w[:, :3, 3]  # (2, 3)
         r = rng.unsqueeze(-1)  # (2, G, H, W, 1)
@@ -160,8 +161,9 @@ class GaussianHead(nn.Module):
         axes, scales = surfel_frames(a, b, fa, fb, self.scale_factor, self.ray_scale_ratio)
         rot_b = rot.reshape(2, 1, 1, 1, 3, 3)
         c = conf.clamp(0.0, 1.0)
-        if self.confident_shrink:
-            scales = scales * (1.0 - self.confident_shrink * c).unsqueeze(-1)
+        if self.confident_shrink:  # opaque layout surfels get the confident footprint: sharp, the shell behind
+            fp = c if opaque is None else torch.maximum(c, opaque)
+            scales = scales * (1.0 - self.confident_shrink * fp).unsqueeze(-1)
         means = centre.reshape(2, 1, 1, 1, 3) + torch.matmul(rot_b, pts.unsqueeze(-1)).squeeze(-1)
         # camera-frame surfel rotation, turned to the world by the camera quaternion (one MatMul)
         quats = torch.matmul(quat_left_matrix(cam_quats).reshape(2, 1, 1, 1, 4, 4),
@@ -171,6 +173,8 @@ class GaussianHead(nn.Module):
         elif self.opacity_gamma != 1.0:
             c = torch.pow(c, self.opacity_gamma)
         opac = self.opacity_min + (self.opacity_max - self.opacity_min) * c
+        if opaque is not None:
+            opac = opac + opaque * (self.opacity_max - opac)
         sh_dc = (colour.permute(0, 1, 3, 4, 2) - 0.5) / SH_C0
         return (means.reshape(-1, 3), scales.reshape(-1, 3), quats.reshape(-1, 4),
                 opac.reshape(-1), sh_dc.reshape(-1, 3))

@@ -150,3 +150,103 @@ def clamp_below_floor(planes, inv: torch.Tensor, rays: torch.Tensor, c2w: torch.
     on = (sin_el > CLAMP_MIN_SIN).to(inv.dtype) * (dist > 0).to(inv.dtype) * upright
     floor_inv = on * sin_el / (dist.clamp(min=1e-6) * (1.0 + tol))
     return torch.maximum(inv, floor_inv.reshape(2 * g_count, 1, h, w))
+
+
+# -- layout surfaces: the room as opaque geometry where matching is not confident ---------------------------
+
+#: Azimuth directions of the wall profile (5 degree steps) and the half-widths (degrees) of the narrow
+#: kernel (the profile) and the wide one (bins the narrow one leaves without enough points).
+WALL_BINS = 72
+WALL_NARROW_DEG = 15.0
+WALL_WIDE_DEG = 30.0
+#: Wall points: between ``WALL_BAND[0]`` of the way from the camera down to the floor and ``WALL_BAND[1]``
+#: of the way up to the ceiling (beds, tables and counters stand lower; lamps hang higher).
+WALL_BAND = (0.5, 0.8)
+#: A profile bin needs this share of the mean bin weight (narrow kernel) or of it / 4 (wide kernel).
+WALL_MIN_SHARE = 0.25
+
+
+def _wall_profile(pts, w, centre, gravity, axes, above, below, scale, half_deg: float):
+    """Weighted median horizontal distance per azimuth (WALL_BINS,) and its weight, around one camera.
+
+    pts (N, 3) world points, w (N,) weights; axes (WALL_BINS, 3) horizontal unit directions; above / below:
+    the band's limits along gravity from the camera (scalars, up negative).
+    """
+    rel = pts - centre
+    vert = rel @ gravity
+    horiz = rel - vert.unsqueeze(-1) * gravity
+    dist = torch.sqrt((horiz * horiz).sum(-1)).clamp(min=1e-6)
+    band = ((vert > -above) & (vert < below)).to(pts.dtype)
+    cos_half = math.cos(math.radians(half_deg))
+    az = F.relu((horiz / dist.unsqueeze(-1)) @ axes.transpose(0, 1) - cos_half) / (1.0 - cos_half)  # (N, K)
+    lo, hi = HIST_RANGE
+    step = (hi - lo) / (HIST_BINS - 1)
+    centres = torch.linspace(lo, hi, HIST_BINS, dtype=pts.dtype)
+    x = torch.log(dist / scale)
+    dbin = F.relu(1.0 - (x.unsqueeze(1) - centres).abs() / step)  # (N, M)
+    hist = (az * (w * band).unsqueeze(-1)).transpose(0, 1) @ dbin  # (K, M)
+    cum = torch.cumsum(hist, dim=1)
+    total = cum[:, HIST_BINS - 1:]
+    idx = (cum < 0.5 * total).to(pts.dtype).sum(1).clamp(max=HIST_BINS - 1)
+    return scale * torch.exp(lo + idx * step), total.squeeze(1)
+
+
+def layout_inverse(planes, rays: torch.Tensor, inv: torch.Tensor, weight: torch.Tensor, c2w: torch.Tensor,
+                   narrow_deg: float = WALL_NARROW_DEG):
+    """Inverse range of the estimated room along each ray, and whether the room fits.
+
+    rays (G, h, w, 3) camera-frame unit rays; inv, weight (2G, 1, h, w) matched inverse range and its
+    weight ([view][grid]); planes from :func:`fit_planes`. The room around each camera: the floor and
+    ceiling planes, and walls as vertical surfaces at the weighted-median horizontal distance of both
+    views' confident points per 5 degrees of azimuth (kernel half-width ``narrow_deg``; points in a band
+    between the floor and the ceiling, furniture mostly below it). Returns (layout (2G, 1, h, w), 0 where
+    no surface is known; fit: scalar 0 or 1, 1 when the capture is upright and at least
+    ``LAYOUT_FIT_SHARE`` of each view's confident weight lies within ``LAYOUT_FIT_TOL`` of the layout:
+    outdoor or open spaces, where no room fits, get 0).
+    """
+    gravity, floor, ceiling, upright = planes
+    g_count, h, w = rays.shape[:3]
+    rot, centre = c2w[:, :3, :3], c2w[:, :3, 3]
+    dirs = torch.matmul(rays.reshape(1, -1, 3), rot.transpose(1, 2))  # (2, n, 3) world rays
+    rng = 1.0 / inv.clamp(min=1e-6).reshape(2, -1, 1)
+    pts = (centre.unsqueeze(1) + dirs * rng).reshape(-1, 3)
+    wt = weight.reshape(-1)
+    scale = torch.exp((wt * torch.log(rng.reshape(-1))).sum() / wt.sum().clamp(min=1e-6))
+    x_axis = rot[0, :, 0] - (rot[0, :, 0] @ gravity) * gravity
+    e1 = x_axis / torch.sqrt((x_axis * x_axis).sum()).clamp(min=1e-9)
+    e2 = torch.linalg.cross(gravity, e1)
+    ang = torch.arange(WALL_BINS, dtype=rays.dtype) * (2.0 * math.pi / WALL_BINS)
+    axes = torch.cos(ang).unsqueeze(1) * e1 + torch.sin(ang).unsqueeze(1) * e2  # (K, 3)
+    sin_el = (dirs * gravity).sum(-1)  # (2, n) > 0 below the horizon
+    horiz = dirs - sin_el.unsqueeze(-1) * gravity
+    cos_el = torch.sqrt((horiz * horiz).sum(-1)).clamp(min=1e-6)
+    cos_n = math.cos(math.radians(360.0 / WALL_BINS))
+    out = []
+    for v in range(2):
+        narrow, wn = _wall_profile(pts, wt, centre[v], gravity, axes, WALL_BAND[1] * ceiling[v], WALL_BAND[0] * floor[v],
+                                   scale, narrow_deg)
+        wide, ww = _wall_profile(pts, wt, centre[v], gravity, axes, WALL_BAND[1] * ceiling[v], WALL_BAND[0] * floor[v],
+                                 scale, WALL_WIDE_DEG)
+        ok_n = (wn >= WALL_MIN_SHARE * wn.mean()).to(rays.dtype)
+        ok_w = (ww >= 0.25 * WALL_MIN_SHARE * ww.mean()).to(rays.dtype)
+        inv_wall_bins = ok_n / narrow + (1.0 - ok_n) * ok_w / wide  # (K,) 0 where unknown
+        known = torch.maximum(ok_n, ok_w)
+        # linear interpolation between neighbouring bins (a triangle of one bin in cos of the azimuth gap)
+        k = F.relu((horiz[v] / cos_el[v].unsqueeze(-1)) @ axes.transpose(0, 1) - cos_n) * known
+        inv_wall = cos_el[v] * (k @ inv_wall_bins) / (k.sum(-1)).clamp(min=1e-9)
+        inv_floor = torch.where(sin_el[v] > 0, sin_el[v] / floor[v].clamp(min=1e-6), torch.zeros_like(inv_wall))
+        inv_ceil = torch.where(sin_el[v] < 0, -sin_el[v] / ceiling[v].clamp(min=1e-6), torch.zeros_like(inv_wall))
+        inv_ceil = inv_ceil * (ceiling[v] > 0).to(rays.dtype)
+        inv_floor = inv_floor * (floor[v] > 0).to(rays.dtype)
+        out.append(torch.maximum(inv_wall, torch.maximum(inv_floor, inv_ceil)))
+    lay = torch.stack(out).reshape(2 * g_count, 1, h, w)
+    near = ((inv - lay).abs() <= LAYOUT_FIT_TOL * lay).to(inv.dtype) * (lay > 0).to(inv.dtype)
+    share = (near * weight).reshape(2, -1).sum(1) / weight.reshape(2, -1).sum(1).clamp(min=1e-6)
+    fit = upright * (share.min() >= LAYOUT_FIT_SHARE).to(inv.dtype)
+    return lay, fit
+
+
+#: The room fits when each view has this share of its confident weight within LAYOUT_FIT_TOL (relative
+#: inverse range) of the layout; matched rooms put most confident points on walls, floor and ceiling.
+LAYOUT_FIT_SHARE = 0.3
+LAYOUT_FIT_TOL = 0.25

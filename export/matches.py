@@ -32,7 +32,8 @@ from .fine_sweep import sample_other_view
 
 
 class Matches(nn.Module):
-    """range, confidence (2, G, H, W), rays (G, H, W, 3), rel_rt (2, 3, 4), tol (scalar, 1/m) -> (2, G, H, W, 5)."""
+    """range, confidence (2, G, H, W), rays (G, H, W, 3), rel_rt (2, 3, 4), tol (scalar, 1/m,
+    or a function of the other view's expected inverse range (2, G, H, W)) -> (2, G, H, W, 5)."""
 
     def __init__(self, grids, erp_width: int = 0) -> None:
         super().__init__()
@@ -49,6 +50,7 @@ class Matches(nn.Module):
         seen = seen.reshape(2, g_count, h, w)
         expected = 1.0 / torch.sqrt((pts * pts).sum(-1)).clamp(min=1e-6).reshape(2, g_count, h, w)
         diff = seen - expected
+        tol = tol(expected) if callable(tol) else tol
         status = (diff > tol).to(rng.dtype) + 2.0 * (diff < -tol).to(rng.dtype)
         gx, gy = gx.reshape(2, g_count, h, w), gy.reshape(2, g_count, h, w)
         if self.grids == ("erp",):

@@ -60,9 +60,9 @@ from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, dom
 from .features import LUMA, GreyFeatures, TrainingFreeFeatures
 from .fine_sweep import FineSweep
 from .gaussian_head import GaussianHead
-from .layout import clamp_below_floor, fit_planes, plane_prior, with_plane_prior
+from .layout import clamp_below_floor, fit_planes, layout_inverse, plane_prior, with_plane_prior
 from .matches import Matches
-from .readout import DepthReadout, index_to_inverse
+from .readout import DepthReadout, baseline_of, index_to_inverse, plane_step
 from .yin_yang_sampling import YinYangSampler
 
 
@@ -121,7 +121,7 @@ class OmniSplatEncoder(nn.Module):
             return erps.unsqueeze(1)
         return self.sampler(erps)
 
-    def lr_consistency(self, k, inv, warp_grids, rel_rt, inv_depths):
+    def lr_consistency(self, k, inv, warp_grids, rel_rt, inv_depths, b):
         """1 where the A->B and B->A depths agree within ``lr_tol_planes``, else 0.
 
         k, inv: (2, G, 1, h, w) plane index and inverse range per target map.
@@ -132,7 +132,6 @@ class OmniSplatEncoder(nn.Module):
         """
         g_count, h, w = self.num_grids, self.feat_h, self.feat_w
         d_count = inv_depths.shape[0]
-        step = (inv_depths[d_count - 1] - inv_depths[0]) / (d_count - 1)
         idx = k.round().clamp(0, d_count - 1).to(torch.int64)  # (2, G, 1, h, w)
         # expected inverse range from the source camera, all (direction, target grid) at once
         rng = 1.0 / inv.clamp(min=1e-6)  # (2, G, 1, h, w)
@@ -151,6 +150,7 @@ class OmniSplatEncoder(nn.Module):
         else:
             m = domain_mask(loc).reshape(2, g_count, g_count, h, w)
         seen = (seen * m).sum(dim=2) / m.sum(dim=2).clamp(min=1e-6)
+        step = plane_step(expected, inv_depths, b)  # one candidate step at the source's inverse range
         ok = ((seen - expected).abs() <= self.cfg.lr_tol_planes * step).to(k.dtype)
         return ok.reshape(2, g_count, 1, h, w)
 
@@ -192,7 +192,7 @@ class OmniSplatEncoder(nn.Module):
             return inv
         return clamp_below_floor(planes, inv, rays, c2w, self.cfg.floor_clamp_tol)
 
-    def cascade(self, inv, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes):
+    def cascade(self, inv, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes, b):
         """Coarse inverse range (2G, 1, h, w) -> refined on the fine grid, with that grid's grey guide.
 
         Guided upsampling of the coarse map seeds :class:`FineSweep`; with
@@ -206,11 +206,12 @@ class OmniSplatEncoder(nn.Module):
         size = (self.fine_h, self.fine_w)
         grey = F.avg_pool2d(grey_full, cfg.fine_downscale) if cfg.fine_downscale > 1 else grey_full
         seed = guided_upsample(grey_low, inv, grey, cfg.upsample_radius, cfg.upsample_eps, wrap).clamp(min=lo, max=hi)
-        plane_step = (hi - lo) / (d_count - 1)
-        refined, _, conf_fill = self.fine(seed, grey, self.fine_rays, rel_rt, plane_step * cfg.fine_step, lo, hi)
+        step = plane_step(seed, inv_depths, b)  # (2G, 1, h, w) one coarse candidate step at each pixel
+        refined, _, conf_fill = self.fine(seed, grey, self.fine_rays, rel_rt, step * cfg.fine_step, lo, hi)
         if not cfg.fine_fill:
             return refined, grey
-        ok = self.fine.lr_consistency(refined, self.fine_rays, rel_rt, plane_step * cfg.fine_lr_tol)
+        ok = self.fine.lr_consistency(refined, self.fine_rays, rel_rt,
+                                      lambda e: plane_step(e, inv_depths, b) * cfg.fine_lr_tol)
         obs = F.interpolate(obs.reshape(2 * g_count, 1, *obs.shape[-2:]), size=size, mode="bilinear",
                             align_corners=False)
         guide = self.fine_plane_guide.unsqueeze(0).expand(2, g_count, 3, *size).reshape(2 * g_count, 3, *size)
@@ -218,6 +219,15 @@ class OmniSplatEncoder(nn.Module):
         value, weight = self.layout(planes, refined, conf_fill * ok * obs, self.fine_rays, c2w, self.fine_levels)
         filled = linear_push_pull(value, weight, guide, self.fine_levels, inv_depths[0])  # far: see forward()
         return guided_filter(grey, filled, 1, cfg.upsample_eps, wrap), grey
+
+    def room_surfaces(self, room, inv_full, conf_full, size):
+        """(inverse range, opaque) (2G, 1, H, W): the room's range where the output confidence is below
+        ``layout_confidence`` and the room fits (:func:`export.layout.layout_inverse`), all opaque there."""
+        lay, fit = room
+        lay_full = F.interpolate(lay, size=size, mode="bilinear", align_corners=False)
+        known = (F.interpolate((lay > 0).to(lay.dtype), size=size, mode="bilinear", align_corners=False) > 0.999)
+        use = known.to(lay.dtype) * (conf_full < self.cfg.layout_confidence).to(lay.dtype) * fit
+        return use * lay_full + (1.0 - use) * inv_full, fit * torch.ones_like(inv_full)
 
     # -- forward -------------------------------------------------------------
     def forward(self, erp_a, erp_b, warp_grids, rel_rt, inv_depths, c2w, cam_quats):
@@ -235,10 +245,11 @@ class OmniSplatEncoder(nn.Module):
         d_count = cost.shape[2]
         cost = self.aggregation(cost.reshape(2 * g_count, d_count, h, w), grey_low)
         k, conf, conf_fill = self.readout(cost)  # (2G, 1, h, w)
-        inv = index_to_inverse(k, inv_depths)
+        b = baseline_of(c2w)
+        inv = index_to_inverse(k, inv_depths, b)
 
         ok = self.lr_consistency(k.reshape(2, g_count, 1, h, w), inv.reshape(2, g_count, 1, h, w),
-                                 warp_grids, rel_rt, inv_depths)
+                                 warp_grids, rel_rt, inv_depths, b)
         obs = self.observability(rel_rt, inv_depths)
         reliable = (ok * obs).reshape(2 * g_count, 1, h, w)
         weight = conf * reliable
@@ -246,8 +257,10 @@ class OmniSplatEncoder(nn.Module):
         # seen (the mean inverse depth, ~0.6 baselines, put opaque floaters between the cameras)
         fallback = inv_depths[0]
         fill_weight = conf_fill * reliable
-        use_planes = cfg.layout_strength > 0 or cfg.floor_clamp
+        use_planes = cfg.layout_strength > 0 or cfg.floor_clamp or cfg.layout_surfaces
         planes = fit_planes(self.feat_rays, inv, fill_weight, c2w) if use_planes else None
+        room = layout_inverse(planes, self.feat_rays, inv, fill_weight, c2w, cfg.layout_wall_deg) \
+            if cfg.layout_surfaces else None
         value, value_w = self.layout(planes, inv, fill_weight, self.feat_rays, c2w, self.levels)
         if cfg.fill == "guided":
             filled = guided_push_pull(value, value_w, grey_low, self.levels, fallback, cfg.fill_eps)
@@ -264,7 +277,7 @@ class OmniSplatEncoder(nn.Module):
 
         size = (self.full_h, self.full_w)
         if self.fine is not None:
-            filled, grey_low = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes)
+            filled, grey_low = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes, b)
         if cfg.upsample == "guided" and filled.shape[-2:] != size:
             inv_full = guided_upsample(grey_low, filled, grey_full, cfg.upsample_radius, cfg.upsample_eps, wrap)
         elif filled.shape[-2:] != size:
@@ -273,11 +286,19 @@ class OmniSplatEncoder(nn.Module):
             inv_full = filled
         inv_full = self.floor_clamp(planes, inv_full, self.head.rays, c2w)
         inv_full = inv_full.clamp(min=inv_depths[0], max=inv_depths[d_count - 1])
-        rng = (1.0 / inv_full).reshape(2, g_count, *size)
         conf_full = weight if cfg.downscale == 1 else F.interpolate(weight, size=size, mode="bilinear", align_corners=False)
+        opaque = None
+        if room is not None:
+            inv_full, opaque = self.room_surfaces(room, inv_full, conf_full, size)
+            inv_full = inv_full.clamp(min=inv_depths[0], max=inv_depths[d_count - 1])
+            opaque = opaque.reshape(2, g_count, *size)
+        rng = (1.0 / inv_full).reshape(2, g_count, *size)
         conf_full = conf_full.reshape(2, g_count, *size)
 
-        means, scales, quats, opac, sh_dc = self.head(rng, conf_full, full, c2w, cam_quats)
-        tol = self.cfg.lr_tol_planes * (inv_depths[d_count - 1] - inv_depths[0]) / (d_count - 1)
+        means, scales, quats, opac, sh_dc = self.head(rng, conf_full, full, c2w, cam_quats, opaque)
+
+        def tol(expected):  # lr_tol_planes candidate steps at the other view's inverse range
+            return self.cfg.lr_tol_planes * plane_step(expected, inv_depths, b)
+
         matches = self.matches(rng, conf_full, self.head.rays, rel_rt, tol)
         return means, scales, quats, opac, sh_dc, rng, conf_full, matches

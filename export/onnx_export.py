@@ -58,6 +58,7 @@ def metadata(cfg: EncoderConfig) -> dict[str, str]:
         "num_gaussians": str(cfg.num_gaussians),
         "near_per_baseline": repr(cfg.near_per_baseline),
         "far_per_baseline": repr(cfg.far_per_baseline),
+        "candidate_spacing": "parallax",  # export.readout: uniform in atan(baseline / range)
         "erp_pad": str(ERP_PAD),
         "inputs": json.dumps({
             "erp_a": [1, 3, cfg.height, cfg.width], "erp_b": [1, 3, cfg.height, cfg.width],

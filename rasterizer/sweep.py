@@ -25,7 +25,9 @@ name            shape                   meaning
                                         (circular wrap in longitude).
 ``rel_rt``      (2, 3, 4)               [R | t] target camera -> source camera.
 ``inv_depths``  (D,)                    candidate inverse ranges (1/m),
-                                        ascending: 1/far ... 1/near, uniform.
+                                        ascending: 1/far ... 1/near, uniform
+                                        in the parallax angle atan(b / r)
+                                        (:func:`inverse_depth_candidates`).
 ``c2w``         (2, 4, 4)               camera-to-world of A and B (OpenCV).
 ``cam_quats``   (2, 4)                  (w, x, y, z) of the c2w rotations.
 ==============  ======================  ==========================================
@@ -104,7 +106,7 @@ def baseline(c2w_a: np.ndarray, c2w_b: np.ndarray) -> float:
 
 #: Default sweep range in units of the baseline b: near = NEAR_PER_BASELINE * b,
 #: far = FAR_PER_BASELINE * b (see :func:`default_near_far`).
-NEAR_PER_BASELINE = 0.3
+NEAR_PER_BASELINE = 0.05
 FAR_PER_BASELINE = 20.0
 
 
@@ -112,18 +114,15 @@ def default_near_far(c2w_a: np.ndarray, c2w_b: np.ndarray, *, near_ratio: float 
                      far_ratio: float = FAR_PER_BASELINE) -> tuple[float, float]:
     """Sweep range proportional to the baseline b: (near_ratio b, far_ratio b).
 
-    Pure proportionality makes the encoder equivariant to a global scale of
-    the scene (poses and geometry scaled together give the same planes in
-    units of b, hence the same warp grids and the same images). It is also
-    what the sweep resolves: with D planes uniform in inverse range, the
-    largest angular parallax step between planes is about
-    b (1/near - 1/far) / (D - 1) ~ 1 / (near_ratio (D - 1)) radians,
-    independent of b. 0.3 / 20 give the former indoor defaults (0.3 m / 20 m)
-    at the 1 m design baseline (m3d_bedroom: depths 0.5-7 m), and on
-    zind_room09 (b = 2.1 and 4.3 m, rooms several metres across, camera
-    about 1.4 m above the floor) near = 0.64 / 1.27 m, far = 42 / 85 m.
-    Geometry closer than 0.3 b is seen under more than ~120 degrees of
-    parallax and hardly matches anyway; pass near/far explicitly for it.
+    Pure proportionality makes the encoder equivariant to a global scale of the scene (poses and
+    geometry scaled together give the same planes in units of b, hence the same warp grids and the same
+    images). The candidates are uniform in the parallax angle atan(b / r)
+    (:func:`inverse_depth_candidates`), so each of D planes moves a point by about
+    (atan(1 / near_ratio) - atan(1 / far_ratio)) / (D - 1) radians in the other view whatever its range,
+    and a near plane far inside the room costs almost no far resolution: 0.05 b puts it at 0.2 m for the
+    4.25 m tripod pair of zind_room09 and 0.04-0.1 m for hand-held photos 0.8-1.9 m apart (real rooms
+    have walls 0.4 m and ceilings 0.9 m from the camera, whatever the baseline), at 1.34 degrees per
+    plane for 64 planes (0.3 b with uniform inverse range: 3 degrees per plane at the far end).
     """
     if not (0 < near_ratio < far_ratio) or not np.isfinite(far_ratio):
         raise ValueError(f"need 0 < near_ratio < far_ratio < inf, got {near_ratio}, {far_ratio}")
@@ -131,13 +130,26 @@ def default_near_far(c2w_a: np.ndarray, c2w_b: np.ndarray, *, near_ratio: float 
     return float(near_ratio * b), float(far_ratio * b)
 
 
-def inverse_depth_candidates(near: float, far: float, num_planes: int) -> np.ndarray:
-    """D inverse ranges uniform between 1/far and 1/near, ascending, float32."""
+def inverse_depth_candidates(near: float, far: float, num_planes: int, baseline: float | None = None) -> np.ndarray:
+    """D inverse ranges between 1/far and 1/near, ascending, float32.
+
+    With ``baseline`` b (what the encoder's graph expects, ``export.readout``): uniform in the parallax
+    angle u = atan(b / r), the angle between the two cameras' rays to a point at range r seen across the
+    baseline. Every step then moves a point by about the same angle in the other view, near or far: uniform
+    inverse range (``baseline`` None) over-samples the near end by 1 + (b / near)^2 and leaves the far end
+    coarse, so a near plane of a small fraction of the baseline would cost many planes. Here it is nearly
+    free: the angle saturates at 90 degrees.
+    """
     if not (0 < near < far) or not np.isfinite(far):
         raise ValueError(f"need 0 < near < far < inf, got near={near}, far={far}")
     if num_planes < 2:
         raise ValueError(f"need at least 2 planes, got {num_planes}")
-    return np.linspace(1.0 / far, 1.0 / near, num_planes).astype(np.float32)
+    if baseline is None:
+        return np.linspace(1.0 / far, 1.0 / near, num_planes).astype(np.float32)
+    if not baseline > 0:
+        raise ValueError(f"need baseline > 0, got {baseline}")
+    u = np.linspace(np.arctan(baseline / far), np.arctan(baseline / near), num_planes)
+    return (np.tan(u) / baseline).astype(np.float32)
 
 
 def relative_pose(c2w_target: np.ndarray, c2w_source: np.ndarray) -> np.ndarray:
@@ -293,13 +305,18 @@ def sweep_inputs(
     num_planes: int,
     feature_size: tuple[int, int],
     erp_encoder: bool = False,
+    parallax: bool = True,
 ) -> dict[str, np.ndarray]:
-    """All pose-dependent graph inputs (module table), keyed by input name."""
+    """All pose-dependent graph inputs (module table), keyed by input name.
+
+    ``parallax``: candidates uniform in the parallax angle (what models with metadata
+    ``candidate_spacing = parallax`` expect), else uniform in inverse range.
+    """
     c2w_a = np.asarray(c2w_a, dtype=np.float64)
     c2w_b = np.asarray(c2w_b, dtype=np.float64)
     if baseline(c2w_a, c2w_b) < MIN_BASELINE:
         raise ValueError("the two camera centres coincide: depth cannot be triangulated")
-    inv = inverse_depth_candidates(near, far, num_planes)
+    inv = inverse_depth_candidates(near, far, num_planes, baseline(c2w_a, c2w_b) if parallax else None)
     h, w = feature_size
     grids = grids_for_mode(erp_encoder)
     rel = np.stack([relative_pose(c2w_a, c2w_b)[:3], relative_pose(c2w_b, c2w_a)[:3]]).astype(np.float32)

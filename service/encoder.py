@@ -144,6 +144,8 @@ class OnnxEncoder:
         # near_default / far_default in metres for the 1 m design baseline)
         self.near_per_baseline = float(props.get("near_per_baseline", props.get("near_default", NEAR_PER_BASELINE)))
         self.far_per_baseline = float(props.get("far_per_baseline", props.get("far_default", FAR_PER_BASELINE)))
+        # the graph's law for its depth candidates (rasterizer.sweep.inverse_depth_candidates)
+        self.parallax_candidates = props.get("candidate_spacing") == "parallax"
 
     def _to_chw(self, img: np.ndarray) -> np.ndarray:
         """(H, W, 3) float32 -> (1, 3, height, width) contiguous; no resample copy at the model's size."""
@@ -175,7 +177,7 @@ class OnnxEncoder:
         erp_a, erp_b: (H, W, 3) uint8 or float in [0, 1], W = 2H, any size
         (the two may differ). c2w_a, c2w_b: 4x4 (or 3x4) OpenCV camera-to-world.
         near, far: sweep range in scene units (default proportional to the
-        baseline b: 0.3 b and 20 b, :func:`rasterizer.sweep.default_near_far`,
+        baseline b: the model's ``near_per_baseline`` and ``far_per_baseline``, :func:`rasterizer.sweep.default_near_far`,
         so a globally scaled scene gives the same result). options: ``min_opacity``
         drops Gaussians below that opacity; ``sh_degree`` 1 (default) fits view-dependent colour so
         that each reference sees its own image (:mod:`rasterizer.view_colour`), 0 keeps one colour
@@ -229,7 +231,8 @@ class OnnxEncoder:
 
         t = time.perf_counter()
         feeds = sweep_inputs(pa, pb, near=near, far=far, num_planes=self.num_planes,
-                             feature_size=self.feature_size, erp_encoder=self.erp_encoder)
+                             feature_size=self.feature_size, erp_encoder=self.erp_encoder,
+                             parallax=self.parallax_candidates)
         feeds["erp_a"], feeds["erp_b"] = chw
         timings["sweep_inputs"] = time.perf_counter() - t
 

@@ -65,3 +65,43 @@ def test_oracle_is_the_service_path_on_gt_depth(m3d_dir):
     out = render(g, frames[0].c2w, projection="erp", width=128, method="direct")
     err = np.abs(out.colour - refs[0][0]).mean()
     assert err < 0.05 and (out.alpha >= 0.99).mean() > 0.99
+
+
+def test_sharpness_and_gmsd_follow_conventions():
+    from bench import metrics
+
+    rng = np.random.default_rng(0)
+    target = rng.random((32, 64, 3))
+    assert metrics.sharpness(target, target) == pytest.approx(1.0)
+    assert metrics.gmsd(target, target) == pytest.approx(0.0, abs=1e-12)
+    y = metrics.luma(target)
+    blurred = np.repeat(metrics.box5_erp(y)[..., None], 3, axis=-1)
+    assert metrics.sharpness(blurred, target) < 0.5  # a 5x5 blur keeps little of white noise's detail
+    assert metrics.gmsd(blurred, target) > 0.05
+    flat = np.full_like(target, 0.5)
+    assert metrics.sharpness(flat, target) == pytest.approx(0.0, abs=1e-12)
+    # box5 wraps in longitude: a column at the seam spreads to both edges; clamped in latitude
+    impulse = np.zeros((8, 16))
+    impulse[4, 0] = 25.0
+    box = metrics.box5_erp(impulse)
+    assert box[4, 15] == pytest.approx(1.0) and box[4, 14] == pytest.approx(1.0) and box[4, 3] == 0.0
+    top = np.zeros((8, 16))
+    top[0, 5] = 25.0
+    assert metrics.box5_erp(top)[0, 5] == pytest.approx(3.0)  # the top row counted three times (clamped)
+    # only rows above -75 deg count: a difference at the nadir leaves sharpness and GMSD unchanged
+    nadir = target.copy()
+    nadir[-1:] = 0.0  # rows 29-31 of 32 are cut; box5 reaches two rows
+    assert metrics.sharpness(nadir, target) == pytest.approx(1.0)
+    assert metrics.gmsd(nadir, target) == pytest.approx(0.0, abs=1e-12)
+    scores = metrics.real_capture_scores(blurred, target)
+    assert set(scores) == {"psnr_above_nadir", "psnr", "ws_psnr", "sharpness", "gmsd"}
+
+
+def test_copy_floor_of_the_reference_itself_is_perfect():
+    rng = np.random.default_rng(1)
+    img = rng.random((16, 32, 3)).astype(np.float32)
+    pose = np.eye(4)
+    other = np.eye(4)
+    other[0, 3] = 1.0
+    floor = bench_quality.copy_floor([(img, pose), (img[::-1].copy(), other)], pose, img)
+    assert floor["psnr_above_nadir"] > 60 and floor["sharpness"] == pytest.approx(1.0, abs=1e-3)

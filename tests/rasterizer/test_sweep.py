@@ -84,11 +84,11 @@ def test_default_near_far_tracks_baseline():
     n1, f1 = sweep.default_near_far(np.eye(4), _pose([0, 0, 1.0]))
     n4, f4 = sweep.default_near_far(np.eye(4), _pose([0, 0, 4.0]))
     assert 0 < n1 < n4 < f1 <= f4
-    assert n1 == pytest.approx(0.3) and f1 == pytest.approx(20.0)
+    assert n1 == pytest.approx(sweep.NEAR_PER_BASELINE) and f1 == pytest.approx(20.0)
     # pure proportionality: a globally scaled scene gets the scaled sweep range
     for s in (1e-3, 0.5, 4.0, 1e3):
         n, f = sweep.default_near_far(np.eye(4), _pose([0, 0, s]))
-        assert n == pytest.approx(0.3 * s) and f == pytest.approx(20.0 * s)
+        assert n == pytest.approx(sweep.NEAR_PER_BASELINE * s) and f == pytest.approx(20.0 * s)
     with pytest.raises(ValueError):
         sweep.default_near_far(np.eye(4), _pose([0, 0, 1.0]), near_ratio=2.0, far_ratio=1.0)
 
@@ -144,3 +144,24 @@ def test_warp_grid_cache_hits_and_evicts():
         sweep.warp_grids(a, _pose([0.0, 0.0, 2.0 + i]), inv, ("yin", "yang"), 4, 12)
     assert sweep.warp_grids(a, b, inv, ("yin", "yang"), 4, 12) is not first  # evicted (LRU)
     sweep.clear_warp_cache()
+
+
+def test_parallax_candidates_are_uniform_in_angle_and_reach_near_surfaces():
+    b = 4.25  # a wide tripod pair: a wall 0.4 m away must lie inside the default range
+    near, far = sweep.default_near_far(np.eye(4), _pose([b, 0, 0]))
+    assert near < 0.3
+    inv = sweep.inverse_depth_candidates(near, far, 64, b).astype(np.float64)
+    assert inv[0] == pytest.approx(1 / far, rel=1e-5) and inv[-1] == pytest.approx(1 / near, rel=1e-5)
+    steps = np.diff(np.arctan(b * inv))
+    assert np.all(steps > 0) and np.ptp(steps) < 1e-4 * steps.mean()
+    assert np.degrees(steps.mean()) < 1.5  # about one feature pixel of the default model per plane
+    # the graph's read-out follows the same law (export.readout)
+    torch = pytest.importorskip("torch")
+    from export.readout import index_to_inverse, plane_step
+
+    k = torch.tensor([0.0, 10.5, 63.0], dtype=torch.float64)
+    got = index_to_inverse(k, torch.from_numpy(inv), torch.tensor(b, dtype=torch.float64)).numpy()
+    assert got[0] == pytest.approx(inv[0], rel=1e-4) and got[2] == pytest.approx(inv[-1], rel=1e-4)
+    assert inv[10] < got[1] < inv[11]
+    step = plane_step(torch.from_numpy(inv[30:31]), torch.from_numpy(inv), torch.tensor(b, dtype=torch.float64))
+    assert float(step[0]) == pytest.approx(0.5 * (inv[31] - inv[29]), rel=1e-2)
