@@ -15,7 +15,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("bench.render", "renderer timings (error against run time of the rasterizer)"),
     "quality": ("bench.quality", "reconstruction quality against run time on scene folders"),
     "stability": ("bench.stability", "stability of outputs under input perturbations"),
-    "refine": ("bench.refine", "+opt refinement: quality against iterations and seconds"),
+    "refine": ("bench.refine", "refinement: quality against iterations and seconds"),
     "compaction": ("bench.compaction", "Gaussian count, PLY bytes, render time and PSNR per compaction step"),
     "coverage": ("bench.coverage", "accumulated alpha of the reconstructed Gaussians, quality plain vs V/A"),
     "layout": ("bench.layout", "the indoor layout prior before / after: PSNR per target, seconds, a picture"),

@@ -1,4 +1,4 @@
-"""``omnisplat-bench refine``: +opt quality against iterations and seconds (not a timed test).
+"""``omnisplat-bench refine``: refinement quality against iterations and seconds (not a timed test).
 
 For each scene folder and each of its splits (references A, B; every target): reconstruct
 with the ONNX encoder, build the reference Yin/Yang footprints once, run the default colour
@@ -103,7 +103,7 @@ def bench_scene(encoder, folder: Path, split_index: int, iterations, height: int
 
 
 def markdown(result: dict) -> str:
-    lines = ["# +opt refinement: quality against iterations (cross-view guarded default)", "",
+    lines = ["# Refinement: quality against iterations (cross-view guarded default)", "",
              f"Machine: {result['machine']}. Seconds are wall clock and noisy, more so the higher the "
              "load average above.", "",
              f"Method: {result['method']}", "",
@@ -160,7 +160,7 @@ NOTES = [
     "stop). Each split's relative cross-view changes and decision are listed above. Fitting only the "
     "Gaussians seen by both references (`cross_covis`) changed the curves by < 1% (encoder 0.2.0) and is off.",
     "* Guarded against unguarded: compare each split's table with its 'unguarded' line. The guard is "
-    "conservative: when it rejects, +opt returns the unrefined colours, even where the unguarded fit would "
+    "conservative: when it rejects, refine returns the unrefined colours, even where the unguarded fit would "
     "have gained at the targets; where the unguarded fit loses at the targets it protects them. (With "
     "encoder 0.2.0 it accepted on m3d_bedroom for +1.00 dB; with encoder 0.5.0 it rejected all three splits.)",
     "* Extra seconds (noisy): the guard is ~2 x `cross_steps` single-reference CG steps plus line-search "

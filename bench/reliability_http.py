@@ -1,4 +1,4 @@
-"""The HTTP layer's sections of ``omnisplat bench reliability`` (see :mod:`bench.reliability`): raw-socket
+"""The HTTP layer's sections of ``omnisplat-bench reliability`` (see :mod:`bench.reliability`): raw-socket
 protocol abuse, slow request bodies against the upload slots, and PNG chunk bombs. Every client talks to
 127.0.0.1 only, few and bounded in time; ``srv`` is a :class:`bench.reliability.Server`.
 """

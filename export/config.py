@@ -2,7 +2,7 @@
 
 Everything that changes the graph's shapes or constants lives here; the
 pose-dependent inputs (warp grids, near/far) are runtime inputs instead.
-Why each default is what it is (the ablations behind it): docs/experiments.md.
+Why each default is what it is (the ablations behind it): docs/design.md.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ Readout = Literal["wta", "softargmin"]
 Fill = Literal["pushpull", "guided", "planar", "planar_guided"]
 Upsample = Literal["guided", "bilinear"]
 
-#: Named settings on the error/run-time curve (``omnisplat bench depth``); docs/experiments.md.
+#: Named settings on the error/run-time curve (``omnisplat-bench depth``); docs/design.md.
 PRESETS: dict[str, dict] = {
     "fast": {"downscale": 4, "num_planes": 32},
     "quality": {"downscale": 4, "num_planes": 64, "fine_hypotheses": 11, "fine_fill": True},
@@ -87,7 +87,7 @@ class EncoderConfig:
     # whatever it was set over (m3d 00: a low object at 0.91 m that the plane put at 1.36 m)
     layout_nadir_deg: float = 15.0
     # nothing below the floor (floor_clamp): a ray below the horizon keeps at most (1 + floor_clamp_tol) x
-    # the fitted floor's range, after the coarse fill and on the final map (docs/experiments.md,
+    # the fitted floor's range, after the coarse fill and on the final map (docs/design.md,
     # "Nothing below the floor")
     floor_clamp: bool = True
     floor_clamp_tol: float = 0.1
@@ -96,7 +96,7 @@ class EncoderConfig:
     # horizontal distance per azimuth, kernel half-width layout_wall_deg) instead of the fill's, and every
     # surfel is opaque with the confident footprint; where it does not fit the fill and the
     # confidence-graded opacity stay. Off: on m3d it loses 2.5-3.3 dB, on zind_room09 0.56 dB above the
-    # nadir for straight walls and +0.07 sharpness (docs/experiments.md, "Layout surfaces")
+    # nadir for straight walls and +0.07 sharpness (docs/design.md)
     layout_surfaces: bool = False
     layout_confidence: float = 0.5
     layout_wall_deg: float = WALL_NARROW_DEG
@@ -105,17 +105,17 @@ class EncoderConfig:
     upsample_eps: float = 1e-3
     # Gaussian head (export/gaussian_head.py): oriented surfels spanning the steps to the neighbouring
     # pixels (sigma = scale_factor steps), opaque so that plain front-to-back compositing covers the
-    # scene (tuning log: docs/experiments.md, "Real Gaussians").
+    # scene (docs/design.md).
     scale_factor: float = SURFEL_SCALE_FACTOR
     # sigma at confidence 1, linear in confidence from scale_factor at 0: where the depth is right a
-    # narrower footprint is sharper, and the environment shell keeps the coverage (docs/experiments.md,
+    # narrower footprint is sharper, and the environment shell keeps the coverage (docs/design.md,
     # "Confident surfels narrower"; 0.7 for all until encoder 0.9.0)
     scale_factor_confident: float = 0.4
     ray_scale_ratio: float = 0.1
     max_stretch: float = SURFEL_MAX_STRETCH
     # opacity = min + (max - min) * confidence ** gamma. Unconfident surfels are translucent so that the
     # two references' uncertain surfaces blend at a novel pose; the service's environment shell
-    # (rasterizer.shell) behind them keeps plain compositing covered (docs/experiments.md,
+    # (rasterizer.shell) behind them keeps plain compositing covered (docs/design.md,
     # "Environment shell"; 0.98 until encoder 0.8.0).
     opacity_min: float = 0.3
     opacity_max: float = 0.99

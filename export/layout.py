@@ -11,7 +11,7 @@ This stage gives the fill a geometric fallback instead (issue 16, "an indoor lay
    each. The ceiling is its mode; the floor is the farthest peak below the cameras that holds at
    least ``FLOOR_PEAK_SHARE`` of the heaviest one's weight (3-bin sums), since bed, table and dresser tops are nearer
    and often heavier (on m3d the mode switched between the floor and the furniture tops when
-   the sweep's range moved by a few percent, docs/experiments.md, "Floor or furniture"). Each is
+   the sweep's range moved by a few percent, docs/design.md). Each is
    refined by the weighted mean of the points within 1.5 bins. Scale-free: distances are in units
    of the geometric-mean range of the confident points;
 3. each pixel's plane inverse range (floor below the horizon, ceiling above), with a weight that
@@ -27,10 +27,10 @@ This stage gives the fill a geometric fallback instead (issue 16, "an indoor lay
    keeps at most (1 + ``tol``) times the floor's range along it (:func:`clamp_below_floor`). The
    fill extrapolates textureless floor from far confident pixels and sinks it; surfels under the
    floor then show through it from every viewpoint (on zind_room09 10-12% of the coarse pixels,
-   drawn as dark stains on the floor between the cameras; docs/experiments.md, "Nothing below the
+   drawn as dark stains on the floor between the cameras; docs/design.md, "Nothing below the
    floor").
 
-Measurements behind the defaults: docs/experiments.md, "Layout prior".
+Measurements behind the defaults: docs/design.md.
 """
 
 from __future__ import annotations

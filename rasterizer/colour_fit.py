@@ -15,7 +15,7 @@ same fit at the cost of a few image-sized array passes:
   clipped to [0, 1]. Where the window's coverage alpha is below 1 the rest is taken as c itself (what
   lies behind is not known here). The confidence weight keeps the step off Gaussians whose depth is a
   guess, where a sharper colour at the wrong place costs the novel views more than the blur does
-  (docs/experiments.md, "A colour-fit step in the POST").
+  (docs/design.md).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from .gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
 from .splat import project
 
 #: Step size of the fit (x the Gaussian's confidence): 1 would be a plain Jacobi step, more
-#: over-relaxes it; chosen on the dev scenes (docs/experiments.md, "A colour-fit step in the POST").
+#: over-relaxes it; chosen on the dev scenes (docs/design.md).
 COLOUR_FIT_STRENGTH = 1.5
 #: Window of grid neighbours composited per pixel (odd): 3 x 3 covers footprints up to ~1 pitch.
 COLOUR_FIT_TAPS = 3

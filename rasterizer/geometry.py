@@ -1,6 +1,6 @@
 """Camera geometry: the one source of truth for frames and pixel conventions.
 
-Conventions (``shared/design/conventions.md`` section 1):
+Conventions (``docs/conventions.md`` section 1):
 
 * Camera frame is OpenCV: +x right, +y down, +z forward. Poses are
   camera-to-world 4x4 ``c2w`` matrices.

@@ -14,7 +14,7 @@ the image and the chunk); :func:`rasterizer.splat.footprints` and
 :func:`rasterizer.composite.composite` give the same images in one pass, and
 their lists serve refinement.
 
-Frames and pixels follow ``shared/design/conventions.md`` section 1: poses
+Frames and pixels follow ``docs/conventions.md`` section 1: poses
 are 4x4 OpenCV camera-to-world; pixel (r, c) centre at coordinate (c, r);
 ERP ``lon = (c + 0.5)/W 2pi - pi``; ranges are Euclidean distances from the
 camera centre (world units).

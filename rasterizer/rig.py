@@ -3,13 +3,13 @@
 Every panorama of a tripod capture (the dev data's zind_room09: a dark disc with three legs below about
 -77 deg latitude) shows the rig at the camera's nadir. It is attached to the camera, so pixel-aligned
 Gaussians of those pixels paint a copy of the rig onto the floor under each reference, which every other
-viewpoint shows as a dark blob (README, "The capture rig"; docs/experiments.md).
+viewpoint shows as a dark blob (docs/design.md, "The capture rig").
 
 :func:`patch_rig` gives the Gaussians of reference v's pixels within ``cap_deg`` of v's nadir (camera
 +y, whatever the gravity) the colour that the other reference u saw at the same point, where u sees it
 (it is not behind u's estimated surface by more than ``tol`` of its range and u's pixel is not in u's
 own cap). Their positions stay the encoder's: moving them onto a floor plane fitted around the cap was
-measured and opened holes (docs/experiments.md). Where u does not see the point the rig colour stays: a
+measured and opened holes (docs/design.md). Where u does not see the point the rig colour stays: a
 hole would be worse.
 
 The rig is also what a capture *from the novel pose* would show at its nadir. :func:`rig_layer` estimates
@@ -43,12 +43,12 @@ MAX_RIG_CAP_DEG = 45.0
 #: A rig is detected when, within this many degrees of the nadir, the two references' images in their own
 #: camera frames differ by at most RIG_DETECT_MAX_DIFF (cos-latitude-weighted mean absolute difference,
 #: colours in [0, 1]). Measured at 512 px width: zind_room09's six pano pairs (a tripod) 0.011-0.019;
-#: m3d_bedroom's three pairs (no rig) 0.087-0.114 (docs/experiments.md, "A camera-attached rig layer").
+#: m3d_bedroom's three pairs (no rig) 0.087-0.114 (docs/design.md).
 RIG_DETECT_CAP_DEG = 5.0
 RIG_DETECT_MAX_DIFF = 0.05
 #: The layer covers this many degrees around the nadir: zind_room09's tripod disc reaches 12.5 deg from
 #: it; its thin legs, up to 24 deg, sit where the floor differs too, and a wider cap cost the scene
-#: (caps 13-30 deg: docs/experiments.md, "A camera-attached rig layer").
+#: (caps 13-30 deg: docs/design.md).
 RIG_LAYER_CAP_DEG = 15.0
 #: Per-pixel agreement -> layer opacity: a box mean (RIG_LAYER_BOX pixels square) of the two views'
 #: absolute difference at or below the first value is opaque rig, at or above the second is scene.

@@ -12,7 +12,7 @@ The sphere's radius is ``SHELL_RADIUS_FACTOR`` times the ``SHELL_RANGE_PERCENTIL
 scene's estimated ranges, so the backdrop lies beyond (almost) every surface: a backdrop must not
 hide a surface that only the other reference sees. (Until session 9 each disc sat at twice its own
 block's range, which put a near object's backdrop in front of the walls and floor behind it.)
-Measurements behind the constants: docs/experiments.md, "Environment shell" and "Shell beyond the
+Measurements behind the constants: docs/design.md and "Shell beyond the
 scene".
 
 Layout: the shell's Gaussians come in [view][grid][block row][block column] order; each one stands

@@ -3,7 +3,7 @@
 The two references' pixel-aligned Gaussians share one scene. Seen from reference A, a Gaussian of
 reference B that sits in front of A's surface (a depth error of B) or on it (a different sampling of
 the same surface) paints B's colour over A's pixels: with one colour per Gaussian a render at A's own
-pose does not show A's image (measurements: docs/experiments.md, "View-dependent colour").
+pose does not show A's image (measurements: docs/design.md).
 
 Each Gaussian x of view v keeps its own pixel colour c_v in the direction d_v from v's camera. Where
 the other view u sees x (x is not behind u's estimated surface by more than ``tol`` of its range), u

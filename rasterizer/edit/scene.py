@@ -45,7 +45,7 @@ class EditData:
     def to_bytes(self, compress: bool = False) -> bytes:
         """npz: packed matches (:func:`correspondences.pack`), float16 ranges, int32 index, uint8 block.
 
-        Not zlib-compressed by default: every scene creation pays the packing, and ``omnisplat bench edit``
+        Not zlib-compressed by default: every scene creation pays the packing, and ``omnisplat-bench edit``
         measures both (m3d_bedroom: about twice the bytes, a tenth of the seconds).
         """
         buf = io.BytesIO()

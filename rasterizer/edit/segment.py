@@ -67,7 +67,7 @@ class SegmentOptions:
     distance scale of its contrast term, confidence of a pixel's label where
     its own match decided it / where a superpixel or a push did, crop margin
     around the mask and band around its edges in pixels; bench edit mIoU
-    0.841 -> 0.856, docs/experiments.md); link_overlap:
+    0.841 -> 0.856, docs/design.md); link_overlap:
     fraction of a region's matched pixels that must land in one region of
     the other view to link them.
     """

@@ -1,4 +1,4 @@
-"""``omnisplat refine``: +opt, a PLY's colours (and opacities) refined on its two reference panoramas."""
+"""``omnisplat refine``: a PLY's colours refined on its two reference panoramas (the paper's +opt)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from .reconstruct import load_pair
 
 
 def cmd_refine(args: argparse.Namespace) -> int:
-    """+opt: colours (and optionally opacities) of a PLY refined on its two references; JSON summary to stdout."""
+    """Colours of a PLY refined on its two references (L1 fit, cross-view guard); JSON summary to stdout."""
     from rasterizer.ply import read_ply, write_ply
     from rasterizer.refine import RefineOptions, reference_views, refine
 
@@ -27,8 +27,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
     views = reference_views(g, [erp_a, erp_b], [c2w_a, c2w_b], height=args.height, holdout=args.holdout)
     t_fp = time.perf_counter() - t0
     opts = RefineOptions(iterations=args.iterations, sh_degree=args.sh_degree, colour_reg=args.colour_reg,
-                         optimise_opacity=args.optimise_opacity, opacity_lr=args.opacity_lr, patience=args.patience,
-                         cross_check=not args.no_cross_check, **({} if args.loss is None else {"loss": args.loss}))
+                         patience=args.patience, cross_check=not args.no_cross_check)
     res = refine(g, views, opts)
     write_ply(args.out, res.gaussians)
     first = res.history[0]
@@ -45,8 +44,8 @@ def cmd_refine(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub) -> None:
-    f = sub.add_parser("refine", help="refine a PLY's colours/opacities on its two reference views (+opt)",
-                       description="+opt: refine the colours (and optionally opacities) of a PLY on its two "
+    f = sub.add_parser("refine", help="refine a PLY's colours on its two reference views",
+                       description="refine the colours of a PLY on its two "
                                    "reference panoramas (a scene folder, or two images + --poses), geometry fixed, "
                                    "behind the cross-view guard. A JSON summary goes to stdout.")
     f.add_argument("ply", type=Path, help="Gaussians to refine (3DGS PLY, e.g. from 'omnisplat reconstruct')")
@@ -59,11 +58,8 @@ def add_parser(sub) -> None:
     f.add_argument("--height", type=int, default=128, help="Yin/Yang working height h")
     f.add_argument("--sh-degree", type=int, default=0, choices=(0, 1))
     f.add_argument("--colour-reg", type=float, default=2.0)
-    f.add_argument("--optimise-opacity", action="store_true")
-    f.add_argument("--opacity-lr", type=float, default=0.01)
     f.add_argument("--holdout", type=float, default=0.1)
     f.add_argument("--patience", type=int, default=5)
     f.add_argument("--no-cross-check", action="store_true",
                    help="skip the cross-view guard (fit each reference alone, score the other; reject if worse)")
-    f.add_argument("--loss", choices=("l2", "huber", "l1"), help="colour fit loss (default: RefineOptions.loss, l1)")
     f.set_defaults(func=cmd_refine)
