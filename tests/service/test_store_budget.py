@@ -135,3 +135,13 @@ def test_eviction_survives_a_delete_between_listing_and_sorting(tmp_path, monkey
     monkeypatch.setattr(store, "ids", lambda: listed)
     store.put(content_id("race", "2"), _gaussians(5), {})
     assert os.path.isdir(store.scenes_dir / content_id("race", "2"))
+
+
+def test_store_from_settings_takes_the_budget_and_the_margin(tmp_path, monkeypatch):
+    from service.config import Settings
+
+    monkeypatch.setenv("OMNISPLAT_STORE_BUDGET_BYTES", "123456789")
+    settings = Settings(model_path=tmp_path / "m.onnx", store_dir=tmp_path / "s", min_free_store_bytes=4096)
+    store = SceneStore.from_settings(settings)
+    assert (store.budget_bytes, store.min_free_bytes, store.root) == (123456789, 4096, tmp_path / "s")
+    assert Settings(model_path=tmp_path / "m.onnx").store_budget_bytes == 123456789
