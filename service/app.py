@@ -74,9 +74,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise ModelUnavailable(f"model file {model_path} does not exist (run `omnisplat export` or "
                                    "`omnisplat serve`, which builds it)")
         state = app.state
-        state.store = SceneStore(settings.store_dir, cache_scenes=settings.cache_scenes,
-                                 cache_bytes=settings.cache_bytes, max_scenes=settings.max_scenes,
-                                 tmp_grace_s=settings.store_tmp_grace_s)
+        state.store = SceneStore.from_settings(settings)
         state.inference_gate = WorkGate("inference", settings.inference_concurrency, settings.inference_queue,
                                         settings.retry_after_s, metrics.rejected.labels(kind="inference").inc)
         state.render_gate = WorkGate("render", settings.render_concurrency, settings.render_queue,

@@ -52,18 +52,12 @@ class PipelineOptions:
         """
         opts = {k: v for k, v in (options or {}).items()
                 if not (v is None and k in STEP_OPTION_KEYS)}
-        levels = None  # the CLI's --smooth-levels (block sizes of the smooth merge); not an API option
-        if isinstance(opts.get("compaction"), dict) and "smooth_levels" in opts["compaction"]:
-            opts["compaction"] = dict(opts["compaction"])
-            levels = opts["compaction"].pop("smooth_levels")
         try:
             settings = PipelineSettings.model_validate(opts)
         except ValidationError as exc:
             raise ValueError(describe_error(exc)) from None
         try:
             compaction = settings.compaction_options()
-            if levels is not None:
-                compaction = CompactionOptions(**{**compaction.to_dict(), "smooth_levels": levels})
         except ValueError as exc:
             raise ValueError(f"options.compaction: {exc}") from None
         try:

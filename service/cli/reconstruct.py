@@ -73,8 +73,6 @@ def pipeline_options(args: argparse.Namespace):
             compaction["merge_duplicates"] = True
         if args.no_merge_smooth:
             compaction["merge_smooth"] = False
-        elif args.smooth_levels is not None:
-            compaction["smooth_levels"] = args.smooth_levels
     try:
         return PipelineOptions.from_dict({"near": args.near, "far": args.far, "compaction": compaction,
                                           "adaptive_range": args.adaptive_range, "sh_degree": args.sh_degree,
@@ -176,7 +174,6 @@ def add_parser(sub) -> None:
                    help="keep one of the two references' copies of a surface point (default: keep both)")
     c.add_argument("--no-merge-smooth", action="store_true",
                    help="keep flat, evenly coloured regions at one Gaussian per pixel (default: merge 2x2 blocks)")
-    c.add_argument("--smooth-levels", type=int, help="largest merged block is 2^N pixels a side (default 1: 2x2)")
     c.add_argument("--min-opacity", type=float, help="drop Gaussians below this opacity (default 1/255)")
     c.add_argument("--max-gaussians", type=int, help="cap the count (drops the least visible first)")
     c.add_argument("--max-bytes", type=int, help="cap the PLY size in bytes")

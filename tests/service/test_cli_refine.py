@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from rasterizer.ply import read_ply, write_ply
@@ -44,4 +45,7 @@ def test_refine_cli_writes_refined_ply(tmp_path, capsys):
 def test_refine_cli_bad_arguments(tmp_path):
     assert main([str(tmp_path / "missing.ply"), str(tmp_path), "--out", str(tmp_path / "o.ply")]) == 2
     assert main([str(tmp_path / "missing.ply"), str(tmp_path), "--out", str(tmp_path / "o.ply"),
-                 "--no-cross-check", "--loss", "huber"]) == 2
+                 "--no-cross-check"]) == 2
+    for flag in (["--loss", "huber"], ["--optimise-opacity"], ["--opacity-lr", "0.1"]):  # experiment switches
+        with pytest.raises(SystemExit):
+            main([str(tmp_path / "missing.ply"), str(tmp_path), "--out", str(tmp_path / "o.ply"), *flag])
