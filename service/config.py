@@ -69,7 +69,7 @@ class Settings(BaseSettings):
                                                             "this survive start-up (other replicas sharing the "
                                                             "store may be writing them)")
     replica_id: str | None = Field(None, description="names this process in job records (default host:pid)")
-    max_scenes: int = Field(0, ge=0, description="scenes kept on disk, oldest evicted first; 0 = unlimited")
+    max_scenes: int = Field(0, ge=0, description="scenes kept on disk, least recently used evicted first; 0 = unlimited")
     cache_scenes: int = Field(8, ge=0, description="scenes kept decoded in memory (LRU)")
     cache_bytes: int = Field(1 << 30, ge=0, description="memory bound of the scene cache in bytes")
 

@@ -270,3 +270,4 @@ def test_no_module_over_600_lines():
     long = {str(p.relative_to(ROOT)): n for p in _files(*PACKAGES)
             if (n := len(p.read_text().splitlines())) > MAX_LINES}
     assert not long, long
+
