@@ -17,6 +17,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "stability": ("bench.stability", "stability of outputs under input perturbations"),
     "refine": ("bench.refine", "refinement: quality against iterations and seconds"),
     "compaction": ("bench.compaction", "Gaussian count, PLY bytes, render time and PSNR per compaction step"),
+    "detail": ("bench.detail", "PSNR, sharpness and GMSD at the references' own poses and at targets; count, PLY size, "
+                               "POST/render seconds, peak RSS per input size"),
     "coverage": ("bench.coverage", "accumulated alpha of the reconstructed Gaussians, quality plain vs V/A"),
     "layout": ("bench.layout", "the indoor layout prior before / after: PSNR per target, seconds, a picture"),
     "depth": ("bench.depth", "encoder depth error and ONNX run time on the dev scenes"),
