@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "edit": ("bench.edit", "selection consistency across the references (mIoU vs baselines) and edit timings"),
     "reliability": ("bench.reliability", "the reliability audit against a live server: bad inputs, fuzzing, "
                                          "overload, idle clients, kill -9, full/read-only store"),
+    "store": ("bench.store", "disk per scene, the store budget under an edit flood, server RSS after POSTs and renders"),
     "poses": ("bench.poses", "poses optional: estimated vs scene poses (errors) and PSNR with given/refined/estimated"),
 }
 

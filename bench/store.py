@@ -204,7 +204,7 @@ def rss(model: Path, tmp: Path, frames, posts: int, renders: int, width: int, tr
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.store", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="omnisplat-bench store", description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, default=DEV_DATA / "zind_room09", help="dev scene folder (scene.json)")
     p.add_argument("--model", type=Path, help="ONNX model (default: the service's default model file)")
     p.add_argument("--posts", type=int, default=30)
