@@ -166,9 +166,8 @@ NOTES = [
     "* Extra seconds (noisy): the guard is ~2 x `cross_steps` single-reference CG steps plus line-search "
     "products; a rejected guard skips the final two-reference solve. See the seconds column.",
     "* Loss (one IRLS re-weighting of the fitted pixels by their initial residual, guarded): L1 (IRLS floor "
-    "0.01) is the default since session 7; with view-dependent colour it was the only loss without a loss at "
-    "any target (m3d +0.23 dB, L2 -0.19). With encoder 0.2.0 Huber (delta 0.1) and L1 had lost to L2 at the "
-    "m3d target. Compare the 'guarded, L2 loss' and Huber lines.",
+    "0.01) is the default; with view-dependent colour it was the only loss without a loss at any target "
+    "(m3d +0.23 dB, L2 -0.19). Compare the 'guarded, L2 loss' and Huber lines.",
     "* Held-out reference pixels alone (unguarded) cannot see wrong geometry: their loss keeps falling "
     "while the targets can lose (zind_room09 split 0 unguarded).",
     "* Iteration = one Jacobi-preconditioned CG step on the normal equations of the (IRLS-weighted) "

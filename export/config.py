@@ -108,15 +108,13 @@ class EncoderConfig:
     # scene (docs/design.md).
     scale_factor: float = SURFEL_SCALE_FACTOR
     # sigma at confidence 1, linear in confidence from scale_factor at 0: where the depth is right a
-    # narrower footprint is sharper, and the environment shell keeps the coverage (docs/design.md,
-    # "Confident surfels narrower"; 0.7 for all until encoder 0.9.0)
+    # narrower footprint is sharper, and the environment shell keeps the coverage (docs/design.md)
     scale_factor_confident: float = 0.4
     ray_scale_ratio: float = 0.1
     max_stretch: float = SURFEL_MAX_STRETCH
     # opacity = min + (max - min) * confidence ** gamma. Unconfident surfels are translucent so that the
     # two references' uncertain surfaces blend at a novel pose; the service's environment shell
-    # (rasterizer.shell) behind them keeps plain compositing covered (docs/design.md,
-    # "Environment shell"; 0.98 until encoder 0.8.0).
+    # (rasterizer.shell) behind them keeps plain compositing covered (docs/design.md).
     opacity_min: float = 0.3
     opacity_max: float = 0.99
     opacity_gamma: float = 2.0

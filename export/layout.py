@@ -2,7 +2,7 @@
 
 On real captures most unconfident pixels are textureless floor and ceiling; the planar fill then
 extrapolates them from whatever confident pixels lie nearby (furniture, walls) and smears them.
-This stage gives the fill a geometric fallback instead (issue 16, "an indoor layout prior"):
+This stage gives the fill a geometric fallback instead (an indoor layout prior):
 
 1. gravity = the mean of the two cameras' down axes (OpenCV camera y) in the world; captures whose
    cameras are not both upright (down axes more than ``UPRIGHT_DEG`` apart) get no prior;

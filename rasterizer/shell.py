@@ -10,10 +10,9 @@ elsewhere it is a backdrop, like an environment map of the nearest reference.
 
 The sphere's radius is ``SHELL_RADIUS_FACTOR`` times the ``SHELL_RANGE_PERCENTILE`` percentile of the
 scene's estimated ranges, so the backdrop lies beyond (almost) every surface: a backdrop must not
-hide a surface that only the other reference sees. (Until session 9 each disc sat at twice its own
-block's range, which put a near object's backdrop in front of the walls and floor behind it.)
-Measurements behind the constants: docs/design.md and "Shell beyond the
-scene".
+hide a surface that only the other reference sees (a disc at twice its own block's range put a near
+object's backdrop in front of the walls and floor behind it). Measurements behind the constants:
+docs/design.md.
 
 Layout: the shell's Gaussians come in [view][grid][block row][block column] order; each one stands
 for the ``block`` x ``block`` pixels whose top-left pixel is :func:`shell_layout`'s index (the same

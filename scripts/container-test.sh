@@ -96,7 +96,7 @@ if [ "${#missing[@]}" -gt 0 ]; then
         || fail "apt-get install podman buildah runc debootstrap failed"
 fi
 
-WORK=$(mktemp -d /tmp/omnisplat-ct.XXXXXX)
+WORK=$(mktemp -d -t omnisplat-ct.XXXXXX)
 # crun cannot set rlimits / handle the hybrid cgroup layout here: runc, explicit ulimits.
 cat >"$WORK/containers.conf" <<'EOF'
 [containers]
@@ -135,7 +135,7 @@ if [ "${REBUILD_BASE:-0}" = 1 ] || ! podman image exists "$BASE_IMAGE"; then
         bookworm "$rootfs" "$MIRROR" >"$WORK/debootstrap.log" 2>&1 \
         || { tail -n 20 "$WORK/debootstrap.log" >&2; fail "debootstrap failed"; }
     chroot "$rootfs" /usr/bin/python3 -m venv /opt/venv || fail "python3 -m venv in the base rootfs failed"
-    rm -rf "$rootfs"/var/cache/apt/archives/*.deb "$rootfs"/var/lib/apt/lists/* "$rootfs"/tmp/*
+    rm -rf "$rootfs"/var/cache/apt/archives/*.deb "$rootfs"/var/lib/apt/lists/* "$rootfs/tmp"/*
     tar -C "$rootfs" --numeric-owner -cf - . | podman import \
         --change 'ENV PATH=/opt/venv/bin:/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin' \
         --change 'ENV LANG=C.UTF-8' \

@@ -20,7 +20,7 @@ if pgrep -x raylet >/dev/null || pgrep -f "gcs_server" >/dev/null; then
 fi
 python3 -m venv "$VENV" && "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e ".[ray,export]" \
     || { echo "FAIL: could not install .[ray,export]"; exit 1; }
-WORK="$(mktemp -d /tmp/omnisplat-ray.XXXXXX)"
+WORK="$(mktemp -d -t omnisplat-ray.XXXXXX)"
 export OMNISPLAT_STORE_DIR="$WORK/store" RAY_USAGE_STATS_ENABLED=0 OMP_NUM_THREADS=1
 # Token authentication with a token of this run only (a ~/.ray/auth_token left by a local ray.init
 # would otherwise switch the head to tokens without the second node knowing).

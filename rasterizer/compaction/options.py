@@ -37,21 +37,21 @@ class CompactionOptions:
 
     min_opacity: float = 1.0 / 255.0
     min_confidence: float = 0.0
-    # Off by default since encoder 0.5.0 (Gaussians of 0.5 pixel pitches): on the dev splits the overlap
-    # step cost up to 0.52 dB (zind pano_5) and the duplicate step 0.66 dB (m3d) at the targets, while
-    # the smooth merge alone stays within 0.02 dB (docs/bench/compaction.md).
+    # Off by default: with Gaussians of 0.5 pixel pitches the overlap step cost up to 0.52 dB (zind pano_5)
+    # and the duplicate step 0.66 dB (m3d) at the targets, while the smooth merge alone stays within
+    # 0.02 dB (docs/bench/compaction.md).
     resolve_overlap: str = "off"
     merge_duplicates: bool = False
-    duplicate_range_tol: float = 0.05  # 0.1 cost 0.56 dB on m3d with encoder 0.2.0; 0.05 stayed within 0.2 dB then
+    duplicate_range_tol: float = 0.05  # 0.1 cost 0.56 dB on m3d; 0.05 stayed within 0.2 dB
     duplicate_footprint_ratio: float = 4.0
     merge_smooth: bool = True
     # 2x2 blocks only. 2 (also 4x4) left 3-16% fewer Gaussians on the dev scenes, but rendered 1-5 dB
     # further from the uncompacted scene (within 0.03 dB of 1 against the target images).
     smooth_levels: int = 1
-    # colour 0.06 and incidence 55 deg (were 0.04 / 45, tuned on encoder 0.3.0): with encoder 0.5.0,
-    # Gaussians fewer on m3d / zind 2+6 / zind 4+5 37.7 / 30.7 / 45.7% -> 49.2 / 40.5 / 54.2%, target PSNR
-    # change worst -0.013 -> -0.069 dB, PSNR against the uncompacted render >= 43 dB; incidence 60 deg
-    # made 52 / 46 / 57% but zind pano_6 fell to 34 dB against the uncompacted render.
+    # colour 0.06 and incidence 55 deg against 0.04 / 45: Gaussians fewer on m3d / zind 2+6 / zind 4+5
+    # 37.7 / 30.7 / 45.7% -> 49.2 / 40.5 / 54.2%, target PSNR change worst -0.013 -> -0.069 dB, PSNR against
+    # the uncompacted render >= 43 dB; incidence 60 deg made 52 / 46 / 57% but zind pano_6 fell to 34 dB
+    # against the uncompacted render.
     smooth_colour_tol: float = 0.06
     smooth_opacity_tol: float = 0.1
     smooth_plane_tol: float = 0.002

@@ -1,4 +1,4 @@
-"""Regression tests of the hardening audit (issue 14): slow clients, limits, store failures, access."""
+"""Regression tests of the hardening audit: slow clients, limits, store failures, access."""
 
 from __future__ import annotations
 

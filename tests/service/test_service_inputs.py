@@ -245,7 +245,7 @@ def test_work_gate_rejects_past_queue():
     anyio.run(main)
 
 
-# -- hardening regressions (issue 14) --------------------------------------------------------------
+# -- hardening regressions --------------------------------------------------------------
 
 HUGE = "1" + "0" * 399
 

@@ -3,7 +3,7 @@
 //
 //   node tests/service/viewer_browser.mjs '{"base_url": "http://127.0.0.1:PORT", "scene_id": "...",
 //     "poses": [{"name": "yaw0", "c2w": [16 numbers]}], "width": 640, "height": 480, "fov_deg": 90,
-//     "out_dir": "/tmp/x", "chromium": "/usr/bin/chromium", "timeout_s": 120,
+//     "out_dir": "OUT_DIR", "chromium": "/usr/bin/chromium", "timeout_s": 120,
 //     "reload": false, "page_shot": {"path": "page.png", "width": 960, "height": 600, "query": "c2w=..."}}'
 //
 // Prints one JSON object: {"views": [{"name", "screenshot", "splat_count", "load_seconds", "error"}],
