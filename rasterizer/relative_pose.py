@@ -1,10 +1,12 @@
-"""Relative pose of two upright panoramas from bearing matches (numpy only).
+"""Relative pose of two panoramas from bearing matches (numpy only).
 
-Frames: OpenCV camera frames; A is the world (``c2w_A = I``) and B's pose is
-``[R | t]``: a point ``X_B`` in B's frame is ``R X_B + t`` in A's. Two levelled
-panoramas differ by a turn about the camera y axis (gravity), so
-``R = yaw_rotation(yaw)``. A match of unit bearings ``(f_a, f_b)`` satisfies
-``f_a . (t x R f_b) = 0``; errors are angles (rad) of a bearing from its epipolar plane.
+Frames: OpenCV camera frames (or their levelled versions, :mod:`rasterizer.gravity`); A is the
+world and B's pose is ``[R | t]``: a point ``X_B`` in B's frame is ``R X_B + t`` in A's. Two
+levelled panoramas differ by a turn about the y axis (gravity), so ``R = yaw_rotation(yaw)``
+(3 dof with the direction of ``t``: :func:`upright_ransac`, :func:`refine_upright`); a residual
+tilt needs the general 5-dof model (:func:`refine_general`). A match of unit bearings
+``(f_a, f_b)`` satisfies ``f_a . (t x R f_b) = 0``; errors are angles (rad) of a bearing from its
+epipolar plane.
 """
 
 from __future__ import annotations
@@ -190,6 +192,56 @@ def refine_upright(fa: np.ndarray, fb: np.ndarray, yaw: float, t: np.ndarray, *,
         if np.abs(step).max() < 1e-9:
             break
     return float(yaw), t
+
+
+def rotation_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of the rotation vector ``w`` (3,) rad (Rodrigues)."""
+    w = np.asarray(w, dtype=np.float64)
+    a = float(np.linalg.norm(w))
+    k = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    if a < 1e-12:
+        return np.eye(3) + k
+    return np.eye(3) + np.sin(a) / a * k + (1 - np.cos(a)) / (a * a) * (k @ k)
+
+
+def refine_general(fa: np.ndarray, fb: np.ndarray, R: np.ndarray, t: np.ndarray, *, scale_deg: float = INLIER_DEG,
+                   iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """Robust (Cauchy, scale ``scale_deg``) Gauss-Newton on the full rotation (3 dof, ``R exp([w]x)``) and
+    the direction of ``t`` (2 dof) from matched unit bearings fa, fb (N, 3); returns (R, unit t)."""
+    R = np.asarray(R, dtype=np.float64)
+    t = _unit(np.asarray(t, dtype=np.float64))
+    s = np.radians(scale_deg)
+
+    def residual(R_, t_):
+        n = np.cross(t_, fb @ R_.T)
+        return np.einsum("ni,ni->n", fa, n) / np.maximum(np.linalg.norm(n, axis=-1), _EPS)
+
+    def apply(p, R_, t_, basis):
+        return R_ @ rotation_exp(p[:3]), _unit(t_ + basis @ p[3:])
+
+    for _ in range(iterations):
+        helper = np.array([1.0, 0, 0]) if abs(t[0]) < 0.9 else np.array([0, 1.0, 0])
+        e1 = _unit(np.cross(t, helper))
+        basis = np.stack([e1, np.cross(t, e1)], 1)
+        r = residual(R, t)
+        w = 1.0 / (1.0 + (r / s) ** 2)
+        J = np.empty((len(r), 5))
+        h = 1e-6
+        for k in range(5):
+            dp = np.zeros(5)
+            dp[k] = h
+            J[:, k] = (residual(*apply(dp, R, t, basis)) - r) / h
+        A = J.T @ (w[:, None] * J) + 1e-9 * np.eye(5)
+        step = -np.linalg.solve(A, J.T @ (w * r))
+        R, t = apply(step, R, t, basis)
+        if np.abs(step).max() < 1e-9:
+            break
+    return R, t
+
+
+def tilt_between(R: np.ndarray) -> float:
+    """Angle (deg) by which the rotation ``R`` (3, 3) moves the y axis: the tilt that a yaw cannot explain."""
+    return float(np.degrees(np.arccos(np.clip(R[1, 1], -1.0, 1.0))))
 
 
 def floor_scale(points: np.ndarray, camera_height: float, parallax: np.ndarray | None = None, *,
