@@ -245,29 +245,41 @@ def tilt_between(R: np.ndarray) -> float:
 
 
 def floor_scale(points: np.ndarray, camera_height: float, parallax: np.ndarray | None = None, *,
-                min_parallax_deg: float = 3.0, min_share: float = 0.7) -> tuple[float, dict]:
-    """Metres per unit from triangulated points (N, 3) in A's frame (y down) and A's height above the floor.
+                min_parallax_deg: float = 3.0, min_share: float = 0.03, min_points: int = 8,
+                thickness: float = 0.03, min_spread: float = 0.15, min_peak: float = 0.3) -> tuple[float, dict]:
+    """Metres per unit from triangulated points (N, 3) in a levelled frame of A (y down along gravity) and
+    A's height above the floor.
 
-    Points seen with less than ``min_parallax_deg`` of ``parallax`` (N,) rad (near the epipoles, badly
-    triangulated) are ignored. Heights of the points more than 20 deg below the horizon are binned
-    (0.02 in log height, smoothed over +-0.04); the floor is the lowest peak holding at least
-    ``min_share`` of the largest peak (a bed or a table top can be the largest).
+    The floor is the lowest horizontal slab (``2 * thickness`` thick in log depth) that holds at least
+    ``min_points``, ``min_share`` of the points more than 20 deg below the horizon and ``min_peak`` of
+    the fullest slab's points (a few strays or a floor's reflections are not a floor), and spreads
+    horizontally in both directions (standard deviation along the narrower principal axis of its points'
+    x, z at least ``min_spread`` times its depth; a wall's band of points is a line): the lowest large
+    horizontal plane, not the densest one (a bed or a table top can be the densest). Points seen with
+    less than ``min_parallax_deg`` of ``parallax`` (N,) rad (near the epipoles, badly triangulated)
+    are ignored. Raises ``ValueError`` when no slab qualifies.
     """
     p = np.asarray(points, dtype=np.float64)
     rng_ = np.linalg.norm(p, axis=-1)
     below = (p[:, 1] > np.sin(np.radians(20)) * rng_) & np.isfinite(rng_)
     if parallax is not None:
         below &= np.asarray(parallax) >= np.radians(min_parallax_deg)
-    y = p[below, 1]
-    if len(y) < 5:
-        raise ValueError(f"only {len(y)} well triangulated points below the camera: cannot find the floor")
-    logy = np.log(y)
-    edges = np.arange(logy.min() - 0.05, logy.max() + 0.07, 0.02)
-    hist = np.histogram(logy, edges)[0].astype(float)
-    smooth = np.convolve(hist, [1, 2, 3, 2, 1], mode="same")
-    padded = np.r_[-1.0, smooth, -1.0]
-    peaks = np.nonzero((smooth >= padded[:-2]) & (smooth > padded[2:]) & (smooth >= min_share * smooth.max()))[0]
-    k = int(peaks[-1])
-    near = np.abs(logy - 0.5 * (edges[k] + edges[k + 1])) < 0.05
-    floor_y = float(np.exp(np.median(logy[near])))
-    return camera_height / floor_y, {"floor_points": int(near.sum()), "floor_depth_units": floor_y}
+    q = p[below]
+    if len(q) < max(min_points, 5):
+        raise ValueError(f"only {len(q)} well triangulated points below the camera: cannot find the floor")
+    order = np.argsort(-q[:, 1])  # deepest first
+    q = q[order]
+    logy = np.log(q[:, 1])
+    # slab starting at each point (going up): the points within ``2 * thickness`` in log depth above it
+    ends = np.searchsorted(-logy, -(logy - 2 * thickness), side="right")
+    counts = ends - np.arange(len(q))
+    need = max(min_points, int(np.ceil(min_share * len(q))), int(np.ceil(min_peak * counts.max())))
+    for i in np.nonzero(counts >= need)[0]:
+        slab = q[i:ends[i]]
+        y = float(np.exp(np.median(np.log(slab[:, 1]))))
+        spread = np.sqrt(max(np.linalg.eigvalsh(np.cov(slab[:, [0, 2]].T))[0], 0.0))
+        if spread >= min_spread * y:
+            return camera_height / y, {"floor_points": int(len(slab)), "floor_depth_units": y,
+                                       "points_below_floor": int(i)}
+    raise ValueError(f"no horizontal plane below the camera holds {need} of the {len(q)} triangulated points "
+                     "there and spreads wide: the floor is not seen in both views")

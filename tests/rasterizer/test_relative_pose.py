@@ -108,6 +108,29 @@ def test_floor_scale_finds_the_floor_below_furniture():
         floor_scale(walls[:3], h)
 
 
+def test_floor_scale_takes_the_lowest_wide_plane_not_the_densest():
+    """A bed top with three times the floor's points, a few strays and a small cluster (a reflection) under
+    the floor, a small box on it: the floor is the lowest slab that is both well supported and wide."""
+    rng = np.random.default_rng(1)
+    h = 2.2
+    floor = np.c_[rng.uniform(-3, 3, 40), np.full(40, h), rng.uniform(-3, 3, 40)]
+    bed = np.c_[rng.uniform(0.5, 2.0, 120), np.full(120, h - 0.6), rng.uniform(-1.0, 1.0, 120)]
+    mirrored = np.c_[rng.uniform(-2, 2, 9), np.full(9, h + 0.5), rng.uniform(-2, 2, 9)]
+    box = np.c_[rng.uniform(-2.0, -1.9, 12), np.full(12, h - 0.25), rng.uniform(1.0, 1.1, 12)]  # small, not a floor
+    strays = np.c_[rng.uniform(-3, 3, 4), rng.uniform(h + 0.3, h + 1.5, 4), rng.uniform(-3, 3, 4)]
+    walls = np.c_[rng.uniform(-3, 3, 100), rng.uniform(0.3, h, 100), np.full(100, 3.0)]
+    pts = np.concatenate([floor, bed, box, strays, mirrored, walls]) / 0.8  # the estimate's unit is 0.8 m
+    scale, info = floor_scale(pts, h)
+    assert abs(scale / 0.8 - 1) < 0.02 and info["floor_points"] >= 35
+
+
+def test_floor_scale_refuses_when_the_floor_is_not_seen():
+    rng = np.random.default_rng(2)
+    walls = np.c_[rng.uniform(-3, 3, 200), rng.uniform(0.3, 2.2, 200), np.full(200, 3.0)]  # no plane at all
+    with pytest.raises(ValueError, match="floor is not seen"):
+        floor_scale(walls, 2.2)
+
+
 def test_refine_general_recovers_a_tilted_pose_from_the_upright_guess():
     """B tilted 4 deg against A: starting from the best upright pose, the 5-dof refinement finds the tilt."""
     rng = np.random.default_rng(3)
