@@ -135,7 +135,8 @@ def pairs_markdown(rows: list[dict], rot_deg: float = 1.0, dir_deg: float = 2.0,
     return "\n".join(lines) + "\n"
 
 
-def run(data: list[Path], out: Path, width: int, threads: int) -> dict:
+def run(data: list[Path], out: Path, width: int, threads: int, splits: list[int] | None = None,
+        height: float | None = None) -> dict:
     from service.config import Settings
     from service.encoder import OnnxEncoder
     from service.errors import ServiceError
@@ -160,13 +161,15 @@ def run(data: list[Path], out: Path, width: int, threads: int) -> dict:
     for root in data:
         scene = load_scene(root)
         for si, split in enumerate(scene.splits):
+            if splits is not None and si not in splits:
+                continue
             fa, fb = (scene.frames[n] for n in split.references)
             ia, ib = fa.image(), fb.image()
             targets = [(n, scene.frames[n]) for n in split.targets]
             rel = np.linalg.inv(fa.c2w) @ fb.c2w
             row = {"scene": scene.name, "split": si, "references": list(split.references),
                    "baseline_m": float(np.linalg.norm(rel[:3, 3])), "targets": list(split.targets)}
-            h = camera_height(scene, fa)
+            h = height if height is not None else camera_height(scene, fa)
             row["camera_height_m"] = h
             refs = [(ia, fa.c2w), (ib, fb.c2w)]
             row["copy_nearest"] = {n: metrics.psnr(copy_nearest(refs, f.c2w, width // 2, width),
@@ -241,10 +244,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     p.add_argument("--width", type=int, default=1024, help="render width (the targets' width)")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--splits", type=int, nargs="+", default=None, help="only these split indices (default: all)")
     p.add_argument("--pairs-within", type=float, default=None, metavar="M",
                    help="pose errors only (no rendering) on every pair of frames at most M metres apart")
     p.add_argument("--camera-height", type=float, default=None,
-                   help="with --pairs-within: metres above the floor for every frame (default: from the scene)")
+                   help="metres above the floor for every frame (default: from the scene)")
     args = p.parse_args(argv)
     if args.pairs_within is not None:
         rows = [r for root in args.data for r in pair_rows(root, args.pairs_within, args.camera_height)]
@@ -252,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         (args.out / "poses_pairs.json").write_text(json.dumps(rows, indent=1) + "\n")
         print(pairs_markdown(rows))
         return 0
-    res = run(args.data, args.out, args.width, args.threads)
+    res = run(args.data, args.out, args.width, args.threads, args.splits, args.camera_height)
     print(markdown(res["rows"]))
     return 0
 
