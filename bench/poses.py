@@ -154,8 +154,9 @@ def run(data: list[Path], out: Path, width: int, threads: int, splits: list[int]
         for name, frame in targets:
             target = resize_erp_box(frame.image(), width)
             for method in ("direct", "yinyang"):
-                pred = render(g, to_frame(frame.c2w), projection="erp", width=width, method=method).colour
-                res.setdefault(method, {})[name] = metrics.psnr(np.clip(pred, 0, 1), target)
+                pred = np.clip(render(g, to_frame(frame.c2w), projection="erp", width=width, method=method).colour, 0, 1)
+                res.setdefault(method, {})[name] = metrics.psnr(pred, target)
+                res.setdefault(method + "_above_nadir", {})[name] = metrics.psnr_above_nadir(pred, target)
         return res
 
     for root in data:
