@@ -6,10 +6,14 @@ translation direction error deg, scale error %), then build the scene as the ser
 (default model, :func:`service.pipeline.build_scene`) with the given, the refined
 (``refine_poses``) and the estimated poses and render every target with plain compositing
 (ERP ``method="direct"``: colour over black, no division by alpha). Targets are placed in the
-estimated frame by the similarity that maps the scene's A onto the identity and its baseline
+estimated frame by the similarity that maps the scene's A onto the estimated A and its baseline
 onto the estimated one. Writes ``poses.json`` and ``poses.md`` into ``--out``.
 
+``--pairs-within M``: pose errors only (no model, no rendering) on every pair of frames at most
+M metres apart; writes ``poses_pairs.json``.
+
     omnisplat-bench poses --data ../shared/data/m3d_bedroom ../shared/data/zind_room09
+    omnisplat-bench poses --data ../shared/data/bedroom_theta --pairs-within 2 --camera-height 2.2
 """
 
 from __future__ import annotations
@@ -64,7 +68,75 @@ def into_estimate(c2w_a: np.ndarray, c2w: np.ndarray, scale: float) -> np.ndarra
     return m
 
 
-def run(data: list[Path], out: Path, width: int, threads: int) -> dict:
+def pair_rows(root: Path, max_m: float, height: float | None = None) -> list[dict]:
+    """Pose errors of the estimate on every pair of frames at most ``max_m`` apart (no rendering).
+
+    The scale comes from ``height`` (metres above the floor for every frame) or the bench's
+    :func:`camera_height` of the first frame; errors compare the estimate's B relative to its A
+    with the scene's."""
+    from service.errors import ServiceError
+    from service.poses import PoseOptions, estimate_poses, prepare
+
+    scene = load_scene(root)
+    names = list(scene.frames)
+    prepared: dict = {}
+    rows = []
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            fa, fb = scene.frames[a], scene.frames[b]
+            rel = np.linalg.inv(fa.c2w) @ fb.c2w
+            dist = float(np.linalg.norm(rel[:3, 3]))
+            if dist > max_m:
+                continue
+            for n in (a, b):
+                if n not in prepared:  # features and gravity once per frame, with the file's XMP
+                    f = scene.frames[n]
+                    prepared[n] = prepare(f.image(), f.image_path.read_bytes())
+            pa, pb = prepared[a], prepared[b]
+            h = height if height is not None else camera_height(scene, fa)
+            row = {"scene": scene.name, "references": [a, b], "baseline_m": dist, "camera_height_m": h}
+            t0 = time.perf_counter()
+            try:
+                c2w_a, c2w_b, info = estimate_poses(pa.image, pb.image, PoseOptions(camera_height=h), prepared=(pa, pb))
+            except ServiceError as exc:
+                row["estimate"] = {"seconds": time.perf_counter() - t0, "error": exc.code, "message": exc.message}
+            else:
+                est = np.linalg.inv(c2w_a) @ c2w_b
+                row["estimate"] = {"seconds": time.perf_counter() - t0, **pose_errors(rel, est),
+                                   "inliers": info["inliers"], "method": info["method"],
+                                   "residual_tilt_deg": info.get("residual_tilt_deg"),
+                                   "gravity": [{k: g[k] for k in ("source", "tilt_deg")} for g in info["gravity"]],
+                                   "scale": info.get("scale")}
+            _log(json.dumps(row))
+            rows.append(row)
+    return rows
+
+
+def pairs_markdown(rows: list[dict], rot_deg: float = 1.0, dir_deg: float = 2.0, scale_pct: float = 15.0) -> str:
+    """Per pair: rotation / travel direction / baseline errors, then the share within the targets."""
+    lines = ["| scene pair (baseline) | rot err deg | dir err deg | baseline est / true | inliers | method | s |",
+             "|---|---|---|---|---|---|---|"]
+    ok = {"rot": 0, "dir": 0, "scale": 0}
+    for r in rows:
+        e = r["estimate"]
+        head = f"| {r['scene']} {'+'.join(r['references'])} ({r['baseline_m']:.2f} m) "
+        if "error" in e:
+            lines.append(head + f"| 422 `{e['error']}` | | | | | {e['seconds']:.1f} |")
+            continue
+        ok["rot"] += e["rotation_deg"] <= rot_deg
+        ok["dir"] += e["direction_deg"] <= dir_deg
+        ok["scale"] += abs(e["scale_pct"]) <= scale_pct
+        lines.append(head + f"| {e['rotation_deg']:.2f} | {e['direction_deg']:.2f} | {1 + e['scale_pct'] / 100:.2f}x "
+                     f"| {e['inliers']} | {e['method']} | {e['seconds']:.1f} |")
+    n = max(len(rows), 1)
+    lines += ["", f"{len(rows)} pairs: rotation <= {rot_deg:g} deg on {ok['rot'] / n:.0%}, travel direction <= "
+              f"{dir_deg:g} deg on {ok['dir'] / n:.0%}, baseline within {scale_pct:g}% on {ok['scale'] / n:.0%} "
+              "(a 422 counts as a miss)"]
+    return "\n".join(lines) + "\n"
+
+
+def run(data: list[Path], out: Path, width: int, threads: int, splits: list[int] | None = None,
+        height: float | None = None) -> dict:
     from service.config import Settings
     from service.encoder import OnnxEncoder
     from service.errors import ServiceError
@@ -82,20 +154,23 @@ def run(data: list[Path], out: Path, width: int, threads: int) -> dict:
         for name, frame in targets:
             target = resize_erp_box(frame.image(), width)
             for method in ("direct", "yinyang"):
-                pred = render(g, to_frame(frame.c2w), projection="erp", width=width, method=method).colour
-                res.setdefault(method, {})[name] = metrics.psnr(np.clip(pred, 0, 1), target)
+                pred = np.clip(render(g, to_frame(frame.c2w), projection="erp", width=width, method=method).colour, 0, 1)
+                res.setdefault(method, {})[name] = metrics.psnr(pred, target)
+                res.setdefault(method + "_above_nadir", {})[name] = metrics.psnr_above_nadir(pred, target)
         return res
 
     for root in data:
         scene = load_scene(root)
         for si, split in enumerate(scene.splits):
+            if splits is not None and si not in splits:
+                continue
             fa, fb = (scene.frames[n] for n in split.references)
             ia, ib = fa.image(), fb.image()
             targets = [(n, scene.frames[n]) for n in split.targets]
             rel = np.linalg.inv(fa.c2w) @ fb.c2w
             row = {"scene": scene.name, "split": si, "references": list(split.references),
                    "baseline_m": float(np.linalg.norm(rel[:3, 3])), "targets": list(split.targets)}
-            h = camera_height(scene, fa)
+            h = height if height is not None else camera_height(scene, fa)
             row["camera_height_m"] = h
             refs = [(ia, fa.c2w), (ib, fb.c2w)]
             row["copy_nearest"] = {n: metrics.psnr(copy_nearest(refs, f.c2w, width // 2, width),
@@ -112,17 +187,19 @@ def run(data: list[Path], out: Path, width: int, threads: int) -> dict:
             row["refined"] = psnrs(g, targets, lambda c: c)
             t0 = time.perf_counter()
             try:
-                _, c2w_b, info = estimate_poses(ia, ib, PoseOptions(camera_height=h))
+                c2w_a_est, c2w_b, info = estimate_poses(ia, ib, PoseOptions(camera_height=h),
+                                                        (fa.image_path.read_bytes(), fb.image_path.read_bytes()))
             except ServiceError as exc:
                 row["estimate"] = {"seconds": time.perf_counter() - t0, "error": exc.code, "message": exc.message}
                 _log(f"{scene.name} split {si}: {exc.code}: {exc.message}")
                 rows.append(row)
                 continue
-            row["estimate"] = {"seconds": time.perf_counter() - t0, **pose_errors(rel, c2w_b), "inliers": info["inliers"],
+            rel_est = np.linalg.inv(c2w_a_est) @ c2w_b
+            row["estimate"] = {"seconds": time.perf_counter() - t0, **pose_errors(rel, rel_est), "inliers": info["inliers"],
                                "residual_deg": info["residual_deg"]}
-            s = np.linalg.norm(c2w_b[:3, 3]) / np.linalg.norm(rel[:3, 3])
-            g = build_scene(encoder, ia, ib, np.eye(4), c2w_b, options).gaussians
-            row["estimated"] = psnrs(g, targets, lambda c: into_estimate(fa.c2w, c, s))
+            s = np.linalg.norm(rel_est[:3, 3]) / np.linalg.norm(rel[:3, 3])
+            g = build_scene(encoder, ia, ib, c2w_a_est, c2w_b, options).gaussians
+            row["estimated"] = psnrs(g, targets, lambda c: c2w_a_est @ into_estimate(fa.c2w, c, s))
             _log(json.dumps(row))
             rows.append(row)
     out.mkdir(parents=True, exist_ok=True)
@@ -168,8 +245,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     p.add_argument("--width", type=int, default=1024, help="render width (the targets' width)")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--splits", type=int, nargs="+", default=None, help="only these split indices (default: all)")
+    p.add_argument("--pairs-within", type=float, default=None, metavar="M",
+                   help="pose errors only (no rendering) on every pair of frames at most M metres apart")
+    p.add_argument("--camera-height", type=float, default=None,
+                   help="metres above the floor for every frame (default: from the scene)")
     args = p.parse_args(argv)
-    res = run(args.data, args.out, args.width, args.threads)
+    if args.pairs_within is not None:
+        rows = [r for root in args.data for r in pair_rows(root, args.pairs_within, args.camera_height)]
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "poses_pairs.json").write_text(json.dumps(rows, indent=1) + "\n")
+        print(pairs_markdown(rows))
+        return 0
+    res = run(args.data, args.out, args.width, args.threads, args.splits, args.camera_height)
     print(markdown(res["rows"]))
     return 0
 

@@ -1,10 +1,12 @@
-"""Relative pose of two upright panoramas from bearing matches (numpy only).
+"""Relative pose of two panoramas from bearing matches (numpy only).
 
-Frames: OpenCV camera frames; A is the world (``c2w_A = I``) and B's pose is
-``[R | t]``: a point ``X_B`` in B's frame is ``R X_B + t`` in A's. Two levelled
-panoramas differ by a turn about the camera y axis (gravity), so
-``R = yaw_rotation(yaw)``. A match of unit bearings ``(f_a, f_b)`` satisfies
-``f_a . (t x R f_b) = 0``; errors are angles (rad) of a bearing from its epipolar plane.
+Frames: OpenCV camera frames (or their levelled versions, :mod:`rasterizer.gravity`); A is the
+world and B's pose is ``[R | t]``: a point ``X_B`` in B's frame is ``R X_B + t`` in A's. Two
+levelled panoramas differ by a turn about the y axis (gravity), so ``R = yaw_rotation(yaw)``
+(3 dof with the direction of ``t``: :func:`upright_ransac`, :func:`refine_upright`); a residual
+tilt needs the general 5-dof model (:func:`refine_general`). A match of unit bearings
+``(f_a, f_b)`` satisfies ``f_a . (t x R f_b) = 0``; errors are angles (rad) of a bearing from its
+epipolar plane.
 """
 
 from __future__ import annotations
@@ -192,30 +194,92 @@ def refine_upright(fa: np.ndarray, fb: np.ndarray, yaw: float, t: np.ndarray, *,
     return float(yaw), t
 
 
-def floor_scale(points: np.ndarray, camera_height: float, parallax: np.ndarray | None = None, *,
-                min_parallax_deg: float = 3.0, min_share: float = 0.7) -> tuple[float, dict]:
-    """Metres per unit from triangulated points (N, 3) in A's frame (y down) and A's height above the floor.
+def rotation_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of the rotation vector ``w`` (3,) rad (Rodrigues)."""
+    w = np.asarray(w, dtype=np.float64)
+    a = float(np.linalg.norm(w))
+    k = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    if a < 1e-12:
+        return np.eye(3) + k
+    return np.eye(3) + np.sin(a) / a * k + (1 - np.cos(a)) / (a * a) * (k @ k)
 
-    Points seen with less than ``min_parallax_deg`` of ``parallax`` (N,) rad (near the epipoles, badly
-    triangulated) are ignored. Heights of the points more than 20 deg below the horizon are binned
-    (0.02 in log height, smoothed over +-0.04); the floor is the lowest peak holding at least
-    ``min_share`` of the largest peak (a bed or a table top can be the largest).
+
+def refine_general(fa: np.ndarray, fb: np.ndarray, R: np.ndarray, t: np.ndarray, *, scale_deg: float = INLIER_DEG,
+                   iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """Robust (Cauchy, scale ``scale_deg``) Gauss-Newton on the full rotation (3 dof, ``R exp([w]x)``) and
+    the direction of ``t`` (2 dof) from matched unit bearings fa, fb (N, 3); returns (R, unit t)."""
+    R = np.asarray(R, dtype=np.float64)
+    t = _unit(np.asarray(t, dtype=np.float64))
+    s = np.radians(scale_deg)
+
+    def residual(R_, t_):
+        n = np.cross(t_, fb @ R_.T)
+        return np.einsum("ni,ni->n", fa, n) / np.maximum(np.linalg.norm(n, axis=-1), _EPS)
+
+    def apply(p, R_, t_, basis):
+        return R_ @ rotation_exp(p[:3]), _unit(t_ + basis @ p[3:])
+
+    for _ in range(iterations):
+        helper = np.array([1.0, 0, 0]) if abs(t[0]) < 0.9 else np.array([0, 1.0, 0])
+        e1 = _unit(np.cross(t, helper))
+        basis = np.stack([e1, np.cross(t, e1)], 1)
+        r = residual(R, t)
+        w = 1.0 / (1.0 + (r / s) ** 2)
+        J = np.empty((len(r), 5))
+        h = 1e-6
+        for k in range(5):
+            dp = np.zeros(5)
+            dp[k] = h
+            J[:, k] = (residual(*apply(dp, R, t, basis)) - r) / h
+        A = J.T @ (w[:, None] * J) + 1e-9 * np.eye(5)
+        step = -np.linalg.solve(A, J.T @ (w * r))
+        R, t = apply(step, R, t, basis)
+        if np.abs(step).max() < 1e-9:
+            break
+    return R, t
+
+
+def tilt_between(R: np.ndarray) -> float:
+    """Angle (deg) by which the rotation ``R`` (3, 3) moves the y axis: the tilt that a yaw cannot explain."""
+    return float(np.degrees(np.arccos(np.clip(R[1, 1], -1.0, 1.0))))
+
+
+def floor_scale(points: np.ndarray, camera_height: float, parallax: np.ndarray | None = None, *,
+                min_parallax_deg: float = 3.0, min_share: float = 0.03, min_points: int = 8,
+                thickness: float = 0.03, min_spread: float = 0.15, min_peak: float = 0.3) -> tuple[float, dict]:
+    """Metres per unit from triangulated points (N, 3) in a levelled frame of A (y down along gravity) and
+    A's height above the floor.
+
+    The floor is the lowest horizontal slab (``2 * thickness`` thick in log depth) that holds at least
+    ``min_points``, ``min_share`` of the points more than 20 deg below the horizon and ``min_peak`` of
+    the fullest slab's points (a few strays or a floor's reflections are not a floor), and spreads
+    horizontally in both directions (standard deviation along the narrower principal axis of its points'
+    x, z at least ``min_spread`` times its depth; a wall's band of points is a line): the lowest large
+    horizontal plane, not the densest one (a bed or a table top can be the densest). Points seen with
+    less than ``min_parallax_deg`` of ``parallax`` (N,) rad (near the epipoles, badly triangulated)
+    are ignored. Raises ``ValueError`` when no slab qualifies.
     """
     p = np.asarray(points, dtype=np.float64)
     rng_ = np.linalg.norm(p, axis=-1)
     below = (p[:, 1] > np.sin(np.radians(20)) * rng_) & np.isfinite(rng_)
     if parallax is not None:
         below &= np.asarray(parallax) >= np.radians(min_parallax_deg)
-    y = p[below, 1]
-    if len(y) < 5:
-        raise ValueError(f"only {len(y)} well triangulated points below the camera: cannot find the floor")
-    logy = np.log(y)
-    edges = np.arange(logy.min() - 0.05, logy.max() + 0.07, 0.02)
-    hist = np.histogram(logy, edges)[0].astype(float)
-    smooth = np.convolve(hist, [1, 2, 3, 2, 1], mode="same")
-    padded = np.r_[-1.0, smooth, -1.0]
-    peaks = np.nonzero((smooth >= padded[:-2]) & (smooth > padded[2:]) & (smooth >= min_share * smooth.max()))[0]
-    k = int(peaks[-1])
-    near = np.abs(logy - 0.5 * (edges[k] + edges[k + 1])) < 0.05
-    floor_y = float(np.exp(np.median(logy[near])))
-    return camera_height / floor_y, {"floor_points": int(near.sum()), "floor_depth_units": floor_y}
+    q = p[below]
+    if len(q) < max(min_points, 5):
+        raise ValueError(f"only {len(q)} well triangulated points below the camera: cannot find the floor")
+    order = np.argsort(-q[:, 1])  # deepest first
+    q = q[order]
+    logy = np.log(q[:, 1])
+    # slab starting at each point (going up): the points within ``2 * thickness`` in log depth above it
+    ends = np.searchsorted(-logy, -(logy - 2 * thickness), side="right")
+    counts = ends - np.arange(len(q))
+    need = max(min_points, int(np.ceil(min_share * len(q))), int(np.ceil(min_peak * counts.max())))
+    for i in np.nonzero(counts >= need)[0]:
+        slab = q[i:ends[i]]
+        y = float(np.exp(np.median(np.log(slab[:, 1]))))
+        spread = np.sqrt(max(np.linalg.eigvalsh(np.cov(slab[:, [0, 2]].T))[0], 0.0))
+        if spread >= min_spread * y:
+            return camera_height / y, {"floor_points": int(len(slab)), "floor_depth_units": y,
+                                       "points_below_floor": int(i)}
+    raise ValueError(f"no horizontal plane below the camera holds {need} of the {len(q)} triangulated points "
+                     "there and spreads wide: the floor is not seen in both views")

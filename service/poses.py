@@ -1,4 +1,9 @@
-"""Poses from the two panoramas: SIFT matches -> upright relative pose -> metric scale.
+"""Poses from the two panoramas: gravity -> SIFT matches -> upright relative pose (5-dof when a tilt
+remains) -> metric scale.
+
+Gravity: each panorama's down direction from its vertical lines or the camera's own reading
+(:mod:`service.gravity`); a panorama tilted more than :data:`LEVEL_MIN_TILT_DEG` is levelled (its
+bearings turned so that gravity is +y) before matching.
 
 Features: SIFT (OpenCV, ``contrastThreshold=0.02``) on 16 perspective crops per ERP
 (8 on the horizon, 4 at +50 and 4 at -50 deg pitch; 100-deg FOV, 640 px), RootSIFT, each
@@ -8,9 +13,14 @@ keypoint kept only by the crop whose axis is nearest (no duplicates), the tripod
 the epipolar plane, in front of both cameras) and robust refinement. When a second pose mode (e.g. a
 180-deg flip) keeps half the inliers, :func:`photometric_score` of both decides, or the answer is 422.
 
-World frame of an estimate: A's camera frame (OpenCV, ``c2w_A = I``). Scale: ``baseline``
-(metres), else ``camera_height`` (metres above the floor, from the densest floor-height cluster
-of triangulated points), else a baseline of 1. Failures raise :class:`PoseEstimationFailed` (422).
+After the upright pose, a 5-dof refinement (full rotation and travel direction) replaces it when
+the levelled pair still differs by more than :data:`RESIDUAL_TILT_DEG` of tilt.
+
+World frame of an estimate: A's levelled frame (origin at A, OpenCV axes, +y along gravity;
+``c2w_A`` is A's levelling turn, the identity for a level A). Scale: ``baseline``
+(metres), else ``camera_height`` (metres above the floor: the lowest horizontal plane of
+triangulated points that is well supported and wide, :func:`rasterizer.relative_pose.floor_scale`;
+422 ``scale_failed`` when there is none), else a baseline of 1. Failures raise :class:`PoseEstimationFailed` (422).
 """
 
 from __future__ import annotations
@@ -22,18 +32,22 @@ from typing import Any
 import numpy as np
 
 from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction, pinhole_directions
+from rasterizer.gravity import level_rotation
 from rasterizer.relative_pose import (
     INLIER_DEG,
     epipolar_error,
     floor_scale,
+    refine_general,
     refine_upright,
     rotation_only_fraction,
+    tilt_between,
     triangulate,
     upright_ransac,
     yaw_rotation,
 )
 
 from .errors import BadInput
+from .gravity import panorama_gravity
 
 #: Options keys this module reads (not encoder options).
 POSE_OPTION_KEYS = ("camera_height", "baseline", "refine_poses")
@@ -51,6 +65,12 @@ RIVAL_SHARE = 0.8
 PHOTOMETRIC_MARGIN = 1.15
 #: At least this share of matches explained by a rotation alone -> no parallax.
 NO_PARALLAX_SHARE = 0.8
+#: A panorama is levelled when its gravity is further than this (deg) from its y axis. Line vanishing points
+#: of level captures (a tripod, a synthetic render) measure 0.2-0.8 deg; smaller tilts are left to the
+#: 5-dof refinement.
+LEVEL_MIN_TILT_DEG = 1.0
+#: The 5-dof refinement of the (levelled) pair is kept when it finds more tilt than this (deg) between them.
+RESIDUAL_TILT_DEG = 0.5
 
 
 class PoseEstimationFailed(BadInput):
@@ -217,14 +237,56 @@ def _pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return m
 
 
-def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions) -> tuple[np.ndarray, np.ndarray, dict]:
-    """(c2w_a = I, c2w_b, support info) from the images alone; raises :class:`PoseEstimationFailed`."""
+@dataclass(frozen=True)
+class Panorama:
+    """One panorama ready for matching: its image, its bearings (N, 3) and RootSIFT descriptors (N, 128)
+    in its levelled frame, its levelled-from-camera rotation ``level`` (3, 3) and the gravity ``info``."""
+
+    image: np.ndarray
+    bearings: np.ndarray
+    descriptors: np.ndarray
+    level: np.ndarray
+    gravity: dict
+
+
+def prepare(erp: np.ndarray, data: bytes | None = None) -> Panorama:
+    """Features and gravity of one panorama (``data``: the file's bytes, for the camera's own tilt reading).
+
+    The panorama is levelled only when its tilt exceeds :data:`LEVEL_MIN_TILT_DEG`; ``gravity["applied"]``
+    says whether it was."""
+    f, d = features(erp)
+    down, ginfo = panorama_gravity(_gray(erp), data)
+    applied = ginfo["tilt_deg"] > LEVEL_MIN_TILT_DEG
+    level = level_rotation(down) if applied else np.eye(3)
+    return Panorama(erp, f @ level.T, d, level, {**ginfo, "down": [float(v) for v in down], "applied": bool(applied)})
+
+
+def _guided_refine_general(fa, fb, da, db, R, t):
+    """Guided matching + 5-dof refinement in two rounds; returns (R, t, inlier pairs, residuals deg)."""
+    pairs = np.zeros((0, 2), int)
+    for max_deg in (3.0, 1.5):
+        pairs = guided_matches(fa, fb, da, db, R, t, max_deg=max_deg)
+        if len(pairs) >= 5:
+            R, t = refine_general(fa[pairs[:, 0]], fb[pairs[:, 1]], R, t)
+    err = np.degrees(epipolar_error(fa[pairs[:, 0]], fb[pairs[:, 1]], R, t)) if len(pairs) else np.zeros(0)
+    inl = err < INLIER_DEG
+    return R, t, pairs[inl], err[inl]
+
+
+def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data: tuple = (None, None), *,
+                   prepared: tuple[Panorama, Panorama] | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(c2w_a, c2w_b, support info) from the images alone; raises :class:`PoseEstimationFailed`.
+
+    The world is A's levelled frame (origin at A, +y along gravity as :func:`prepare` found it).
+    ``data``: the two files' bytes when known (for the cameras' own tilt readings); ``prepared``:
+    both panoramas already through :func:`prepare` (the images are then not read again)."""
     t0 = time.perf_counter()
-    fa, da = features(erp_a)
-    fb, db = features(erp_b)
+    pa, pb = prepared if prepared is not None else (prepare(erp_a, data[0]), prepare(erp_b, data[1]))
+    fa, da, fb, db = pa.bearings, pa.descriptors, pb.bearings, pb.descriptors
     t_feat = time.perf_counter() - t0
     pairs = putative_matches(da, db)
-    info: dict[str, Any] = {"features": [int(len(fa)), int(len(fb))], "putative_matches": int(len(pairs))}
+    info: dict[str, Any] = {"features": [int(len(fa)), int(len(fb))], "putative_matches": int(len(pairs)),
+                            "gravity": [pa.gravity, pb.gravity]}
     if len(pairs) < MIN_INLIERS:
         raise PoseEstimationFailed(f"poses: only {len(pairs)} feature matches between the images "
                                    f"(need {MIN_INLIERS}); give poses, or images that overlap more")
@@ -240,42 +302,53 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions) -> t
     except ValueError as exc:  # degenerate matches: no hypothesis
         raise PoseEstimationFailed(f"poses: no relative pose fits the matches ({exc}); give poses") from None
     yaw, t, inl, err = _guided_refine(fa, fb, da, db, ransac.best.yaw, ransac.best.t)
-    info.update(_support(inl, err, "sift16-rootsift+upright3pt-ransac+guided"))
+    method = "sift16-rootsift+levelled+upright3pt-ransac+guided"
+    info.update(_support(inl, err, method))
     info["ransac_inliers"] = ransac.best.num_inliers
     if ransac.best.num_inliers < MIN_RANSAC_INLIERS:
         raise PoseEstimationFailed(f"poses: only {ransac.best.num_inliers} of {len(pairs)} feature matches agree on a "
                                    f"relative pose (need {MIN_RANSAC_INLIERS}): the views share too little; give poses")
+
+    def score(yaw_, t_):  # photometric agreement of the two images under a levelled-frame pose
+        return photometric_score(pa.image, pb.image, pa.level.T @ yaw_rotation(yaw_) @ pb.level, pa.level.T @ t_)
+
     if ransac.rival is not None and ransac.rival.num_inliers >= 0.5 * ransac.best.num_inliers:
         ryaw, rt, rinl, rerr = _guided_refine(fa, fb, da, db, ransac.rival.yaw, ransac.rival.t)
         rival = {"inliers": int(len(rinl)), "yaw_deg": float(np.degrees(ryaw)),
                  "yaw_gap_deg": float(np.degrees(abs(np.angle(np.exp(1j * (ryaw - yaw)))))),
                  "t_gap_deg": float(np.degrees(np.arccos(np.clip(rt @ t, -1, 1))))}
         if rival["yaw_gap_deg"] > 15 or rival["t_gap_deg"] > 25:
-            score = photometric_score(erp_a, erp_b, yaw_rotation(yaw), t)
-            rival_score = photometric_score(erp_a, erp_b, yaw_rotation(ryaw), rt)
-            rival["photometric"], info["photometric"] = rival_score, score
+            best_score, rival_score = score(yaw, t), score(ryaw, rt)
+            rival["photometric"], info["photometric"] = rival_score, best_score
             info["rival"] = rival
-            decisive = max(score, rival_score) >= PHOTOMETRIC_MARGIN * min(score, rival_score)
-            if (decisive and rival_score > score) or (not decisive and len(rinl) > len(inl)):
-                rival.update(inliers=int(len(inl)), photometric=score, yaw_deg=float(np.degrees(yaw)))
-                yaw, t, inl, err, score, rival_score = ryaw, rt, rinl, rerr, rival_score, score
-                info.update(_support(inl, err, "sift16-rootsift+upright3pt-ransac+guided"))
-                info["photometric"] = score
+            decisive = max(best_score, rival_score) >= PHOTOMETRIC_MARGIN * min(best_score, rival_score)
+            if (decisive and rival_score > best_score) or (not decisive and len(rinl) > len(inl)):
+                rival.update(inliers=int(len(inl)), photometric=best_score, yaw_deg=float(np.degrees(yaw)))
+                yaw, t, inl, err, best_score, rival_score = ryaw, rt, rinl, rerr, rival_score, best_score
+                info.update(_support(inl, err, method))
+                info["photometric"] = best_score
             if not decisive and rival["inliers"] >= RIVAL_SHARE * len(inl):
                 raise PoseEstimationFailed(
                     f"poses: ambiguous - two relative poses {rival['yaw_gap_deg']:.0f} deg apart in yaw "
                     f"({rival['t_gap_deg']:.0f} deg in travel direction) fit the matches about equally well "
                     f"({len(inl)} vs {rival['inliers']} inliers) and the images agree about as well under both "
-                    f"(photometric {max(score, rival_score):.2f} vs {min(score, rival_score):.2f}), as in a "
+                    f"(photometric {max(best_score, rival_score):.2f} vs {min(best_score, rival_score):.2f}), as in a "
                     "symmetric room or when the views share little; give poses", code="ambiguous_pose")
+    R = yaw_rotation(yaw)
+    R5, t5, inl5, err5 = _guided_refine_general(fa, fb, da, db, R, t)
+    info["residual_tilt_deg"] = tilt_between(R5)
+    if info["residual_tilt_deg"] > RESIDUAL_TILT_DEG and len(inl5) >= MIN_INLIERS:
+        R, t, inl, err = R5, t5, inl5, err5
+        info.update(_support(inl, err, method + "+5dof"))
     info["timings"] = {"features": t_feat, "total": time.perf_counter() - t0}
     if len(inl) < MIN_INLIERS:
         raise PoseEstimationFailed(f"poses: only {len(inl)} matches agree on a relative pose (need {MIN_INLIERS}); "
                                    "give poses")
-    R = yaw_rotation(yaw)
     scale, info["scale"] = _scale(fa[inl[:, 0]], fb[inl[:, 1]], R, t, opts)
-    info["yaw_deg"] = float(np.degrees(yaw))
-    return np.eye(4), _pose(R, t * scale), info
+    info["yaw_deg"] = float(np.degrees(np.arctan2(R[0, 2], R[2, 2])))
+    c2w_a = np.eye(4)
+    c2w_a[:3, :3] = pa.level
+    return c2w_a, _pose(R @ pb.level, t * scale), info
 
 
 def _scale(fa, fb, R, t, opts: PoseOptions) -> tuple[float, dict]:
@@ -311,10 +384,12 @@ def refine_poses(erp_a: np.ndarray, erp_b: np.ndarray, c2w_a: np.ndarray, c2w_b:
     return c2w_a @ _pose(R0 @ yaw_rotation(yaw), t * length), info
 
 
-def poses_for_scene(erp_a: np.ndarray, erp_b: np.ndarray, poses, opts: PoseOptions) -> tuple[np.ndarray, np.ndarray, dict]:
-    """(c2w_a, c2w_b, metadata ``poses`` JSON) for given (:class:`service.inputs.Poses`) or missing (None) poses."""
+def poses_for_scene(erp_a: np.ndarray, erp_b: np.ndarray, poses, opts: PoseOptions,
+                    data: tuple = (None, None)) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(c2w_a, c2w_b, metadata ``poses`` JSON) for given (:class:`service.inputs.Poses`) or missing (None) poses;
+    ``data``: the two files' bytes when known (their XMP may hold the cameras' tilt)."""
     if poses is None:
-        c2w_a, c2w_b, support = estimate_poses(erp_a, erp_b, opts)
+        c2w_a, c2w_b, support = estimate_poses(erp_a, erp_b, opts, data)
         source = "estimated"
     elif opts.refine_poses:
         c2w_a = poses.c2w_a

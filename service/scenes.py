@@ -106,7 +106,8 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     erp_b, head_b = decode_rgb(image_b, "image_b", max_pixels=limits.max_pixels, min_height=limits.min_height)
     timings["decode"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    c2w_a, c2w_b, poses_json = poses_for_scene(erp_a, erp_b, poses, pose_options)  # features at full resolution
+    c2w_a, c2w_b, poses_json = poses_for_scene(erp_a, erp_b, poses, pose_options,
+                                               (image_a, image_b))  # features at full resolution; XMP tilt
     timings["poses"] = time.perf_counter() - t0
     if poses is None:
         check_sweep_range(c2w_a, c2w_b, options)

@@ -153,7 +153,7 @@ def add_parser(sub) -> None:
                        description="Reconstruct 3D Gaussians from two ERP panoramas, without the HTTP service.")
     r.add_argument("inputs", nargs="+", help="a scene folder (scene.json), or two image files")
     r.add_argument("--poses", help='with two images: JSON file {"convention": "opencv"|"opengl", "c2w": [A, B]}; '
-                                   "without it the poses are estimated from the images (world = camera A)")
+                                   "without it the poses are estimated from the images (world = camera A, levelled)")
     r.add_argument("--camera-height", type=float, help="estimated poses: metres of camera A above the floor (sets the scale)")
     r.add_argument("--baseline", type=float, help="estimated poses: metres between the cameras (sets the scale)")
     r.add_argument("--refine-poses", action="store_true", help="refine given poses against the images (upright model)")

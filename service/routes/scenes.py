@@ -70,7 +70,7 @@ async def create_scene(
     options: Annotated[str | None, Form(description=_OPTIONS_DOC, json_schema_extra=_OPTIONS_SCHEMA)] = None,
     poses: Annotated[str | None, Form(description='JSON {"convention": "opencv"|"opengl", "c2w": [A, B]}, '
                                                   "each camera-to-world 4x4 or 3x4; leave out (or c2w null) to "
-                                                  "estimate them from the images (world = camera A)",
+                                                  "estimate them from the images (world = camera A, levelled)",
                                       examples=[_POSES_EXAMPLE])] = None,
 ) -> SceneCreated:
     parsed_poses = parse_poses(poses)

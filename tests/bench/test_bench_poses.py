@@ -30,3 +30,15 @@ def test_camera_height_from_depth_and_from_z(m3d_dir, zind_dir):
     assert 0.8 < camera_height(m3d, m3d.frames["00"]) < 2.0
     zind = load_scene(zind_dir)
     assert abs(camera_height(zind, zind.frames["pano_2"]) - 1.435) < 1e-3
+
+
+def test_pairs_markdown_counts_a_422_as_a_miss():
+    from bench.poses import pairs_markdown
+
+    ok = {"rotation_deg": 0.5, "direction_deg": 1.0, "scale_pct": 10.0, "inliers": 300, "method": "m", "seconds": 1.0}
+    far = {**ok, "rotation_deg": 1.5, "scale_pct": -20.0}
+    rows = [{"scene": "s", "references": [a, b], "baseline_m": 1.0, "estimate": e}
+            for a, b, e in (("1", "2", ok), ("1", "3", far), ("2", "3", {"error": "ambiguous_pose", "seconds": 1.0}))]
+    text = pairs_markdown(rows)
+    assert "422 `ambiguous_pose`" in text and "1.10x" in text and "0.80x" in text
+    assert "3 pairs: rotation <= 1 deg on 33%, travel direction <= 2 deg on 67%, baseline within 15% on 33%" in text

@@ -6,8 +6,11 @@ import pytest
 from rasterizer.relative_pose import (
     epipolar_error,
     floor_scale,
+    refine_general,
     refine_upright,
+    rotation_exp,
     rotation_only_fraction,
+    tilt_between,
     triangulate,
     upright_ransac,
     yaw_rotation,
@@ -103,3 +106,47 @@ def test_floor_scale_finds_the_floor_below_furniture():
     assert abs(scale / 2.5 - 1) < 0.02 and info["floor_points"] >= 40
     with pytest.raises(ValueError, match="floor"):
         floor_scale(walls[:3], h)
+
+
+def test_floor_scale_takes_the_lowest_wide_plane_not_the_densest():
+    """A bed top with three times the floor's points, a few strays and a small cluster (a reflection) under
+    the floor, a small box on it: the floor is the lowest slab that is both well supported and wide."""
+    rng = np.random.default_rng(1)
+    h = 2.2
+    floor = np.c_[rng.uniform(-3, 3, 40), np.full(40, h), rng.uniform(-3, 3, 40)]
+    bed = np.c_[rng.uniform(0.5, 2.0, 120), np.full(120, h - 0.6), rng.uniform(-1.0, 1.0, 120)]
+    mirrored = np.c_[rng.uniform(-2, 2, 9), np.full(9, h + 0.5), rng.uniform(-2, 2, 9)]
+    box = np.c_[rng.uniform(-2.0, -1.9, 12), np.full(12, h - 0.25), rng.uniform(1.0, 1.1, 12)]  # small, not a floor
+    strays = np.c_[rng.uniform(-3, 3, 4), rng.uniform(h + 0.3, h + 1.5, 4), rng.uniform(-3, 3, 4)]
+    walls = np.c_[rng.uniform(-3, 3, 100), rng.uniform(0.3, h, 100), np.full(100, 3.0)]
+    pts = np.concatenate([floor, bed, box, strays, mirrored, walls]) / 0.8  # the estimate's unit is 0.8 m
+    scale, info = floor_scale(pts, h)
+    assert abs(scale / 0.8 - 1) < 0.02 and info["floor_points"] >= 35
+
+
+def test_floor_scale_refuses_when_the_floor_is_not_seen():
+    rng = np.random.default_rng(2)
+    walls = np.c_[rng.uniform(-3, 3, 200), rng.uniform(0.3, 2.2, 200), np.full(200, 3.0)]  # no plane at all
+    with pytest.raises(ValueError, match="floor is not seen"):
+        floor_scale(walls, 2.2)
+
+
+def test_refine_general_recovers_a_tilted_pose_from_the_upright_guess():
+    """B tilted 4 deg against A: starting from the best upright pose, the 5-dof refinement finds the tilt."""
+    rng = np.random.default_rng(3)
+    X = rng.uniform([-4, -1.2, -4], [4, 1.5, 4], (300, 3))
+    tilt = rotation_exp(np.radians([3.0, 0.0, -2.5]))
+    R_true, t_true = yaw_rotation(np.radians(40)) @ tilt, np.array([0.8, 0.05, 0.4])
+    fa = _unit(X + rng.normal(0, 0.003, X.shape))
+    fb = _unit((X - t_true) @ R_true)
+    fb[:60] = _unit(rng.normal(size=(60, 3)))  # 20% outliers
+    R, t = refine_general(fa, fb, yaw_rotation(np.radians(40)), _unit(np.array([0.8, 0.0, 0.4])))
+    assert tilt_between(R_true) > 3.5
+    assert np.degrees(np.arccos(np.clip((np.trace(R.T @ R_true) - 1) / 2, -1, 1))) < 0.2
+    assert _angle(t, t_true) < 0.5
+
+
+def test_rotation_exp_is_a_rotation_by_the_vector_length():
+    R = rotation_exp(np.array([0.0, np.radians(30), 0.0]))
+    assert np.allclose(R, yaw_rotation(np.radians(30))) and abs(tilt_between(R)) < 1e-6
+    assert abs(tilt_between(rotation_exp(np.radians([5.0, 0, 0]))) - 5.0) < 1e-9

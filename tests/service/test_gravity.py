@@ -1,0 +1,80 @@
+"""Gravity of an uploaded panorama: XMP readings and the vertical lines of a synthetic tilted room."""
+
+import cv2
+import numpy as np
+import pytest
+
+from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction
+from rasterizer.gravity import down_from_pitch_roll, level_rotation
+from service.gravity import panorama_gravity, xmp_pitch_roll
+
+
+def _room_erp(down, height=1024):
+    """uint8 gray ERP of a levelled 'room' (24 wall panels with vertical edges, bands in latitude) seen by a
+    camera whose gravity is ``down`` (camera frame); drawn at twice the size and box-filtered (no staircases)."""
+    height *= 2
+    rows, cols = np.mgrid[0:height, 0:2 * height]
+    lat = np.pi / 2 - (rows + 0.5) / height * np.pi
+    lon = (cols + 0.5) / height * np.pi - np.pi
+    d = direction_from_lat_lon(lat, lon) @ level_rotation(down).T  # bearings in the levelled frame
+    lat_l, lon_l = lat_lon_from_direction(d)
+    panel = np.floor((lon_l + np.pi) / (2 * np.pi) * 24).astype(int)
+    band = np.floor(np.degrees(lat_l) / 25).astype(int)
+    shade = 60 + 25 * (panel * 7 % 5) + 30 * (band % 2)
+    return cv2.resize(shade.astype(np.float32), (height, height // 2), interpolation=cv2.INTER_AREA).astype(np.uint8)
+
+
+def _jpeg_with_xmp(pitch, roll, attributes=False):
+    ok, buf = cv2.imencode(".jpg", np.full((8, 16), 128, np.uint8))
+    assert ok
+    if attributes:
+        desc = f'<rdf:Description GPano:PosePitchDegrees="{pitch}" GPano:PoseRollDegrees="{roll}"/>'
+    else:
+        desc = (f"<rdf:Description><GPano:PosePitchDegrees>{pitch}</GPano:PosePitchDegrees>"
+                f"<GPano:PoseRollDegrees>{roll}</GPano:PoseRollDegrees></rdf:Description>")
+    xmp = ('<?xpacket begin="" id="W5M0MpCehiHzreSzNTczkc9d"?><x:xmpmeta xmlns:x="adobe:ns:meta/">'
+           '<rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#" '
+           f'xmlns:GPano="http://ns.google.com/photos/1.0/panorama/">{desc}</rdf:RDF></x:xmpmeta>'
+           '<?xpacket end="r"?>').encode()
+    payload = b"http://ns.adobe.com/xap/1.0/\x00" + xmp
+    data = buf.tobytes()
+    return data[:2] + b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload + data[2:]
+
+
+@pytest.mark.parametrize("attributes", [False, True])
+def test_xmp_pitch_roll_from_a_jpeg(attributes):
+    data = _jpeg_with_xmp(-3.4, 2.5, attributes)
+    assert cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE).shape == (8, 16)  # still a JPEG
+    assert xmp_pitch_roll(data) == (-3.4, 2.5)
+
+
+def test_xmp_pitch_roll_absent_or_broken():
+    ok, buf = cv2.imencode(".jpg", np.zeros((8, 8), np.uint8))
+    assert xmp_pitch_roll(buf.tobytes()) is None and xmp_pitch_roll(None) is None
+    assert xmp_pitch_roll(_jpeg_with_xmp(400, 0)) is None  # not an angle
+
+
+@pytest.mark.parametrize("pitch, roll", [(4.0, -3.0), (-2.0, 5.0)])
+def test_lines_recover_a_known_tilt(pitch, roll):
+    down = down_from_pitch_roll(pitch, roll)
+    est, info = panorama_gravity(_room_erp(down))
+    assert info["source"] == "lines"
+    assert np.degrees(np.arccos(np.clip(est @ down, -1, 1))) < 0.3
+    assert abs(info["tilt_deg"] - np.hypot(pitch, roll)) < 0.4
+
+
+def test_lines_win_over_a_wrong_reading_and_report_the_gap():
+    down = down_from_pitch_roll(3.0, 2.0)
+    est, info = panorama_gravity(_room_erp(down), _jpeg_with_xmp(-3.0, -2.0))
+    assert info["source"] == "lines" and info["xmp"]["lines_gap_deg"] > 5
+    assert np.degrees(np.arccos(np.clip(est @ down, -1, 1))) < 0.3
+
+
+def test_reading_used_when_the_image_has_too_few_lines_but_they_agree():
+    flat = np.full((256, 512), 120, np.uint8)
+    flat[:, 100:110] = 30  # vertical edges in one direction only: no vanishing point
+    flat[:, 140:150] = 30
+    est, info = panorama_gravity(flat, _jpeg_with_xmp(0.0, 0.0))
+    assert info["lines"].get("error") and info["source"] == "xmp" and np.allclose(est, [0, 1, 0])
+    est, info = panorama_gravity(flat, _jpeg_with_xmp(8.0, 6.0))  # the edges disagree with this reading
+    assert info["source"] == "none" and np.allclose(est, [0, 1, 0])
