@@ -107,7 +107,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if given is None:
         say("estimating the relative pose from the images")
     try:
-        c2w_a, c2w_b, poses_json = poses_for_scene(erp_a, erp_b, given, pose_options)
+        files = source.get("images", [None, None])  # their XMP may hold the cameras' tilt
+        data = tuple(Path(f).read_bytes() if f is not None else None for f in files)
+        c2w_a, c2w_b, poses_json = poses_for_scene(erp_a, erp_b, given, pose_options, data=data)
     except ServiceError as exc:
         raise CliError(exc.message) from None
     poses_s = time.perf_counter() - t0
