@@ -1,7 +1,8 @@
 """The shipped sample (samples/room) end to end through the CLI: it needs no dev data, so it runs on a fresh clone.
 
 The small test model (128x256, 8 planes) reconstructs 00 + 02; the render at 01, which the model never
-saw, must beat the copy floor (the nearest input turned to 01's orientation) by a clear margin, and the PLY must be a finite 3DGS scene.
+saw, must beat the copy floor (the nearest input turned to 01's orientation) by a clear margin, and the
+PLY must be a finite 3DGS scene.
 """
 
 from pathlib import Path
