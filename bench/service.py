@@ -1,6 +1,6 @@
 """Measure the service end to end: POST /v1/scenes and GET render latency, and peak RSS.
 
-    python -m bench.service --model models/omnisplat-default.onnx [--repeats 5] [--json out.json]
+    omnisplat-bench service --model MODEL.onnx [--height 512] [--repeats 5] [--json out.json] [--readme README.md]
 
 Starts ``omnisplat serve`` as a subprocess on 127.0.0.1 (fresh temporary store), posts two
 512x1024 panoramas (the dev scene when present, else synthetic ones) ``repeats`` times with
@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from bench import DEV_DATA
+from bench.report import readme_markers, update_readme
 
 DEV_SCENE = DEV_DATA / "m3d_bedroom"
 
@@ -114,11 +115,14 @@ def _table(result: dict, machine: str) -> str:
 def main(argv: list[str] | None = None) -> int:
     import httpx
 
-    p = argparse.ArgumentParser(prog="python -m bench.service", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="omnisplat-bench service", description=__doc__.splitlines()[0])
     p.add_argument("--model", type=Path, required=True, help="ONNX model to serve")
     p.add_argument("--height", type=int, default=512, help="panorama height (width = 2 x height)")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--json", type=Path, help="write the results here too")
+    p.add_argument("--readme", type=Path, action="append", default=[],
+                   help="markdown file(s) whose marked block bench:service-HxW gets the table (README.md, "
+                        "docs/benchmarks.md); repeatable")
     args = p.parse_args(argv)
     from bench.machine import machine_info, machine_line
 
@@ -194,9 +198,15 @@ def main(argv: list[str] | None = None) -> int:
                 proc.kill()
     text = json.dumps(result, indent=2)
     print(text)
-    print(_table(result, machine_line(machine)))
+    table = _table(result, machine_line(machine))
+    print(table)
     if args.json:
         args.json.write_text(text + "\n")
+    name = f"service-{args.height}x{2 * args.height}"
+    start, end = readme_markers(name, f"service --height {args.height}")
+    for readme in args.readme:
+        if not update_readme(readme, f"{start}\n{table}\n{end}", name, f"service --height {args.height}"):
+            print(f"{readme}: no {start.split(' (')[0]} marker; not written", file=sys.stderr)
     return 0
 
 
