@@ -46,7 +46,10 @@ def seen_pixels(points: np.ndarray, c2w: np.ndarray, range_map: np.ndarray, grid
     """Where another view sees world ``points`` (M, 3): (pix (M,) flat index into its (G, H, W) grid
     layout, seen (M,) bool). ``range_map`` (G H W,) is that view's estimated range per pixel; a point
     counts as seen when its range from that camera (``c2w``) is > 0 and at most (1 + tol) times it."""
-    p = geo.world_to_camera(np.asarray(points, dtype=np.float64), c2w)
+    pose = np.asarray(c2w, dtype=np.float64)
+    # geo.world_to_camera's (x - t) R as an einsum: the same three products summed in order, without a
+    # multi-threaded BLAS call per (M, 3) x (3, 3) product (slow on a loaded 2-core machine)
+    p = np.einsum("...k,kj->...j", np.asarray(points, dtype=np.float64) - pose[:3, 3], pose[:3, :3])
     r = np.linalg.norm(p, axis=-1)
     pix = grid_pixel(p, grids, height, width)
     return pix, np.isfinite(r) & (r > 0) & (r <= range_map[pix] * (1.0 + tol))
