@@ -59,33 +59,33 @@ def _grid_composite(part: Gaussians, colours: np.ndarray, c2w: np.ndarray, kind:
     # (float64, the rasterizer's sort key, ties in index order as there); culled ones (behind, too near,
     # outside the domain) keep opacity 0 and an infinite range
     k = proj.index
-    par = np.zeros((height + 2 * r, width + 2 * r, 6), dtype=np.float32)
+    # one padded plane per parameter (component-major: the tap loop's array passes run on contiguous rows)
+    par = np.zeros((6, height + 2 * r, width + 2 * r), dtype=np.float32)
     dist = np.full((height + 2 * r, width + 2 * r), np.inf)
     rows, cols = r + k // width, r + k % width
-    par[rows, cols, 0] = proj.mean[:, 0] - k % width
-    par[rows, cols, 1] = proj.mean[:, 1] - k // width
-    par[rows, cols, 2:5] = proj.conic
-    par[rows, cols, 5] = part.opacities[k]
+    par[0, rows, cols] = proj.mean[:, 0] - k % width
+    par[1, rows, cols] = proj.mean[:, 1] - k // width
+    par[2:5, rows, cols] = proj.conic.T
+    par[5, rows, cols] = part.opacities[k]
     dist[rows, cols] = proj.ranges
-    col = np.zeros((height + 2 * r, width + 2 * r, 3), dtype=np.float32)
-    col[r:r + height, r:r + width] = np.asarray(colours, dtype=np.float32).reshape(height, width, 3)
+    col = np.zeros((3, height + 2 * r, width + 2 * r), dtype=np.float32)
+    col[:, r:r + height, r:r + width] = np.asarray(colours, dtype=np.float32).reshape(height, width, 3).transpose(2, 0, 1)
     offsets = [(di, dj) for di in range(-r, r + 1) for dj in range(-r, r + 1)]
     windows = [(slice(r + di, r + di + height), slice(r + dj, r + dj + width)) for di, dj in offsets]
     alpha = np.empty((height, width, len(offsets)), dtype=np.float32)
     rng = np.empty(alpha.shape, dtype=np.float64)
     for t, ((di, dj), win) in enumerate(zip(offsets, windows)):
-        q = par[win]
-        dx = -dj - q[..., 0]  # pixel centre minus the neighbour's projected centre
-        dy = -di - q[..., 1]
-        a = q[..., 2] * dx * dx
-        a += 2 * q[..., 3] * dx * dy
-        a += q[..., 4] * dy * dy
+        q = par[(slice(None),) + win]
+        dx = -dj - q[0]  # pixel centre minus the neighbour's projected centre
+        dy = -di - q[1]
+        a = q[2] * dx * dx
+        a += 2 * q[3] * dx * dy
+        a += q[4] * dy * dy
         a *= np.float32(-0.5)
         np.exp(a, out=a)
-        a *= q[..., 5]
+        a *= q[5]
         np.minimum(a, ALPHA_MAX, out=a)
-        a[~(a >= ALPHA_MIN)] = 0.0  # skipped, as the compositor does (and NaN-safe)
-        alpha[..., t] = a
+        alpha[..., t] = np.where(a >= ALPHA_MIN, a, np.float32(0.0))  # skipped, as the compositor does (NaN-safe)
         rng[..., t] = dist[win]
     order = np.argsort(rng, axis=-1, kind="stable")  # front to back
     front = np.take_along_axis(alpha, order, axis=-1)
@@ -93,10 +93,12 @@ def _grid_composite(part: Gaussians, colours: np.ndarray, c2w: np.ndarray, kind:
     front[..., 1:] *= trans[..., :-1]  # alpha x transmittance before it
     weight = np.empty_like(front)
     np.put_along_axis(weight, order, front, axis=-1)  # back to window order
-    out = np.zeros((height, width, 3), dtype=np.float32)
+    out = np.zeros((3, height, width), dtype=np.float32)
     for t, win in enumerate(windows):
-        out += weight[..., t, None] * col[win]
-    return out.reshape(-1, 3), (1.0 - trans[..., -1]).reshape(-1)
+        wt = np.ascontiguousarray(weight[..., t])
+        for c in range(3):
+            out[c] += wt * col[(c,) + win]
+    return out.reshape(3, -1).T, (1.0 - trans[..., -1]).reshape(-1)
 
 
 def _check_taps(taps: int) -> None:

@@ -48,6 +48,8 @@ def property_names(sh_coeffs: int) -> list[str]:
 
 def finite_rows(g: Gaussians) -> np.ndarray:
     """(N,) bool: rows whose every field is finite."""
+    if all(np.isfinite(getattr(g, f)).all() for f in ("means", "scales", "quats", "opacities", "sh")):
+        return np.ones(len(g), dtype=bool)  # the usual case: one flat pass per field, no per-row reductions
     ok = np.isfinite(g.means).all(1) & np.isfinite(g.scales).all(1) & np.isfinite(g.quats).all(1)
     ok &= np.isfinite(g.opacities) & np.isfinite(g.sh).all(axis=(1, 2))
     return ok

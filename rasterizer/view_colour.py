@@ -41,13 +41,22 @@ def check_sh_degree(value) -> int:
     return int(value)
 
 
+def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(...) a . b of (..., 3) vectors, summed in index order as numpy's reduction over the last axis does
+    (column passes: a reduction over many rows of three is several times slower)."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
 def seen_pixels(points: np.ndarray, c2w: np.ndarray, range_map: np.ndarray, grids: tuple[str, ...], height: int,
                 width: int, tol: float = VIEW_COLOUR_TOL) -> tuple[np.ndarray, np.ndarray]:
     """Where another view sees world ``points`` (M, 3): (pix (M,) flat index into its (G, H, W) grid
     layout, seen (M,) bool). ``range_map`` (G H W,) is that view's estimated range per pixel; a point
     counts as seen when its range from that camera (``c2w``) is > 0 and at most (1 + tol) times it."""
-    p = geo.world_to_camera(np.asarray(points, dtype=np.float64), c2w)
-    r = np.linalg.norm(p, axis=-1)
+    pose = np.asarray(c2w, dtype=np.float64)
+    # geo.world_to_camera's (x - t) R as an einsum: the same three products summed in order, without a
+    # multi-threaded BLAS call per (M, 3) x (3, 3) product (slow on a loaded 2-core machine)
+    p = np.einsum("...k,kj->...j", np.asarray(points, dtype=np.float64) - pose[:3, 3], pose[:3, :3])
+    r = np.sqrt(_dot3(p, p))  # np.linalg.norm's sum of squares, without a reduction over rows of 3
     pix = grid_pixel(p, grids, height, width)
     return pix, np.isfinite(r) & (r > 0) & (r <= range_map[pix] * (1.0 + tol))
 
@@ -82,9 +91,9 @@ def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, 
         d_v = geo.unit_vectors(means[v] - poses[v, :3, 3], 1e-30).astype(np.float32)
         d_u = geo.unit_vectors(means[v] - poses[u, :3, 3], 1e-30).astype(np.float32)
         dd = d_u - d_v
-        wt = dd / (np.sum(dd * dd, axis=-1, keepdims=True) + np.float32(ridge))  # G = dc w^T
+        wt = dd / (_dot3(dd, dd)[:, None] + np.float32(ridge))  # G = dc w^T
         dc = np.where(seen[:, None], rgb[u, pix] - rgb[v], np.float32(0.0))
-        sh[v, :, 0] = rgb_to_sh_dc(rgb[v] - dc * np.sum(wt * d_v, axis=-1, keepdims=True))  # a = c_v - G d_v
+        sh[v, :, 0] = rgb_to_sh_dc(rgb[v] - dc * _dot3(wt, d_v)[:, None])  # a = c_v - G d_v
         # 3DGS degree-1 basis: -C1 y, C1 z, -C1 x (rasterizer.sh.sh_basis)
         for k, (axis, sign) in enumerate(((1, -1.0), (2, 1.0), (0, -1.0)), start=1):
             sh[v, :, k] = dc * (np.float32(sign / SH_C1) * wt[:, axis:axis + 1])

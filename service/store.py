@@ -384,7 +384,7 @@ class SceneStore:
             return self.meta(scene_id)
         meta = json_safe({**meta, "id": scene_id, "num_gaussians": len(gaussians),
                           "created_at": meta.get("created_at", time.time())})
-        arrays = {f: getattr(gaussians, f).astype(STORED_DTYPES[f]) for f in _FIELDS}
+        arrays = {f: getattr(gaussians, f).astype(STORED_DTYPES[f], copy=False) for f in _FIELDS}  # float32 ones: no copy
         self._check_margin(sum(a.nbytes for a in arrays.values()) + sum(len(d) for d in (artifacts or {}).values()))
         staging = self.tmp_dir / f"{scene_id}-{uuid.uuid4().hex}"
         staging.mkdir()

@@ -173,7 +173,7 @@ def _compact_with_shell(gaussians: Gaussians, provenance: Provenance, opts: Comp
     index, block = shell_layout(provenance.views, len(provenance.grids), provenance.height, provenance.width)
     if index.size != count:
         raise CompactionError(f"shell of {count} Gaussians, layout {index.size}")
-    shell = gaussians.subset(np.arange(n - count, n))
+    shell = gaussians.subset(slice(n - count, n))  # views: no copy of the layout
     keep = shell.opacities >= np.float32(opts.min_opacity) if opts.min_opacity > 0 else np.ones(count, bool)
     limit = count_limit(opts, gaussians.sh.shape[1])
     front_opts = opts
@@ -185,7 +185,7 @@ def _compact_with_shell(gaussians: Gaussians, provenance: Provenance, opts: Comp
             thin[kept[np.linspace(0, kept.size - 1, limit).astype(np.int64)]] = True
             capped, keep = kept.size - int(thin.sum()), thin
         front_opts = replace(opts, max_count=limit - int(keep.sum()), max_bytes=None)
-    res = compact_result(gaussians.subset(np.arange(n - count)), replace(provenance, shell=0), front_opts,
+    res = compact_result(gaussians.subset(slice(0, n - count)), replace(provenance, shell=0), front_opts,
                          confidence=confidence)
     out_g = Gaussians.concatenate([res.gaussians, shell.subset(keep)])
     pos = np.concatenate([res.provenance.flat_index(len(res.gaussians)), index[keep]])
