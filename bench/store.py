@@ -13,7 +13,7 @@ at their own size):
   ``--renders`` ERP renders, plus the peak (VmHWM); once with :func:`service.memory.release_memory` and once
   without (``--compare``), each in a fresh server.
 
-``python -m bench.store [--posts 30 --renders 200]`` prints JSON (and writes ``--json``).
+``omnisplat-bench store [--posts 30 --renders 200]`` prints JSON (and writes ``--json``).
 """
 
 from __future__ import annotations
