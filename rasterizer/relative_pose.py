@@ -246,7 +246,8 @@ def tilt_between(R: np.ndarray) -> float:
 
 def floor_scale(points: np.ndarray, camera_height: float, parallax: np.ndarray | None = None, *,
                 min_parallax_deg: float = 3.0, min_share: float = 0.03, min_points: int = 8,
-                thickness: float = 0.03, min_spread: float = 0.15, min_peak: float = 0.3) -> tuple[float, dict]:
+                thickness: float = 0.03, min_spread: float = 0.15, min_peak: float = 0.3,
+                bearing_noise_deg: float = INLIER_DEG / 2) -> tuple[float, dict]:
     """Metres per unit from triangulated points (N, 3) in a levelled frame of A (y down along gravity) and
     A's height above the floor.
 
@@ -257,7 +258,10 @@ def floor_scale(points: np.ndarray, camera_height: float, parallax: np.ndarray |
     x, z at least ``min_spread`` times its depth; a wall's band of points is a line): the lowest large
     horizontal plane, not the densest one (a bed or a table top can be the densest). Points seen with
     less than ``min_parallax_deg`` of ``parallax`` (N,) rad (near the epipoles, badly triangulated)
-    are ignored. Raises ``ValueError`` when no slab qualifies.
+    are ignored. With ``parallax`` the slab is at least as thick as the median relative depth error of
+    the points below, ``bearing_noise_deg`` / sin(parallax): a floor seen with little parallax scatters
+    in depth, and a slab thinner than its scatter splits it below the counts above. Raises
+    ``ValueError`` when no slab qualifies.
     """
     p = np.asarray(points, dtype=np.float64)
     rng_ = np.linalg.norm(p, axis=-1)
@@ -265,6 +269,9 @@ def floor_scale(points: np.ndarray, camera_height: float, parallax: np.ndarray |
     if parallax is not None:
         below &= np.asarray(parallax) >= np.radians(min_parallax_deg)
     q = p[below]
+    if parallax is not None and len(q):
+        sigma = np.radians(bearing_noise_deg) / np.sin(np.asarray(parallax)[below])
+        thickness = max(thickness, float(np.median(sigma)))
     if len(q) < max(min_points, 5):
         raise ValueError(f"only {len(q)} well triangulated points below the camera: cannot find the floor")
     order = np.argsort(-q[:, 1])  # deepest first

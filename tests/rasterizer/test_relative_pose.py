@@ -124,6 +124,20 @@ def test_floor_scale_takes_the_lowest_wide_plane_not_the_densest():
     assert abs(scale / 0.8 - 1) < 0.02 and info["floor_points"] >= 35
 
 
+def test_floor_scale_slab_is_as_thick_as_the_floor_points_depth_scatter():
+    """Seen with 6-8 deg of parallax, a floor scatters by about +-5% in depth (0.5 deg / sin 6 deg): a thin slab
+    splits it below a third of the bed top's count and takes the bed; with the parallax the slab widens."""
+    rng = np.random.default_rng(4)
+    h = 2.2
+    floor = np.c_[rng.uniform(-3, 3, 40), h * np.exp(rng.normal(0, 0.05, 40)), rng.uniform(-3, 3, 40)]
+    bed = np.c_[rng.uniform(0.5, 2.0, 90), np.full(90, h - 0.5), rng.uniform(-1.0, 1.0, 90)]
+    pts = np.concatenate([floor, bed])
+    parallax = np.radians(np.r_[np.full(40, 6.0), np.full(90, 8.0)])
+    assert floor_scale(pts, h)[0] > 1.2  # thin slab: the bed top
+    scale, info = floor_scale(pts, h, parallax)
+    assert abs(scale - 1) < 0.06 and info["floor_points"] >= 15
+
+
 def test_floor_scale_refuses_when_the_floor_is_not_seen():
     rng = np.random.default_rng(2)
     walls = np.c_[rng.uniform(-3, 3, 200), rng.uniform(0.3, 2.2, 200), np.full(200, 3.0)]  # no plane at all
