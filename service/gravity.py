@@ -69,12 +69,24 @@ def _line_crop_rotations() -> np.ndarray:
 LINE_CROP_ROTATIONS = _line_crop_rotations()
 
 
+def perspective_crop(gray: np.ndarray, rot: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """The pinhole view (S, S) of an ERP image ``gray`` (H, 2H) uint8 along the camera-frame rotation ``rot``
+    (3, 3; its columns are the crop's x, y, z axes); ``local``: the crop's (S, S, 3) unit ray directions
+    (:func:`rasterizer.geometry.pinhole_directions`). Bilinear, wrapping across the seam."""
+    import cv2
+
+    h, w = gray.shape
+    lat, lon = lat_lon_from_direction(local @ rot.T)
+    mx = ((lon + np.pi) / (2 * np.pi) * w - 0.5).astype(np.float32)
+    my = ((np.pi / 2 - lat) / np.pi * h - 0.5).astype(np.float32)
+    return cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+
+
 def line_normals(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Great-circle normals (N, 3) of the line segments of an ERP (uint8 gray (H, 2H)) and their
     lengths (N,) in radians; each segment is kept by the crop whose axis is nearest its midpoint."""
     import cv2
 
-    h, w = gray.shape
     size = LINE_CROP_SIZE
     lsd = cv2.createLineSegmentDetector()
     local = pinhole_directions(size, size, LINE_CROP_FOV_DEG)
@@ -82,11 +94,7 @@ def line_normals(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     axes = LINE_CROP_ROTATIONS[:, :, 2]
     normals, lengths = [], []
     for k, rot in enumerate(LINE_CROP_ROTATIONS):
-        lat, lon = lat_lon_from_direction(local @ rot.T)
-        mx = ((lon + np.pi) / (2 * np.pi) * w - 0.5).astype(np.float32)
-        my = ((np.pi / 2 - lat) / np.pi * h - 0.5).astype(np.float32)
-        crop = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-        segs = lsd.detect(crop)[0]
+        segs = lsd.detect(perspective_crop(gray, rot, local))[0]
         if segs is None:
             continue
         s = segs.reshape(-1, 4).astype(np.float64)

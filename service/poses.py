@@ -47,7 +47,7 @@ from rasterizer.relative_pose import (
 )
 
 from .errors import BadInput
-from .gravity import panorama_gravity
+from .gravity import panorama_gravity, perspective_crop
 
 #: Options keys this module reads (not encoder options).
 POSE_OPTION_KEYS = ("camera_height", "baseline", "refine_poses")
@@ -131,17 +131,12 @@ def features(erp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     import cv2
 
     gray = _gray(erp)
-    h, w = gray.shape
     sift = cv2.SIFT_create(nfeatures=800, contrastThreshold=0.02)
     local = pinhole_directions(CROP_SIZE, CROP_SIZE, CROP_FOV_DEG)
     axes = CROP_ROTATIONS[:, :, 2]
     bearings, descs = [], []
     for k, rot in enumerate(CROP_ROTATIONS):
-        lat, lon = lat_lon_from_direction(local @ rot.T)
-        mx = ((lon + np.pi) / (2 * np.pi) * w - 0.5).astype(np.float32)
-        my = ((np.pi / 2 - lat) / np.pi * h - 0.5).astype(np.float32)
-        crop = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-        kps, desc = sift.detectAndCompute(crop, None)
+        kps, desc = sift.detectAndCompute(perspective_crop(gray, rot, local), None)
         if desc is None or not len(kps):
             continue
         pts = np.array([kp.pt for kp in kps])
