@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Build the project's Dockerfile with podman (no Docker engine, no container registry needed)
-# and smoke-test the image: /readyz, a reconstruction from the m3d_bedroom pair, a render,
+# and smoke-test the image: /readyz, a reconstruction from the shipped sample (samples/room), a render,
 # the PLY, a refine job polled to `done`, the viewer page (when the service has that route),
 # the non-root user, the writable /data volume and the HEALTHCHECK command.
 #
@@ -19,7 +19,6 @@
 #   REBUILD_BASE=1       rebuild the base image even when it exists
 #   KEEP_BASE=0          remove the base image at the end too
 #   OMNISPLAT_WHEEL_DIR  folder with the CPU torch wheel (default: searched for; see find_wheel_dir)
-#   SHARED_DIR           the shared project data (default: ../shared beside the repo root)
 set -euo pipefail
 
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
@@ -77,10 +76,9 @@ trap 'exit 130' INT TERM
 
 # --- prerequisites -------------------------------------------------------------------------
 [ "$(id -u)" = 0 ] || fail "run as root (podman builds and runs rootful here): sudo bash scripts/container-test.sh"
-SHARED_DIR=${SHARED_DIR:-$ROOT/../shared}
-SCENE="$SHARED_DIR/data/m3d_bedroom"
+SCENE="$ROOT/samples/room"  # the sample that ships with the repo: no dev data needed
 [ -f "$SCENE/scene.json" ] && [ -f "$SCENE/images/00.png" ] && [ -f "$SCENE/images/02.png" ] \
-    || fail "dev data missing: expected $SCENE/{scene.json,images/00.png,images/02.png} (shared folder = ../shared beside the repo root)"
+    || fail "the sample scene is missing: expected $SCENE/{scene.json,images/00.png,images/02.png}"
 command -v python3 >/dev/null || fail "python3 is needed on the host (JSON handling)"
 command -v curl >/dev/null || NEED_PKGS="curl"
 
@@ -231,7 +229,7 @@ MODEL_SHA=$(curl -sf "$URL/v1/info" | python3 -c "import json, sys; print(json.l
     || fail "GET /v1/info failed"
 log "model sha256 $MODEL_SHA"
 
-# POST the m3d pair with the poses from scene.json
+# POST the sample's pair 00 + 02 with the poses from scene.json
 POSES=$(python3 - "$SCENE/scene.json" <<'EOF'
 import json, sys
 scene = json.load(open(sys.argv[1]))
@@ -253,8 +251,8 @@ NG=$(jget "$WORK/created.json" 'd["num_gaussians"]')
 log "POST /v1/scenes 201 in $T_CREATE s: $SCENE_ID, $NG Gaussians"
 podman exec "$CTR" sh -c "ls /data/scenes | grep -q ." || fail "nothing was stored under /data/scenes"
 
-# a render halfway between the two references
-C2W=$(python3 -c "import json, sys; p = json.loads(sys.argv[1])['c2w']; m = [[(a + b) / 2 for a, b in zip(r, s)] for r, s in zip(p[0], p[1])]; print(','.join(repr(float(v)) for r in m for v in r))" "$POSES")
+# a render at view 01, between the two references
+C2W=$(python3 -c "import json, sys; f = {f['name']: f['c2w'] for f in json.load(open(sys.argv[1]))['frames']}; print(','.join(repr(float(v)) for r in f['01'] for v in r))" "$SCENE/scene.json")
 t0=$(now)
 code=$(curl -s -o "$WORK/render.png" -D "$WORK/render.h" -w '%{http_code}' \
     "$URL/v1/scenes/$SCENE_ID/render?c2w=$C2W&width=512")
