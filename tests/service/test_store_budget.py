@@ -145,3 +145,17 @@ def test_store_from_settings_takes_the_budget_and_the_margin(tmp_path, monkeypat
     store = SceneStore.from_settings(settings)
     assert (store.budget_bytes, store.min_free_bytes, store.root) == (123456789, 4096, tmp_path / "s")
     assert Settings(model_path=tmp_path / "m.onnx").store_budget_bytes == 123456789
+
+
+def test_the_service_builds_its_store_from_the_settings(tmp_path, model_path):
+    """The running app enforces the configured budget and margin, not the store's defaults."""
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from tests.service._support import make_settings
+
+    settings = make_settings(model_path, tmp_path / "s", store_budget_bytes=987654321, min_free_store_bytes=8192,
+                             warmup=False)
+    with TestClient(create_app(settings)) as client:
+        store = client.app.state.store
+        assert (store.budget_bytes, store.min_free_bytes) == (987654321, 8192)
