@@ -159,6 +159,33 @@ def _params_to_pose(p: np.ndarray, yaw0: float, t0: np.ndarray, basis: np.ndarra
     return yaw0 + p[0], _unit(t0 + basis @ p[1:])
 
 
+def _robust_gauss_newton(residual, apply, rot, t: np.ndarray, dim: int, s: float, iterations: int):
+    """Cauchy-weighted (scale ``s`` rad) Gauss-Newton with forward-difference Jacobians.
+
+    ``rot`` is the rotation's parameter (a yaw, or a 3 x 3 matrix) and ``t`` the unit translation; ``apply(p, rot,
+    t, basis)`` moves them by the step ``p`` (dim,) whose last two entries move ``t`` in ``basis`` (3, 2), the
+    tangent plane of the sphere at ``t``; ``residual(rot, t)`` gives the (N,) epipolar residuals. Returns (rot, t).
+    """
+    for _ in range(iterations):
+        helper = np.array([1.0, 0, 0]) if abs(t[0]) < 0.9 else np.array([0, 1.0, 0])
+        e1 = _unit(np.cross(t, helper))
+        basis = np.stack([e1, np.cross(t, e1)], 1)
+        r = residual(rot, t)
+        w = 1.0 / (1.0 + (r / s) ** 2)
+        J = np.empty((len(r), dim))
+        h = 1e-6
+        for k in range(dim):
+            dp = np.zeros(dim)
+            dp[k] = h
+            J[:, k] = (residual(*apply(dp, rot, t, basis)) - r) / h
+        A = J.T @ (w[:, None] * J) + 1e-9 * np.eye(dim)
+        step = -np.linalg.solve(A, J.T @ (w * r))
+        rot, t = apply(step, rot, t, basis)
+        if np.abs(step).max() < 1e-9:
+            break
+    return rot, t
+
+
 def refine_upright(fa: np.ndarray, fb: np.ndarray, yaw: float, t: np.ndarray, *, R0: np.ndarray | None = None,
                    scale_deg: float = INLIER_DEG, iterations: int = 15) -> tuple[float, np.ndarray]:
     """Robust (Cauchy, scale ``scale_deg``) Gauss-Newton on yaw and the direction of ``t``.
@@ -174,23 +201,7 @@ def refine_upright(fa: np.ndarray, fb: np.ndarray, yaw: float, t: np.ndarray, *,
         n = np.cross(t_, g)
         return np.einsum("ni,ni->n", fa, n) / np.maximum(np.linalg.norm(n, axis=-1), _EPS)
 
-    for _ in range(iterations):
-        helper = np.array([1.0, 0, 0]) if abs(t[0]) < 0.9 else np.array([0, 1.0, 0])
-        e1 = _unit(np.cross(t, helper))
-        basis = np.stack([e1, np.cross(t, e1)], 1)
-        r = residual(yaw, t)
-        w = 1.0 / (1.0 + (r / s) ** 2)
-        J = np.empty((len(r), 3))
-        h = 1e-6
-        for k in range(3):
-            dp = np.zeros(3)
-            dp[k] = h
-            J[:, k] = (residual(*_params_to_pose(dp, yaw, t, basis)) - r) / h
-        A = J.T @ (w[:, None] * J) + 1e-9 * np.eye(3)
-        step = -np.linalg.solve(A, J.T @ (w * r))
-        yaw, t = _params_to_pose(step, yaw, t, basis)
-        if np.abs(step).max() < 1e-9:
-            break
+    yaw, t = _robust_gauss_newton(residual, _params_to_pose, yaw, t, 3, s, iterations)
     return float(yaw), t
 
 
@@ -219,24 +230,7 @@ def refine_general(fa: np.ndarray, fb: np.ndarray, R: np.ndarray, t: np.ndarray,
     def apply(p, R_, t_, basis):
         return R_ @ rotation_exp(p[:3]), _unit(t_ + basis @ p[3:])
 
-    for _ in range(iterations):
-        helper = np.array([1.0, 0, 0]) if abs(t[0]) < 0.9 else np.array([0, 1.0, 0])
-        e1 = _unit(np.cross(t, helper))
-        basis = np.stack([e1, np.cross(t, e1)], 1)
-        r = residual(R, t)
-        w = 1.0 / (1.0 + (r / s) ** 2)
-        J = np.empty((len(r), 5))
-        h = 1e-6
-        for k in range(5):
-            dp = np.zeros(5)
-            dp[k] = h
-            J[:, k] = (residual(*apply(dp, R, t, basis)) - r) / h
-        A = J.T @ (w[:, None] * J) + 1e-9 * np.eye(5)
-        step = -np.linalg.solve(A, J.T @ (w * r))
-        R, t = apply(step, R, t, basis)
-        if np.abs(step).max() < 1e-9:
-            break
-    return R, t
+    return _robust_gauss_newton(residual, apply, R, t, 5, s, iterations)
 
 
 def tilt_between(R: np.ndarray) -> float:
