@@ -123,3 +123,13 @@ def reference_composite(fp_mean, fp_conic, ranges, opacities, colours, w, h, per
                 rng_img[r, c] += t * a * ranges[i]
                 t *= 1 - a
     return colour, alpha, np.where(alpha > 0, rng_img / np.maximum(alpha, 1e-30), 0)
+
+
+def forward_scene(rng, n: int = 40, opacity=(0.0, 1.0)):
+    """``n`` random Gaussians 1-3 m in front of an identity camera (+z, within a frustum-like spread)."""
+    d = rng.normal(size=(n, 3)) * [0.6, 0.3, 1]
+    d[:, 2] = np.abs(d[:, 2]) + 0.3
+    means = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(1.0, 3.0, (n, 1))
+    q = rng.normal(size=(n, 4))
+    return make_gaussians(means, rng.uniform(0.02, 0.15, (n, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
+                          rng.uniform(*opacity, n), rng.uniform(0, 1, (n, 3)))

@@ -12,7 +12,7 @@ from rasterizer.camera import Camera
 from rasterizer.composite import accumulate, gaussian_table
 from rasterizer.render import render, render_camera
 from rasterizer.splat import footprints, polar_rows, project
-from tests.rasterizer._support import make_gaussians, pose, random_scene, reference_composite
+from tests.rasterizer._support import forward_scene, make_gaussians, pose, random_scene, reference_composite
 
 SIZES = {"erp": (64, 32), "yin": (48, 16), "yang": (48, 16), "perspective": (40, 30)}
 
@@ -48,14 +48,7 @@ def assert_same(new, old, atol=2e-5):
 
 @pytest.mark.parametrize("kind", ["perspective", "yin", "erp"])
 def test_front_to_back_matches_the_slow_reference_loop(kind, tiny_chunks):
-    rng = np.random.default_rng(11)
-    n = 40
-    d = rng.normal(size=(n, 3)) * [0.6, 0.3, 1]
-    d[:, 2] = np.abs(d[:, 2]) + 0.3
-    means = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(1.0, 3.0, (n, 1))
-    q = rng.normal(size=(n, 4))
-    g = make_gaussians(means, rng.uniform(0.02, 0.15, (n, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
-                       rng.uniform(0.3, 1.0, n), rng.uniform(0, 1, (n, 3)))
+    g = forward_scene(np.random.default_rng(11), 40, opacity=(0.3, 1.0))
     w, h = {"perspective": (24, 20), "yin": (36, 12), "erp": (48, 24)}[kind]
     cam = Camera(kind, w, h, np.eye(4))
     if kind == "erp":  # the reference is the pixel-space EWA: keep away from the polar path

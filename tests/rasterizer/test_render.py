@@ -11,7 +11,7 @@ from rasterizer.composite import composite
 from rasterizer.gaussians import Gaussians, covariance_from_scale_rotation, rgb_to_sh_dc
 from rasterizer.render import RenderOutput, render, to_uint8
 from rasterizer.splat import ALPHA_MIN, Q_MAX, footprints, polar_rows, project
-from tests.rasterizer._support import make_gaussians, pose, random_scene, reference_composite
+from tests.rasterizer._support import forward_scene, make_gaussians, pose, random_scene, reference_composite
 
 
 def truncation_factor(r2):
@@ -88,14 +88,8 @@ def test_yang_render_is_yin_render_of_the_yang_pose():
 
 @pytest.mark.parametrize("kind", ["perspective", "yin", "erp"])
 def test_footprints_and_composite_match_a_slow_reference_loop(kind):
-    rng = np.random.default_rng(11)
     n = 40
-    d = rng.normal(size=(n, 3)) * [0.6, 0.3, 1]
-    d[:, 2] = np.abs(d[:, 2]) + 0.3
-    means = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(1.0, 3.0, (n, 1))
-    q = rng.normal(size=(n, 4))
-    g = make_gaussians(means, rng.uniform(0.02, 0.15, (n, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
-                       rng.uniform(0.0, 1.0, n), rng.uniform(0, 1, (n, 3)))
+    g = forward_scene(np.random.default_rng(11), n)
     w, h = {"perspective": (24, 20), "yin": (36, 12), "erp": (48, 24)}[kind]
     cam = Camera(kind, w, h, np.eye(4))
     if kind == "erp":  # the reference is the pixel-space EWA: keep away from the polar path

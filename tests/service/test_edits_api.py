@@ -20,7 +20,7 @@ def _png(img) -> bytes:
 
 
 @pytest.fixture(scope="module")
-def live(model_path, tmp_path_factory):  # noqa: F811  (model_path is the imported fixture)
+def live(model_path, tmp_path_factory):
     store = tmp_path_factory.mktemp("edit-store")
     with LiveServer(make_settings(model_path, store, max_render_width=512, max_render_pixels=512 * 256)) as server:
         server.store = store

@@ -38,7 +38,7 @@ HUGE = "1" + "0" * 399
 
 
 @pytest.fixture(scope="module")
-def guarded(model_path, tmp_path_factory):  # noqa: F811
+def guarded(model_path, tmp_path_factory):
     settings = make_settings(model_path, tmp_path_factory.mktemp("store"), header_timeout_s=1.0, body_timeout_s=2.0,
                              max_requests=3, max_render_cost=64 * 32 * (60_000.0 + RENDER_PIXEL_GAUSSIANS), heavy_render_cost=4e7)
     with LiveServer(settings) as server:
@@ -315,7 +315,7 @@ def test_non_loopback_host_needs_a_key_or_an_explicit_opt_out():
     assert Settings(host="10.1.2.3", api_key="k").trusted_hosts[-1] == "10.1.2.3"
 
 
-def test_api_key_hosts_origins_and_info(model_path, tmp_path):  # noqa: F811
+def test_api_key_hosts_origins_and_info(model_path, tmp_path):
     settings = make_settings(model_path, tmp_path / "store", api_key="s3cret", cors_origins=["https://ok.example"])
     with LiveServer(settings) as server, server.client() as c:
         assert c.get("/healthz").status_code == 200  # probes need no key
@@ -333,7 +333,7 @@ def test_api_key_hosts_origins_and_info(model_path, tmp_path):  # noqa: F811
         assert pre.status_code == 200 and pre.headers["access-control-allow-origin"] == "https://ok.example"
 
 
-def test_viewer_page_takes_the_key_once_and_keeps_it_in_a_same_site_cookie(model_path, tmp_path):  # noqa: F811
+def test_viewer_page_takes_the_key_once_and_keeps_it_in_a_same_site_cookie(model_path, tmp_path):
     settings = make_settings(model_path, tmp_path / "store", api_key="s3cret")
     with LiveServer(settings) as server, server.client() as c:
         c.headers["Authorization"] = "Bearer s3cret"
@@ -373,7 +373,7 @@ def test_refine_malformed_json_is_422_naming_the_body(guarded, scene):
         assert r.status_code == 422
 
 
-def test_lifespan_owns_the_state_and_cancels_jobs(model_path, tmp_path):  # noqa: F811
+def test_lifespan_owns_the_state_and_cancels_jobs(model_path, tmp_path):
     from fastapi.testclient import TestClient
 
     from service.app import create_app
@@ -419,7 +419,7 @@ def test_post_path_skips_jobs_and_the_adaptive_step(guarded, monkeypatch):
     assert called == []
 
 
-def test_model_file_hashed_once_at_load(model_path, monkeypatch):  # noqa: F811
+def test_model_file_hashed_once_at_load(model_path, monkeypatch):
     import service.encoder as encoder_module
     from service.model_files import sha256_file
     from service.runtime import ModelRuntime
@@ -449,7 +449,7 @@ def test_millimetre_baseline_scene_renders_not_black(guarded):
         assert pixels.mean() > 20 and pixels.std() > 1
 
 
-def test_far_off_cameras_are_recentred_in_float64(model_path):  # noqa: F811
+def test_far_off_cameras_are_recentred_in_float64(model_path):
     """Cameras 1 km out (recentred for the graph, offset added back in float64) give the scene at the origin, moved."""
     from PIL import Image
 

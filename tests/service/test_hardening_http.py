@@ -215,7 +215,7 @@ def test_body_above_the_minimum_rate_is_read():
 # -- the real app: request slots, readiness, HEAD -------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def slots(model_path, tmp_path_factory):  # noqa: F811
+def slots(model_path, tmp_path_factory):
     settings = make_settings(model_path, tmp_path_factory.mktemp("store"), max_requests=2, max_body_readers=3,
                              body_min_rate=0.0, header_timeout_s=5.0, body_timeout_s=30.0)
     with LiveServer(settings) as server:
@@ -421,7 +421,7 @@ def test_viewer_unavailable_names_no_server_path(slots, slots_scene, monkeypatch
 
 # -- the API docs, served locally ----------------------------------------------------------------------
 
-def test_docs_page_and_its_files_are_served_locally_without_a_key(model_path, tmp_path):  # noqa: F811
+def test_docs_page_and_its_files_are_served_locally_without_a_key(model_path, tmp_path):
     settings = make_settings(model_path, tmp_path / "store", api_key="s3cret", warmup=False)
     with LiveServer(settings) as server, server.client() as c:
         page = c.get("/docs")

@@ -109,7 +109,7 @@ def test_job_file_paths_stay_inside(tmp_path, bad):
         JobFiles(tmp_path).path(bad)
 
 
-def test_two_services_on_one_store_answer_each_others_jobs(model_path, tmp_path):  # noqa: F811
+def test_two_services_on_one_store_answer_each_others_jobs(model_path, tmp_path):
     """Two apps sharing a store (as Ray replicas do): a job POSTed to one is answered by the other."""
     settings = [make_settings(model_path, tmp_path, replica_id=name) for name in ("one", "two")]
     with LiveServer(settings[0]) as one, LiveServer(settings[1]) as two, one.client() as a, two.client() as b:

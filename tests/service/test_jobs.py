@@ -17,7 +17,7 @@ ZERO_ID = "0" * 32
 
 
 @pytest.fixture(scope="module")
-def live(model_path, tmp_path_factory):  # noqa: F811  (model_path is the imported fixture)
+def live(model_path, tmp_path_factory):
     store = tmp_path_factory.mktemp("jobs-store")
     with LiveServer(make_settings(model_path, store)) as server:
         yield server

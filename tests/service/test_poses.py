@@ -170,7 +170,7 @@ def _png(img: np.ndarray) -> bytes:
 
 
 @pytest.fixture(scope="module")
-def api(model_path, tmp_path_factory):  # noqa: F811
+def api(model_path, tmp_path_factory):
     with LiveServer(make_settings(model_path, tmp_path_factory.mktemp("store"))) as server, server.client() as c:
         yield c
 
