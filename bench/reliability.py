@@ -36,7 +36,7 @@ import httpx
 import numpy as np
 
 from bench.reliability_http import chunk_bombs, multipart, png_rows, protocol, slow_bodies
-from bench.service import free_port, post_inputs
+from bench.service import free_port, post_inputs, wait_ready
 
 ROOT = Path(__file__).resolve().parents[1]
 HUGE = "1" + "0" * 399
@@ -57,18 +57,9 @@ class Server:
         self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--no-build", "--model",
                                       str(self.model), "--store", str(self.store), "--port", str(self.port),
                                       "--log-level", "critical"], cwd=ROOT, env=env)
-        deadline = time.monotonic() + 180
-        while time.monotonic() < deadline:
-            try:
-                r = httpx.get(self.url + "/readyz", timeout=2)
-                if r.status_code == 200 or (not self.store_ok and "store" in str(r.json().get("error"))):
-                    return self  # ready, or (expected) the model is loaded and only the store is refused
-            except httpx.TransportError:
-                pass
-            if self.proc.poll() is not None:
-                break
-            time.sleep(0.1)
-        raise RuntimeError(f"server did not become ready (exit {self.proc.poll()})")
+        # ready, or (expected) the model is loaded and only the store is refused
+        wait_ready(self.url, self.proc, 180, accept=lambda r: not self.store_ok and "store" in str(r.json().get("error")))
+        return self
 
     def kill9(self) -> None:
         self.proc.send_signal(signal.SIGKILL)

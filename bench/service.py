@@ -39,6 +39,25 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def wait_ready(url: str, proc: subprocess.Popen, timeout_s: float, accept=None, poll_s: float = 0.1) -> None:
+    """Poll ``url``/readyz until it answers 200 (or ``accept(response)`` is true) while the server process
+    ``proc`` lives; RuntimeError when the process exits or ``timeout_s`` seconds pass first."""
+    import httpx
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            r = httpx.get(url + "/readyz", timeout=2)
+            if r.status_code == 200 or (accept is not None and accept(r)):
+                return
+        except httpx.TransportError:
+            pass
+        if proc.poll() is not None:
+            break
+        time.sleep(poll_s)
+    raise RuntimeError(f"server did not become ready (exit {proc.poll()})")
+
+
 def _target_pose(fallback: list) -> list:
     """The dev scene's first target camera (what the quality benches score), else ``fallback``."""
     scene = DEV_SCENE / "scene.json"
@@ -135,15 +154,10 @@ def main(argv: list[str] | None = None) -> int:
         proc = subprocess.Popen(cmd, cwd=Path(__file__).resolve().parents[1])
         try:
             t0 = time.perf_counter()
-            while True:
-                try:
-                    if httpx.get(url + "/readyz", timeout=2).status_code == 200:
-                        break
-                except httpx.TransportError:
-                    pass
-                if proc.poll() is not None or time.perf_counter() - t0 > 300:
-                    raise SystemExit("server did not become ready")
-                time.sleep(0.1)
+            try:
+                wait_ready(url, proc, 300)
+            except RuntimeError as exc:
+                raise SystemExit(str(exc)) from None
             ready_s = time.perf_counter() - t0
             a, b, ca, cb = post_inputs(args.height)
             poses = json.dumps({"convention": "opencv", "c2w": [ca, cb]})

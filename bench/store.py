@@ -32,7 +32,7 @@ import httpx
 import numpy as np
 
 from bench import DEV_DATA
-from bench.service import free_port
+from bench.service import free_port, wait_ready
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -71,17 +71,8 @@ class Server:
 
     def __enter__(self) -> "Server":
         self.proc = subprocess.Popen([sys.executable, "-c", _LAUNCH, "1" if self.trim else "0"], cwd=ROOT, env=self.env)
-        deadline = time.monotonic() + 300
-        while time.monotonic() < deadline:
-            try:
-                if httpx.get(self.url + "/readyz", timeout=2).status_code == 200:
-                    return self
-            except httpx.TransportError:
-                pass
-            if self.proc.poll() is not None:
-                break
-            time.sleep(0.2)
-        raise RuntimeError(f"server did not become ready (exit {self.proc.poll()})")
+        wait_ready(self.url, self.proc, 300, poll_s=0.2)
+        return self
 
     def __exit__(self, *exc) -> None:
         self.proc.terminate()
