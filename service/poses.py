@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from rasterizer.floor_sweep import floor_ratio
 from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction, pinhole_directions
 from rasterizer.gravity import level_rotation
 from rasterizer.relative_pose import (
@@ -69,6 +70,8 @@ NO_PARALLAX_SHARE = 0.8
 #: of level captures (a tripod, a synthetic render) measure 0.2-0.8 deg; smaller tilts are left to the
 #: 5-dof refinement.
 LEVEL_MIN_TILT_DEG = 1.0
+#: Rows of the grey ERPs of the dense floor sweep (:func:`rasterizer.floor_sweep.floor_ratio`).
+FLOOR_SWEEP_HEIGHT = 256
 #: The 5-dof refinement of the (levelled) pair is kept when it finds more tilt than this (deg) between them.
 RESIDUAL_TILT_DEG = 0.5
 
@@ -124,6 +127,13 @@ def _gray(erp: np.ndarray) -> np.ndarray:
     if gray.shape[1] > MAX_ERP_WIDTH:
         gray = cv2.resize(gray, (MAX_ERP_WIDTH, MAX_ERP_WIDTH // 2), interpolation=cv2.INTER_AREA)
     return gray
+
+
+def small_gray(erp: np.ndarray, height: int) -> np.ndarray:
+    """Grey ERP (height, 2 * height) float32 in [0, 1], area-downsampled."""
+    import cv2
+
+    return cv2.resize(_gray(erp), (2 * height, height), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
 
 
 def features(erp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -339,27 +349,39 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
     if len(inl) < MIN_INLIERS:
         raise PoseEstimationFailed(f"poses: only {len(inl)} matches agree on a relative pose (need {MIN_INLIERS}); "
                                    "give poses")
-    scale, info["scale"] = _scale(fa[inl[:, 0]], fb[inl[:, 1]], R, t, opts)
+    scale, info["scale"] = _scale(pa, pb, inl, R, t, opts)
     info["yaw_deg"] = float(np.degrees(np.arctan2(R[0, 2], R[2, 2])))
     c2w_a = np.eye(4)
     c2w_a[:3, :3] = pa.level
     return c2w_a, _pose(R @ pb.level, t * scale), info
 
 
-def _scale(fa, fb, R, t, opts: PoseOptions) -> tuple[float, dict]:
+def _scale(pa: Panorama, pb: Panorama, inl: np.ndarray, R: np.ndarray, t: np.ndarray, opts: PoseOptions) -> tuple[float, dict]:
+    """Metres per unit of the unit-baseline pose: the given baseline; else the camera height over the floor's
+    distance below A: from the dense floor sweep, else from the triangulated inliers ``inl`` (M, 2)
+    (:func:`rasterizer.relative_pose.floor_scale`); else 1."""
     if opts.baseline is not None:
         return opts.baseline, {"source": "baseline", "baseline_m": opts.baseline}
-    if opts.camera_height is not None:
+    if opts.camera_height is None:
+        return 1.0, {"source": "default", "baseline_m": 1.0,
+                     "note": "no camera_height or baseline given: the scene's scale is arbitrary (baseline 1)"}
+    t0 = time.perf_counter()
+    try:
+        d, extra = floor_ratio(small_gray(pa.image, FLOOR_SWEEP_HEIGHT), small_gray(pb.image, FLOOR_SWEEP_HEIGHT),
+                               pa.level, pb.level, R, t)
+        s, floor = opts.camera_height / d, "dense"
+    except ValueError as dense_exc:
+        fa, fb = pa.bearings[inl[:, 0]], pb.bearings[inl[:, 1]]
         la, _ = triangulate(fa, fb, R, t)
         parallax = np.arccos(np.clip(np.sum(fa * (fb @ R.T), -1), -1, 1))
         try:
             s, extra = floor_scale(la[:, None] * fa, opts.camera_height, parallax)
         except ValueError as exc:
-            raise PoseEstimationFailed(f"poses: camera_height given but {exc}; give baseline instead",
+            raise PoseEstimationFailed(f"poses: camera_height given but {dense_exc} and {exc}; give baseline instead",
                                        code="scale_failed") from None
-        return s, {"source": "camera_height", "camera_height_m": opts.camera_height, "baseline_m": s, **extra}
-    return 1.0, {"source": "default", "baseline_m": 1.0,
-                 "note": "no camera_height or baseline given: the scene's scale is arbitrary (baseline 1)"}
+        floor = "points"
+    return s, {"source": "camera_height", "camera_height_m": opts.camera_height, "baseline_m": s, "floor": floor,
+               "seconds": time.perf_counter() - t0, **extra}
 
 
 def refine_poses(erp_a: np.ndarray, erp_b: np.ndarray, c2w_a: np.ndarray, c2w_b: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -405,8 +427,7 @@ def photometric_score(erp_a: np.ndarray, erp_b: np.ndarray, R: np.ndarray, t: np
     0.3-30 baselines, fronto-parallel patches); about 1 for the true pose, lower for a wrong one."""
     import cv2
 
-    ga, gb = (cv2.resize(_gray(e), (2 * height, height), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
-              for e in (erp_a, erp_b))
+    ga, gb = small_gray(erp_a, height), small_gray(erp_b, height)
     t = np.asarray(t, np.float64) / np.linalg.norm(t)
     gy, gx = np.gradient(ga)
     mag = np.hypot(gx, gy)

@@ -1,0 +1,160 @@
+"""Dense floor-plane sweep: the floor's distance below camera A in baseline units (numpy only).
+
+Given the relative pose of two panoramas (levelled frames, ``[R | t]`` with unit ``t``, as in
+:mod:`rasterizer.relative_pose`), a horizontal plane ``y = d`` below A maps every below-horizon
+pixel of A to a pixel of B. The sweep tries many ``d`` and scores each by the photo-consistency of
+A's lower band with B warped through that plane (ZNCC of small windows); the same from B's side
+with the plane ``d - t_y`` below B. Furniture tops are planes too, but higher (smaller ``d``); the
+floor is the lowest plane that explains a large share of the band.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .geometry import direction_from_lat_lon, lat_lon_from_direction
+
+
+def _box_sum(img: np.ndarray, r: int) -> np.ndarray:
+    """Sum over (2r+1)^2 windows of (..., H, W); columns wrap (ERP longitude), rows are clipped."""
+    p = np.concatenate([img[..., -r:], img, img[..., :r]], axis=-1)
+    c = np.cumsum(p, axis=-1)
+    c = np.concatenate([np.zeros_like(c[..., :1]), c], axis=-1)
+    s = c[..., 2 * r + 1:] - c[..., :-2 * r - 1]
+    h = s.shape[-2]
+    c = np.cumsum(s, axis=-2)
+    c = np.concatenate([np.zeros_like(c[..., :1, :]), c], axis=-2)
+    lo = np.clip(np.arange(h) - r, 0, h)
+    hi = np.clip(np.arange(h) + r + 1, 0, h)
+    return c[..., hi, :] - c[..., lo, :]
+
+
+def _window_stats(img: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and variance over (2r+1)^2 windows of (..., H, W)."""
+    n = (2 * r + 1) ** 2
+    mean = _box_sum(img, r) / n
+    return mean, np.maximum(_box_sum(img * img, r) / n - mean * mean, 0.0)
+
+
+def _zncc(a: np.ndarray, a_stats: tuple[np.ndarray, np.ndarray], b: np.ndarray, r: int, eps: float) -> np.ndarray:
+    """Windowed ZNCC of ``a`` (H, W), with its :func:`_window_stats`, against each of ``b`` (K, H, W)."""
+    ma, va = a_stats
+    mb, vb = _window_stats(b, r)
+    cov = _box_sum(a[None] * b, r) / (2 * r + 1) ** 2 - ma[None] * mb
+    return cov / np.sqrt((va[None] + eps) * (vb + eps))
+
+
+def _erp_pixel(p: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous (col, row) of directions ``p`` (..., 3) in an ERP of ``height`` rows (pixel centre c at c)."""
+    lat, lon = lat_lon_from_direction(p)
+    return (lon + np.pi) * (height / np.pi) - 0.5, (np.pi / 2 - lat) * (height / np.pi) - 0.5
+
+
+def _sample(img: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of a one-channel ERP (H, W) at continuous pixel coordinates; columns wrap, rows clamp."""
+    h, w = img.shape
+    c0, r0 = np.floor(col), np.floor(row)
+    fc, fr = (col - c0).astype(np.float32), (row - r0).astype(np.float32)
+    c0, r0 = c0.astype(np.int64) % w, np.clip(r0.astype(np.int64), 0, h - 1)
+    c1, r1 = (c0 + 1) % w, np.minimum(r0 + 1, h - 1)
+    flat = img.ravel()
+    top = flat[r0 * w + c0] * (1 - fc) + flat[r0 * w + c1] * fc
+    bottom = flat[r1 * w + c0] * (1 - fc) + flat[r1 * w + c1] * fc
+    return top * (1 - fr) + bottom * fr
+
+
+def plane_zncc(ref: np.ndarray, other: np.ndarray, level_ref: np.ndarray, level_other: np.ndarray, R: np.ndarray,
+               t: np.ndarray, normal: np.ndarray, offsets: np.ndarray, *, band_deg: tuple[float, float] = (20.0, 80.0),
+               nadir_deg: float = 20.0, radius: int = 2, min_std: float = 0.02, chunk: int = 16) -> np.ndarray:
+    """Windowed ZNCC (K, h, w) of ``ref``'s lower band with ``other`` warped through each plane
+    ``normal . X = offsets[k]`` of ref's levelled frame; NaN where not scored.
+
+    ref, other: grey ERPs (H, 2H), values in [0, 1], in their camera frames; level_*: (3, 3)
+    levelled-from-camera turns; ``[R | t]``: other's pose in ref's levelled frame (``X_ref = R X_other + t``,
+    both levelled). The band is a grid of h rows (ref's row spacing) by w = H columns (twice the row
+    spacing in longitude, about the row spacing on the sphere 60 deg below the horizon), its pixels
+    ``band_deg`` from ``normal`` (the nadir cap hides the photographer or the tripod). Not scored: flat
+    windows (std below ``min_std``) and points within ``nadir_deg`` of other's nadir."""
+    height = ref.shape[0]
+    lat = np.pi / 2 - (np.arange(height) + 0.5) / height * np.pi
+    lon = (np.arange(height) + 0.5) / height * 2 * np.pi - np.pi
+    lo, hi = np.radians(band_deg)
+    rows = (lat >= lo - np.pi / 2 - 0.05) & (lat <= hi - np.pi / 2 + 0.05)
+    dirs = direction_from_lat_lon(lat[rows, None], lon[None, :])  # (h, w, 3), levelled frame
+    cos_n = dirs @ np.asarray(normal, np.float64)
+    ang = np.arccos(np.clip(cos_n, -1.0, 1.0))
+    a = _sample(ref.astype(np.float32), *_erp_pixel(dirs @ level_ref, height))
+    stats = _window_stats(a, radius)
+    keep = (ang >= lo) & (ang <= hi) & (stats[1] >= min_std ** 2)
+    out = np.full((len(offsets),) + a.shape, np.nan, np.float32)
+    cos_nadir = np.cos(np.radians(nadir_deg))
+    ray = (dirs / np.maximum(cos_n, 1e-3)[..., None]).astype(np.float32)  # meets the plane at offset 1
+    other = np.asarray(other, np.float32)
+    t32, R32 = np.asarray(t, np.float32), np.asarray(R, np.float32)
+    for s in range(0, len(offsets), chunk):
+        off = np.asarray(offsets[s:s + chunk], np.float32)
+        xo = (ray[None] * off[:, None, None, None] - t32) @ R32  # R^T (X - t): other's levelled frame
+        warped = _sample(other, *_erp_pixel(xo @ level_other.astype(np.float32), height))
+        z = _zncc(a, stats, warped, radius, 1e-4)
+        ok = keep[None] & (xo[..., 1] < cos_nadir * np.linalg.norm(xo, axis=-1)) & (off[:, None, None] > 0)
+        out[s:s + chunk] = np.where(ok, z, np.nan)
+    return out
+
+
+#: Candidate floor distances below A, in baselines: 80 log-spaced values (5.4% apart), a baseline of
+#: 1/16 to 4 camera heights.
+FLOOR_RATIOS = np.exp(np.linspace(np.log(0.25), np.log(16.0), 80))
+
+
+def floor_ratio(grey_a: np.ndarray, grey_b: np.ndarray, level_a: np.ndarray, level_b: np.ndarray, R: np.ndarray,
+                t: np.ndarray, *, ratios: np.ndarray = FLOOR_RATIOS, min_zncc: float = 0.7, min_peak: float = 0.3,
+                min_share: float = 0.01, width: int = 2) -> tuple[float, dict]:
+    """Distance of the floor below A in baselines (``t`` is unit) from a dense plane sweep of both views.
+
+    grey_*: grey ERPs (H, 2H) in [0, 1]; level_*: levelled-from-camera (3, 3); ``[R | t]``: B in A's
+    levelled frame. Every band pixel of A (and of B, with the plane ``d - t_y`` below B) votes for the
+    candidate ``ratios`` whose plane matches it best (:func:`plane_zncc`), when that ZNCC exceeds
+    ``min_zncc``. The floor is the deepest peak of the votes holding ``min_peak`` of the highest peak
+    above the median (a bed or a table top is a plane too, higher: a smaller ratio; a floor is the
+    lowest plane, nothing is seen below it) and ``min_share`` of the scored pixels within ``width`` bins.
+    The ratio is refined by a parabola through the summed ZNCC of the floor's voters. Raises
+    ``ValueError`` when no peak qualifies. Info: pixel counts, the floor's ``floor_share`` and every strong
+    peak's ratio and share (``planes``)."""
+    t = np.asarray(t, np.float64)
+    sides = [plane_zncc(grey_a, grey_b, level_a, level_b, R, t, np.array([0.0, 1.0, 0.0]), ratios),
+             plane_zncc(grey_b, grey_a, level_b, level_a, R.T, -R.T @ t, R[1], ratios - t[1])]
+    votes = np.zeros(len(ratios))
+    winners, scored = [], 0
+    for z in sides:
+        filled = np.where(np.isnan(z), -2.0, z)
+        arg, best = filled.argmax(0), filled.max(0)
+        good = best > min_zncc
+        scored += int(np.count_nonzero(~np.isnan(z).all(0)))
+        votes += np.bincount(arg[good], minlength=len(ratios))
+        winners.append((z, arg, good))
+    smooth = np.convolve(votes, [0.25, 0.5, 0.25], mode="same")
+    padded = np.concatenate([[-1.0], smooth, [-1.0]])
+    peaks = np.nonzero((padded[1:-1] > padded[:-2]) & (padded[1:-1] >= padded[2:]))[0]
+    base = float(np.median(smooth))
+    strong = peaks[smooth[peaks] - base >= min_peak * (smooth.max() - base)] if smooth.max() > base else peaks[:0]
+    info = {"scored_pixels": scored, "voters": int(votes.sum())}
+    if not len(strong):
+        raise ValueError("the images agree on no horizontal plane below the camera: the floor is not seen in both views")
+    def share_at(i):  # share of the scored pixels voting within ``width`` bins of candidate i
+        return float(votes[max(i - width, 0):i + width + 1].sum() / max(scored, 1))
+
+    k = int(strong.max())
+    lo_, hi_ = max(k - width, 0), min(k + width + 1, len(ratios))
+    share = share_at(k)
+    if share < min_share:
+        raise ValueError(f"the lowest plane the images agree on holds {share:.1%} of the pixels below the camera "
+                         f"(need {min_share:.0%}): the floor is not seen in both views")
+    curve = sum(np.nansum(np.where((good & (np.abs(arg - k) <= width))[None], z, 0.0), axis=(1, 2))
+                for z, arg, good in winners)
+    j = int(np.clip(lo_ + np.argmax(curve[lo_:hi_]), 1, len(ratios) - 2))
+    y0, y1, y2 = curve[j - 1:j + 2]
+    step = np.clip(0.5 * (y0 - y2) / min(y0 - 2 * y1 + y2, -1e-9), -0.5, 0.5)
+    log_r = np.log(ratios)
+    d = float(np.exp(log_r[j] + step * (log_r[j + 1] - log_r[j])))
+    return d, {**info, "floor_ratio": d, "floor_share": share,
+               "planes": [{"ratio": float(ratios[p]), "share": share_at(p)} for p in strong]}
