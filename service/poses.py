@@ -18,9 +18,10 @@ the levelled pair still differs by more than :data:`RESIDUAL_TILT_DEG` of tilt.
 
 World frame of an estimate: A's levelled frame (origin at A, OpenCV axes, +y along gravity;
 ``c2w_A`` is A's levelling turn, the identity for a level A). Scale: ``baseline``
-(metres), else ``camera_height`` (metres above the floor: the lowest horizontal plane of
-triangulated points that is well supported and wide, :func:`rasterizer.relative_pose.floor_scale`;
-422 ``scale_failed`` when there is none), else a baseline of 1. Failures raise :class:`PoseEstimationFailed` (422).
+(metres), else ``camera_height`` (metres above the floor: the lowest horizontal plane both images agree
+on in a dense plane sweep, :func:`rasterizer.floor_sweep.floor_ratio`; else the lowest wide plane of
+triangulated points, :func:`rasterizer.relative_pose.floor_scale`; 422 ``scale_failed`` when neither
+finds one), else a baseline of 1. Failures raise :class:`PoseEstimationFailed` (422).
 """
 
 from __future__ import annotations

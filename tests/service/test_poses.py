@@ -133,6 +133,32 @@ def test_default_scale_is_one_and_says_so(room_a):
     assert info["scale"]["source"] == "default" and "arbitrary" in info["scale"]["note"]
 
 
+def test_camera_height_floor_dense_then_points_then_refused(room_a, monkeypatch):
+    """The dense sweep's floor first; when it finds none, the triangulated points' floor; when neither, 422."""
+    import service.poses as poses
+
+    true = _pose(-40.0, [0.9, 0.0, -0.8])
+    room_b = room_erp(true)
+
+    def baseline_and_floor():
+        _, c2w_b, info = estimate_poses(room_a, room_b, PoseOptions(camera_height=1.5))  # floor 1.5 m below A
+        return np.linalg.norm(c2w_b[:3, 3]) / np.linalg.norm(true[:3, 3]), info["scale"]["floor"]
+
+    ratio, floor = baseline_and_floor()
+    assert floor == "dense" and abs(ratio - 1) < 0.03
+
+    def no_floor(*args, **kwargs):
+        raise ValueError("the floor is not seen in both views")
+
+    monkeypatch.setattr(poses, "floor_ratio", no_floor)
+    ratio, floor = baseline_and_floor()
+    assert floor == "points" and abs(ratio - 1) < 0.05
+    monkeypatch.setattr(poses, "floor_scale", no_floor)
+    with pytest.raises(PoseEstimationFailed) as exc:
+        baseline_and_floor()
+    assert exc.value.status == 422 and exc.value.code == "scale_failed"
+
+
 def test_refine_given_poses_moves_a_wrong_yaw_back(room_a):
     from service.inputs import Poses
 
