@@ -72,7 +72,7 @@ NO_PARALLAX_SHARE = 0.8
 #: 5-dof refinement.
 LEVEL_MIN_TILT_DEG = 1.0
 #: Rows of the grey ERPs of the dense floor sweep (:func:`rasterizer.floor_sweep.floor_ratio`).
-FLOOR_SWEEP_HEIGHT = 256
+FLOOR_SWEEP_HEIGHT = 192
 #: The 5-dof refinement of the (levelled) pair is kept when it finds more tilt than this (deg) between them.
 RESIDUAL_TILT_DEG = 0.5
 
