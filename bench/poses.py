@@ -113,25 +113,34 @@ def pair_rows(root: Path, max_m: float, height: float | None = None) -> list[dic
 
 
 def pairs_markdown(rows: list[dict], rot_deg: float = 1.0, dir_deg: float = 2.0, scale_pct: float = 15.0) -> str:
-    """Per pair: rotation / travel direction / baseline errors, then the share within the targets."""
-    lines = ["| scene pair (baseline) | rot err deg | dir err deg | baseline est / true | inliers | method | s |",
-             "|---|---|---|---|---|---|---|"]
+    """Per pair: rotation / travel direction / baseline errors and the floor that set the scale (``dense`` sweep or
+    triangulated ``points``, with the scale step's seconds), then the share within the targets."""
+    lines = ["| scene pair (baseline) | rot err deg | dir err deg | baseline est / true | inliers | method | floor (s) | s |",
+             "|---|---|---|---|---|---|---|---|"]
+    floor_s = []
     ok = {"rot": 0, "dir": 0, "scale": 0}
     for r in rows:
         e = r["estimate"]
         head = f"| {r['scene']} {'+'.join(r['references'])} ({r['baseline_m']:.2f} m) "
         if "error" in e:
-            lines.append(head + f"| 422 `{e['error']}` | | | | | {e['seconds']:.1f} |")
+            lines.append(head + f"| 422 `{e['error']}` | | | | | | {e['seconds']:.1f} |")
             continue
         ok["rot"] += e["rotation_deg"] <= rot_deg
         ok["dir"] += e["direction_deg"] <= dir_deg
         ok["scale"] += abs(e["scale_pct"]) <= scale_pct
+        scale = e.get("scale") or {}
+        floor = f"{scale['floor']} ({scale['seconds']:.2f})" if "floor" in scale else ""
+        if scale.get("floor") == "dense":
+            floor_s.append(scale["seconds"])
         lines.append(head + f"| {e['rotation_deg']:.2f} | {e['direction_deg']:.2f} | {1 + e['scale_pct'] / 100:.2f}x "
-                     f"| {e['inliers']} | {e['method']} | {e['seconds']:.1f} |")
+                     f"| {e['inliers']} | {e['method']} | {floor} | {e['seconds']:.1f} |")
     n = max(len(rows), 1)
     lines += ["", f"{len(rows)} pairs: rotation <= {rot_deg:g} deg on {ok['rot'] / n:.0%}, travel direction <= "
               f"{dir_deg:g} deg on {ok['dir'] / n:.0%}, baseline within {scale_pct:g}% on {ok['scale'] / n:.0%} "
               "(a 422 counts as a miss)"]
+    if floor_s:
+        lines.append(f"Floor from the dense sweep on {len(floor_s)} pairs: median {np.median(floor_s):.2f} s per pair "
+                     "(the scale step, camera_height given)")
     return "\n".join(lines) + "\n"
 
 

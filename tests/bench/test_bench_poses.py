@@ -39,6 +39,8 @@ def test_pairs_markdown_counts_a_422_as_a_miss():
     far = {**ok, "rotation_deg": 1.5, "scale_pct": -20.0}
     rows = [{"scene": "s", "references": [a, b], "baseline_m": 1.0, "estimate": e}
             for a, b, e in (("1", "2", ok), ("1", "3", far), ("2", "3", {"error": "ambiguous_pose", "seconds": 1.0}))]
+    rows[0]["estimate"]["scale"] = {"floor": "dense", "seconds": 0.25}
     text = pairs_markdown(rows)
+    assert "| dense (0.25) |" in text and "median 0.25 s per pair" in text
     assert "422 `ambiguous_pose`" in text and "1.10x" in text and "0.80x" in text
     assert "3 pairs: rotation <= 1 deg on 33%, travel direction <= 2 deg on 67%, baseline within 15% on 33%" in text
