@@ -140,6 +140,7 @@ def floor_ratio(grey_a: np.ndarray, grey_b: np.ndarray, level_a: np.ndarray, lev
     info = {"scored_pixels": scored, "voters": int(votes.sum())}
     if not len(strong):
         raise ValueError("the images agree on no horizontal plane below the camera: the floor is not seen in both views")
+
     def share_at(i):  # share of the scored pixels voting within ``width`` bins of candidate i
         return float(votes[max(i - width, 0):i + width + 1].sum() / max(scored, 1))
 
