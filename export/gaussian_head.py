@@ -159,15 +159,14 @@ class GaussianHead(nn.Module):
         a = _steps(pts, fa, 3, self.max_stretch)
         b = _steps(pts, fb, 2, self.max_stretch)
         axes, scales = surfel_frames(a, b, fa, fb, self.scale_factor, self.ray_scale_ratio)
-        rot_b = rot.reshape(2, 1, 1, 1, 3, 3)
         c = conf.clamp(0.0, 1.0)
         if self.confident_shrink:  # opaque layout surfels get the confident footprint: sharp, the shell behind
             fp = c if opaque is None else torch.maximum(c, opaque)
             scales = scales * (1.0 - self.confident_shrink * fp).unsqueeze(-1)
-        means = centre.reshape(2, 1, 1, 1, 3) + torch.matmul(rot_b, pts.unsqueeze(-1)).squeeze(-1)
+        means = centre.reshape(2, 1, 1, 1, 3) + torch.matmul(pts.reshape(2, -1, 3), rot.transpose(1, 2)).reshape(pts.shape)
         # camera-frame surfel rotation, turned to the world by the camera quaternion (one MatMul)
-        quats = torch.matmul(quat_left_matrix(cam_quats).reshape(2, 1, 1, 1, 4, 4),
-                             rotmat_to_quat(axes).unsqueeze(-1)).squeeze(-1)
+        local = rotmat_to_quat(axes)
+        quats = torch.matmul(local.reshape(2, -1, 4), quat_left_matrix(cam_quats).transpose(1, 2)).reshape(local.shape)
         if self.opacity_gamma == 2.0:
             c = c * c
         elif self.opacity_gamma != 1.0:
