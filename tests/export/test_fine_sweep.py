@@ -70,12 +70,12 @@ def test_stacked_sampling_is_the_mask_blend_with_yin_priority():
     maps = torch.rand(4, 1, h, w)
     inv = torch.rand(4, 1, j, h, w) + 0.2
     fs = FineSweep(("yin", "yang"), j, None, None, None)
-    pts = fs.points(inv, _rays(h, w), _rel_rt())
+    pts = fs.points(inv, _rays(h, w), _rel_rt())  # (x, y, z)
     got = fs.sample(maps, pts).reshape(2, 2, j, h, w)
     src = maps.reshape(2, 2, 1, h, w).flip(0)
     per_grid = []
     for g, kind in enumerate(("yin", "yang")):
-        coords = project_normalised(pts, kind)
+        coords = project_normalised(torch.stack(pts, dim=-1), kind)
         per_grid.append((sample_maps(src[:, g], coords.reshape(2, -1, w, 2), False).reshape(2, 2, j, h, w),
                          domain_mask(coords)))
     (s_yin, m_yin), (s_yang, m_yang) = per_grid
