@@ -29,7 +29,7 @@ from torch import nn
 from rasterizer.geometry import YIN_LAT_MAX, YIN_LON_MAX
 from rasterizer.sweep import ERP_PAD
 
-from .cost_volume import sample_maps
+from .cost_volume import sample_maps, stacked_source
 
 
 def _lon(x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
@@ -98,9 +98,7 @@ def sample_other_view(maps: torch.Tensor, pts, grids, erp_width: int = 0):
     gx, gy = project_xyz(torch.where(in_yin, x, y), torch.where(in_yin, y, x), torch.where(in_yin, z, -z), "yin")
     gs = ((gy + 1.0) * h + torch.where(in_yin, 0.0, float(2 * h + 4))) / (2 * h + 2) - 1.0  # rows + h + 2
     grid = torch.stack([gx, gs], dim=-1).reshape(2, g_count * j_count * h, w, 2)
-    yin, yang = source[:, 0], source[:, 1]  # (2, 1, h, w)
-    stacked = torch.cat([yin, yin[:, :, -1:], yang[:, :, :1], yang], dim=2)  # (2, 1, 2h + 2, w)
-    return sample_maps(stacked, grid, False), in_yin, gx, gy
+    return sample_maps(stacked_source(source, False), grid, False), in_yin, gx, gy
 
 
 def source_points(rng: torch.Tensor, rays: torch.Tensor, rel_rt: torch.Tensor):
