@@ -7,8 +7,8 @@ refinement can replace a stage without touching the geometry):
    (or the ERP itself in the ``erp_encoder`` ablation);
 2. average pooling by ``downscale`` -> feature-grid colour; grey guide;
 3. :class:`TrainingFreeFeatures` - per-pixel ZNCC + census descriptors;
-4. :class:`SweepCostVolume` - A<-B and B<-A sphere sweeps, four pairings,
-   mask blend (paper eq. 4), correlation;
+4. :class:`SweepCostVolume` - A<-B and B<-A sphere sweeps, each point read in
+   the source grid that owns it (paper eq. 4, Yin taking the overlap), correlation;
 5. :class:`CostAggregation` - multi-scale guided filter per plane;
 6. :class:`DepthReadout` - sub-plane depth + two peak confidences (a steep
    one weights the fill, a gentle one becomes the output confidence);
