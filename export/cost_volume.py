@@ -1,4 +1,4 @@
-"""Cross-view sphere-sweep cost volume over the four Yin/Yang pairings.
+"""Cross-view sphere-sweep cost volume on the Yin/Yang (or ERP) grids.
 
 For direction d (target view d, source view 1 - d), target grid g_t and
 candidate k, the other view's features are sampled at the precomputed
