@@ -1,13 +1,12 @@
-"""Cross-view sphere-sweep cost volume over the four Yin/Yang pairings.
+"""Cross-view sphere-sweep cost volume on the Yin/Yang (or ERP) grids.
 
 For direction d (target view d, source view 1 - d), target grid g_t and
-candidate k, the other view's features on *both* its grids are sampled at
-the precomputed coordinates (:mod:`rasterizer.sweep`) and blended with the
-validity masks as in the paper's eq. 4, ``(F_n M_n + F_e M_e) / (M_n + M_e)``
-(0 where both masks are 0, which cannot happen for Yin + Yang: together they
-cover the sphere). Masks are binary "inside the source grid's domain" tests
-read off the coordinates (|x|, |y| <= 1 with align_corners=False). A
-*matcher* then scores the target against the warped stack:
+candidate k, the other view's features are sampled at the precomputed
+coordinates (:mod:`rasterizer.sweep`) in one image with its Yang grid stacked
+under its Yin grid: each point is read once, in Yin where Yin's domain holds
+it, else in Yang (the paper's eq. 4 mask blend with Yin taking the overlap;
+the module table of :mod:`rasterizer.sweep`). A *matcher* then scores the
+target against the warped stack:
 
 * :class:`WindowMatcher` (default, training-free): ZNCC and soft census over
   windows laid out in the *target* lattice, on the source image warped
@@ -29,10 +28,14 @@ from .features import pad2d, ring_offsets
 from .yin_yang_sampling import pad_longitude
 
 
-def domain_mask(grid: torch.Tensor) -> torch.Tensor:
-    """(..., 2) grid_sample coordinates -> (...) float 1 inside [-1, 1]^2, else 0."""
-    a = grid.abs()
-    return (torch.maximum(a[..., 0], a[..., 1]) <= 1.0).to(grid.dtype)  # cheaper in ORT than ReduceMax
+def stacked_source(maps: torch.Tensor, erp_source: bool) -> torch.Tensor:
+    """A view's grids (N, G, C, h, w) -> the one image its points are sampled in (N, C, h', w'):
+    the ERP itself, or Yin over Yang with each one's edge row repeated between them, (N, C, 2h + 2, w)
+    (:mod:`rasterizer.sweep`)."""
+    if erp_source:
+        return maps[:, 0]
+    yin, yang = maps[:, 0], maps[:, 1]
+    return torch.cat([yin, yin[:, :, -1:], yang[:, :, :1], yang], dim=2)
 
 
 def sample_maps(src: torch.Tensor, grid: torch.Tensor, erp_source: bool) -> torch.Tensor:
@@ -100,11 +103,11 @@ class WindowMatcher(nn.Module):
 
 
 class SweepCostVolume(nn.Module):
-    """feats (2, G, C, h, w), warp_grids (2, G, G, D, h, w, 2) -> cost (2, G, D, h, w).
+    """feats (2, G, C, h, w), warp_grids (2, G, D, h, w, 2) -> cost (2, G, D, h, w).
 
-    All 2 G G (direction, target grid, source grid) warps run as one batched
-    GridSample and the matcher runs once on the (2 G) stacked targets, so the
-    graph has one node per step instead of one per pairing.
+    All 2 G (direction, target grid) warps run as one batched GridSample of the
+    stacked sources and the matcher runs once on the (2 G) stacked targets, so
+    the graph has one node per step instead of one per pairing.
     """
 
     def __init__(self, num_grids: int, erp_source: bool, matcher: nn.Module) -> None:
@@ -114,31 +117,19 @@ class SweepCostVolume(nn.Module):
         self.matcher = matcher
 
     def warp(self, feats: torch.Tensor, warp_grids: torch.Tensor) -> torch.Tensor:
-        """Mask-blended (eq. 4) source samples for every (direction, target grid) -> (2, G, C, D, h, w).
-
-        Direction d samples view 1 - d on each of its grids; out-of-domain
-        samples get mask 0, and where no grid sees a point (cannot happen for
-        Yin + Yang) the blend is 0 because its numerator is 0.
-        """
+        """Source samples for every (direction, target grid) -> (2, G, C, D, h, w); direction d samples
+        view 1 - d in its stacked source (:func:`stacked_source`)."""
         _, g_count, c, h, w = feats.shape
-        d_count = warp_grids.shape[3]
-        source = torch.stack([feats[1], feats[0]])  # [d] = view 1 - d, (2, G_s, C, h, w)
-        source = source.unsqueeze(1).expand(2, g_count, g_count, c, h, w).reshape(2 * g_count * g_count, c, h, w)
-        grid = warp_grids.reshape(2 * g_count * g_count, d_count * h, w, 2)
-        if self.erp_source:
-            source = pad_longitude(source)
-        sampled = F.grid_sample(source, grid, mode="bilinear", padding_mode="border", align_corners=False)
-        sampled = sampled.reshape(2, g_count, g_count, c, d_count, h, w)
-        if self.erp_source or g_count == 1:
-            return sampled[:, :, 0]
-        mask = domain_mask(warp_grids).unsqueeze(3)  # (2, G, G, 1, D, h, w)
-        num = (sampled * mask).sum(dim=2)
-        den = mask.sum(dim=2)
-        return num / den.clamp(min=1.0)
+        d_count = warp_grids.shape[2]
+        source = stacked_source(torch.stack([feats[1], feats[0]]), self.erp_source)  # [d] = view 1 - d
+        hs, ws = source.shape[-2:]
+        source = source.unsqueeze(1).expand(2, g_count, c, hs, ws).reshape(2 * g_count, c, hs, ws)
+        sampled = sample_maps(source, warp_grids.reshape(2 * g_count, d_count * h, w, 2), self.erp_source)
+        return sampled.reshape(2, g_count, c, d_count, h, w)
 
     def forward(self, feats: torch.Tensor, warp_grids: torch.Tensor) -> torch.Tensor:
         _, g_count, c, h, w = feats.shape
-        d_count = warp_grids.shape[3]
+        d_count = warp_grids.shape[2]
         warped = self.warp(feats, warp_grids).reshape(2 * g_count, c, d_count, h, w)
         cost = self.matcher(feats.reshape(2 * g_count, c, h, w), warped)
         return cost.reshape(2, g_count, d_count, h, w)

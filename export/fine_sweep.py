@@ -29,7 +29,7 @@ from torch import nn
 from rasterizer.geometry import YIN_LAT_MAX, YIN_LON_MAX
 from rasterizer.sweep import ERP_PAD
 
-from .cost_volume import sample_maps
+from .cost_volume import sample_maps, stacked_source
 
 
 def _lon(x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
@@ -51,7 +51,13 @@ def project_normalised(p: torch.Tensor, kind: str, width: int = 0) -> torch.Tens
     ``width`` is the ERP width (the x coordinate addresses the source padded
     by :data:`rasterizer.sweep.ERP_PAD` columns, as the coarse warp grids do).
     """
-    x, y, z = p.unbind(-1)
+    return torch.stack(project_xyz(*p.unbind(-1), kind, width), dim=-1)
+
+
+def project_xyz(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor, kind: str, width: int = 0):
+    """:func:`project_normalised` of points given as their three coordinate tensors -> (gx, gy), each of
+    their shape. Per-coordinate tensors keep the graph free of (..., 3) tensors, whose last-axis
+    splits and concatenations cost onnxruntime more than the arithmetic."""
     if kind == "yang":
         x, y, z = y, x, -z
     norm = torch.sqrt(x * x + y * y + z * z).clamp(min=1e-12)
@@ -64,11 +70,11 @@ def project_normalised(p: torch.Tensor, kind: str, width: int = 0) -> torch.Tens
     else:
         gx = lon * (1.0 / YIN_LON_MAX)
         gy = -lat * (1.0 / YIN_LAT_MAX)
-    return torch.stack([gx, gy], dim=-1)
+    return gx, gy
 
 
-def sample_other_view(maps: torch.Tensor, pts: torch.Tensor, grids, erp_width: int = 0):
-    """The other view's (2G, 1, h, w) ``maps`` at source-camera points (2, G, J, h, w, 3).
+def sample_other_view(maps: torch.Tensor, pts, grids, erp_width: int = 0):
+    """The other view's (2G, 1, h, w) ``maps`` at source-camera points ``pts`` = (x, y, z), each (2, G, J, h, w).
 
     Returns (samples (2, 1, G J h, w), in_yin (2, G, J, h, w) bool: the point
     was sampled in the Yin grid (always True for ERP), gx, gy (2, G, J, h, w) its ``grid_sample``
@@ -78,25 +84,36 @@ def sample_other_view(maps: torch.Tensor, pts: torch.Tensor, grids, erp_width: i
     them). This is the mask blend of eq. 4 with the Yang mask zeroed where Yin is valid: half the
     GridSample work of sampling both and averaging the overlap.
     """
-    _, g_count, j_count, h, w, _ = pts.shape
+    x, y, z = pts
+    _, g_count, j_count, h, w = x.shape
     views = maps.reshape(2, g_count, 1, h, w)
     source = torch.stack([views[1], views[0]])  # [d] = view 1 - d, (2, G_s, 1, h, w)
     if tuple(grids) == ("erp",):
-        coords = project_normalised(pts, "erp", erp_width)
-        grid = coords.reshape(2, g_count * j_count * h, w, 2)
-        gx, gy = coords.unbind(-1)
+        gx, gy = project_xyz(x, y, z, "erp", erp_width)
+        grid = torch.stack([gx, gy], dim=-1).reshape(2, g_count * j_count * h, w, 2)
         return sample_maps(source[:, 0], grid, True), torch.ones_like(gx, dtype=torch.bool), gx, gy
-    x, y, z = pts.unbind(-1)
     norm = torch.sqrt(x * x + y * y + z * z)
     in_yin = (y.abs() <= math.sin(YIN_LAT_MAX) * norm) & (z >= -x.abs())
     # Yang points in the Yang frame (y, x, -z), where its layout is Yin's
-    q = torch.stack([torch.where(in_yin, x, y), torch.where(in_yin, y, x), torch.where(in_yin, z, -z)], -1)
-    gx, gy = project_normalised(q, "yin").unbind(-1)
+    gx, gy = project_xyz(torch.where(in_yin, x, y), torch.where(in_yin, y, x), torch.where(in_yin, z, -z), "yin")
     gs = ((gy + 1.0) * h + torch.where(in_yin, 0.0, float(2 * h + 4))) / (2 * h + 2) - 1.0  # rows + h + 2
     grid = torch.stack([gx, gs], dim=-1).reshape(2, g_count * j_count * h, w, 2)
-    yin, yang = source[:, 0], source[:, 1]  # (2, 1, h, w)
-    stacked = torch.cat([yin, yin[:, :, -1:], yang[:, :, :1], yang], dim=2)  # (2, 1, 2h + 2, w)
-    return sample_maps(stacked, grid, False), in_yin, gx, gy
+    return sample_maps(stacked_source(source, False), grid, False), in_yin, gx, gy
+
+
+def source_points(rng: torch.Tensor, rays: torch.Tensor, rel_rt: torch.Tensor):
+    """Ranges (2, G, J, h, w) along the target rays (G, h, w, 3) -> p = R (r d) + t in the other camera
+    (``rel_rt`` (2, 3, 4)) as (x, y, z), each (2, G, J, h, w): the rotated rays once, then one multiply-add
+    per coordinate, R d r + t."""
+    _, g_count, _, h, w = rng.shape
+    rot, t = rel_rt[:, :, :3], rel_rt[:, :, 3]  # (2, 3, 3), (2, 3)
+    u = torch.matmul(rays.reshape(1, g_count * h * w, 3), rot.transpose(1, 2)).reshape(2, g_count, 1, h, w, 3)
+    return tuple(u[..., k] * rng + t[:, k].reshape(2, 1, 1, 1, 1) for k in range(3))
+
+
+def norm3(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """|p| of points given as their coordinates."""
+    return torch.sqrt(x * x + y * y + z * z)
 
 
 class FineSweep(nn.Module):
@@ -122,27 +139,21 @@ class FineSweep(nn.Module):
         offsets = torch.arange(self.num, dtype=torch.float32) - (self.num // 2)
         self.register_buffer("offsets", offsets.view(1, 1, self.num, 1, 1), persistent=False)
 
-    def points(self, inv_h: torch.Tensor, rays: torch.Tensor, rel_rt: torch.Tensor) -> torch.Tensor:
-        """(2G, 1, J, h, w) inverse ranges -> (2, G, J, h, w, 3) points in the source camera."""
-        g_count = len(self.grids)
-        _, _, j_count, h, w = inv_h.shape
-        rot, t = rel_rt[:, :, :3], rel_rt[:, :, 3]  # (2, 3, 3), (2, 3)
-        u = torch.matmul(rays.reshape(1, g_count * h * w, 3), rot.transpose(1, 2)).reshape(2, g_count, 1, h, w, 3)
-        return u * (1.0 / inv_h.reshape(2, g_count, j_count, h, w, 1)) + t.reshape(2, 1, 1, 1, 1, 3)
+    def points(self, inv_h: torch.Tensor, rays: torch.Tensor, rel_rt: torch.Tensor):
+        """(2G, 1, J, h, w) inverse ranges -> points in the source camera as (x, y, z), each (2, G, J, h, w)."""
+        return source_points(1.0 / inv_h.reshape(2, len(self.grids), *inv_h.shape[2:]), rays, rel_rt)
 
-    def sample(self, maps: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
-        """The other view's (2G, 1, h, w) ``maps`` at source-camera points (2, G, J, h, w, 3) -> (2G, 1, J, h, w).
-
-        See :func:`sample_other_view`.
-        """
-        _, g_count, j_count, h, w, _ = pts.shape
+    def sample(self, maps: torch.Tensor, pts) -> torch.Tensor:
+        """The other view's (2G, 1, h, w) ``maps`` at source-camera points (x, y, z), each (2, G, J, h, w)
+        -> (2G, 1, J, h, w). See :func:`sample_other_view`."""
+        _, g_count, j_count, h, w = pts[0].shape
         return sample_other_view(maps, pts, self.grids, self.erp_width)[0].reshape(2 * g_count, 1, j_count, h, w)
 
     def lr_consistency(self, inv: torch.Tensor, rays: torch.Tensor, rel_rt: torch.Tensor, tol) -> torch.Tensor:
         """1 where the other view's inverse range at a pixel's 3D point matches that point's (within ``tol``:
         a scalar, or a function of that point's inverse range from the other camera)."""
-        pts = self.points(inv.unsqueeze(2), rays, rel_rt)  # (2, G, 1, h, w, 3)
-        expected = 1.0 / torch.sqrt((pts * pts).sum(-1)).clamp(min=1e-6)
+        pts = self.points(inv.unsqueeze(2), rays, rel_rt)  # (2, G, 1, h, w) each
+        expected = 1.0 / norm3(*pts).clamp(min=1e-6)
         seen = self.sample(inv, pts)
         expected = expected.reshape(seen.shape)
         tol = tol(expected) if callable(tol) else tol

@@ -28,7 +28,7 @@ from torch import nn
 
 from rasterizer.sweep import ERP_PAD
 
-from .fine_sweep import sample_other_view
+from .fine_sweep import norm3, sample_other_view, source_points
 
 
 class Matches(nn.Module):
@@ -42,13 +42,11 @@ class Matches(nn.Module):
 
     def forward(self, rng, conf, rays, rel_rt, tol):
         g_count, h, w = rays.shape[:3]
-        rot, t = rel_rt[:, :, :3], rel_rt[:, :, 3]
-        u = torch.matmul(rays.reshape(1, g_count * h * w, 3), rot.transpose(1, 2)).reshape(2, g_count, 1, h, w, 3)
-        pts = u * rng.reshape(2, g_count, 1, h, w, 1) + t.reshape(2, 1, 1, 1, 1, 3)
+        pts = source_points(rng.reshape(2, g_count, 1, h, w), rays, rel_rt)  # (x, y, z), each (2, G, 1, h, w)
         inv = 1.0 / rng.reshape(2 * g_count, 1, h, w)
         seen, in_yin, gx, gy = sample_other_view(inv, pts, self.grids, self.erp_width)
         seen = seen.reshape(2, g_count, h, w)
-        expected = 1.0 / torch.sqrt((pts * pts).sum(-1)).clamp(min=1e-6).reshape(2, g_count, h, w)
+        expected = 1.0 / norm3(*pts).clamp(min=1e-6).reshape(2, g_count, h, w)
         diff = seen - expected
         tol = tol(expected) if callable(tol) else tol
         status = (diff > tol).to(rng.dtype) + 2.0 * (diff < -tol).to(rng.dtype)

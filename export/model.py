@@ -7,8 +7,8 @@ refinement can replace a stage without touching the geometry):
    (or the ERP itself in the ``erp_encoder`` ablation);
 2. average pooling by ``downscale`` -> feature-grid colour; grey guide;
 3. :class:`TrainingFreeFeatures` - per-pixel ZNCC + census descriptors;
-4. :class:`SweepCostVolume` - A<-B and B<-A sphere sweeps, four pairings,
-   mask blend (paper eq. 4), correlation;
+4. :class:`SweepCostVolume` - A<-B and B<-A sphere sweeps, each point read in
+   the source grid that owns it (paper eq. 4, Yin taking the overlap), correlation;
 5. :class:`CostAggregation` - multi-scale guided filter per plane;
 6. :class:`DepthReadout` - sub-plane depth + two peak confidences (a steep
    one weights the fill, a gentle one becomes the output confidence);
@@ -30,7 +30,7 @@ refinement can replace a stage without touching the geometry):
 
 Graph inputs (see :mod:`rasterizer.sweep` for the pose-dependent ones):
 ``erp_a``, ``erp_b`` (1, 3, H, W) float32 in [0, 1]; ``warp_grids``
-(2, G, G, D, h, w, 2); ``rel_rt`` (2, 3, 4); ``inv_depths`` (D,);
+(2, G, D, h, w, 2); ``rel_rt`` (2, 3, 4); ``inv_depths`` (D,);
 ``c2w`` (2, 4, 4); ``cam_quats`` (2, 4).
 Outputs: ``means``, ``scales``, ``quats``, ``opacities``, ``sh_dc`` (N, .),
 ``range_maps``, ``confidence`` (2, G, Hg, Wg) on the Gaussian grid, ``matches``
@@ -56,7 +56,7 @@ from .aggregation import (
     pyramid_levels,
 )
 from .config import EncoderConfig
-from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, domain_mask, sample_maps
+from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, sample_maps, stacked_source
 from .features import LUMA, GreyFeatures, TrainingFreeFeatures
 from .fine_sweep import FineSweep
 from .gaussian_head import GaussianHead
@@ -127,8 +127,8 @@ class OmniSplatEncoder(nn.Module):
         k, inv: (2, G, 1, h, w) plane index and inverse range per target map.
         For each target pixel the source location at the nearest plane is
         gathered from the warp grids; the source's own inverse range there
-        (mask-blended over its grids) is compared with the inverse of the
-        point's range from the source camera, |R d r + t|.
+        (in its stacked grids, as the sweep sampled it) is compared with the
+        inverse of the point's range from the source camera, |R d r + t|.
         """
         g_count, h, w = self.num_grids, self.feat_h, self.feat_w
         d_count = inv_depths.shape[0]
@@ -138,18 +138,14 @@ class OmniSplatEncoder(nn.Module):
         u = torch.matmul(self.feat_rays.reshape(1, g_count * h * w, 3), rel_rt[:, :, :3].transpose(1, 2))
         pt = u.reshape(2, g_count, h, w, 3) * rng.reshape(2, g_count, h, w, 1) + rel_rt[:, :, 3].reshape(2, 1, 1, 1, 3)
         expected = 1.0 / torch.sqrt((pt * pt).sum(-1)).clamp(min=1e-6)  # (2, G, h, w)
-        # source location at the nearest plane for every (direction, target grid, source grid):
-        # one GatherElements on the plane axis (indexing warp_grids per pairing copies the whole input)
-        gather_idx = idx.reshape(2, g_count, 1, 1, h, w, 1).expand(2, g_count, g_count, 1, h, w, 2)
-        loc = torch.gather(warp_grids, 3, gather_idx).reshape(2 * g_count * g_count, h, w, 2)
-        source = torch.stack([inv[1], inv[0]])  # [d] = view 1 - d, (2, G_s, 1, h, w)
-        source = source.unsqueeze(1).expand(2, g_count, g_count, 1, h, w).reshape(2 * g_count * g_count, 1, h, w)
-        seen = sample_maps(source, loc, self.cfg.erp_encoder).reshape(2, g_count, g_count, h, w)
-        if self.cfg.erp_encoder:
-            m = torch.ones_like(seen)
-        else:
-            m = domain_mask(loc).reshape(2, g_count, g_count, h, w)
-        seen = (seen * m).sum(dim=2) / m.sum(dim=2).clamp(min=1e-6)
+        # source location at the nearest plane for every (direction, target grid): one GatherElements
+        # on the plane axis (indexing warp_grids per pairing copies the whole input)
+        gather_idx = idx.reshape(2, g_count, 1, h, w, 1).expand(2, g_count, 1, h, w, 2)
+        loc = torch.gather(warp_grids, 2, gather_idx).reshape(2 * g_count, h, w, 2)
+        source = stacked_source(torch.stack([inv[1], inv[0]]), self.cfg.erp_encoder)  # [d] = view 1 - d
+        hs, ws = source.shape[-2:]
+        source = source.unsqueeze(1).expand(2, g_count, 1, hs, ws).reshape(2 * g_count, 1, hs, ws)
+        seen = sample_maps(source, loc, self.cfg.erp_encoder).reshape(2, g_count, h, w)
         step = plane_step(expected, inv_depths, b)  # one candidate step at the source's inverse range
         ok = ((seen - expected).abs() <= self.cfg.lr_tol_planes * step).to(k.dtype)
         return ok.reshape(2, g_count, 1, h, w)

@@ -62,7 +62,7 @@ def metadata(cfg: EncoderConfig) -> dict[str, str]:
         "erp_pad": str(ERP_PAD),
         "inputs": json.dumps({
             "erp_a": [1, 3, cfg.height, cfg.width], "erp_b": [1, 3, cfg.height, cfg.width],
-            "warp_grids": [2, g, g, cfg.num_planes, h, w, 2], "rel_rt": [2, 3, 4],
+            "warp_grids": [2, g, cfg.num_planes, h, w, 2], "rel_rt": [2, 3, 4],
             "inv_depths": [cfg.num_planes], "c2w": [2, 4, 4], "cam_quats": [2, 4]}),
         "outputs": ",".join(OUTPUT_NAMES),
         "settings": json.dumps(cfg.to_dict(), sort_keys=True),

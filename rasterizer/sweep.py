@@ -13,13 +13,11 @@ grid ``("erp",)``; D planes; feature grid h x w):
 ==============  ======================  ==========================================
 name            shape                   meaning
 ==============  ======================  ==========================================
-``warp_grids``  (2, G, G, D, h, w, 2)   [direction][target grid][source grid]:
-                                        ``grid_sample`` coordinates (x, y) in
-                                        [-1, 1] with ``align_corners=False``;
+``warp_grids``  (2, G, D, h, w, 2)      [direction][target grid]: ``grid_sample``
+                                        coordinates (x, y), ``align_corners=False``,
+                                        in the *stacked source* (below);
                                         direction 0 = target A / source B,
-                                        1 = target B / source A. Out-of-domain
-                                        points have |x| > 1 or |y| > 1 (that
-                                        is the validity mask). ERP sources are
+                                        1 = target B / source A. ERP sources are
                                         addressed in the source padded by
                                         :data:`ERP_PAD` columns on each side
                                         (circular wrap in longitude).
@@ -31,6 +29,13 @@ name            shape                   meaning
 ``c2w``         (2, 4, 4)               camera-to-world of A and B (OpenCV).
 ``cam_quats``   (2, 4)                  (w, x, y, z) of the c2w rotations.
 ==============  ======================  ==========================================
+
+The stacked source of Yin/Yang models is one (2h + 2, w) image: the source view's Yin grid, its last
+row repeated, Yang's first row repeated, then Yang (:func:`stacked_rows`). Each candidate point is
+sampled once, in Yin where its direction lies in Yin's domain, else in Yang (the two cover the
+sphere); the repeated rows keep every bilinear tap inside the grid it was meant for. This is the
+paper's mask blend (eq. 4) with Yang's mask zeroed where Yin's is 1: half the samples of reading
+both grids and averaging their 6% overlap.
 """
 
 from __future__ import annotations
@@ -219,19 +224,39 @@ def _project_normalised(kind: str, x: np.ndarray, y: np.ndarray, z: np.ndarray, 
     out[..., 1] = lat
 
 
+def in_yin_domain(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """True where the direction of camera-frame points (x, y, z) lies in the Yin grid's domain
+    (|lat| <= YIN_LAT_MAX and |lon| <= YIN_LON_MAX = 3 pi / 4), without arc functions."""
+    norm = np.sqrt(x * x + y * y + z * z)
+    return (np.abs(y) <= np.float32(np.sin(YIN_LAT_MAX)) * norm) & (z >= -np.abs(x))
+
+
+def stacked_rows(gy: np.ndarray, in_yin: np.ndarray, height: int) -> np.ndarray:
+    """``grid_sample`` y of a grid of ``height`` rows -> y in the stacked (2 height + 2)-row source (module
+    docstring): the same rows for Yin, shifted down by height + 2 rows for Yang."""
+    shift = np.where(in_yin, np.float32(0.0), np.float32(2 * height + 4))  # two rows per pixel pitch
+    return ((gy + np.float32(1.0)) * np.float32(height) + shift) / np.float32(2 * height + 2) - np.float32(1.0)
+
+
 def _warp_grids_uncached(rels: np.ndarray, inv: np.ndarray, grids: tuple[str, ...], height: int, width: int,
                          workers: int) -> np.ndarray:
     ranges = (np.float32(1.0) / inv).astype(np.float32)[:, None, None]
     d_count, g_count = len(inv), len(grids)
-    out = np.empty((2, g_count, g_count, d_count, height, width, 2), dtype=np.float32)
+    out = np.empty((2, g_count, d_count, height, width, 2), dtype=np.float32)
 
     def one(direction: int, gt: int) -> None:
         rot, t = rels[direction, :3, :3], rels[direction, :3, 3]
         u = grid_directions(grids[gt], height, width).astype(np.float32) @ rot.T  # (h, w, 3)
         # X_k = R d r_k + t, one (D, h, w) array per component
         x, y, z = (u[None, :, :, i] * ranges + t[i] for i in range(3))
-        for gs, kind_s in enumerate(grids):
-            _project_normalised(kind_s, x, y, z, out[direction, gt, gs], height, width)
+        dst = out[direction, gt]
+        if grids == ("erp",):
+            _project_normalised("erp", x, y, z, dst, height, width)
+            return
+        # each point in the grid that owns it: Yang points in the Yang frame (y, x, -z), where its layout is Yin's
+        yin = in_yin_domain(x, y, z)
+        _project_normalised("yin", np.where(yin, x, y), np.where(yin, y, x), np.where(yin, z, -z), dst, height, width)
+        dst[..., 1] = stacked_rows(dst[..., 1], yin, height)
 
     jobs = [(d, g) for d in range(2) for g in range(g_count)]
     if workers <= 1:
@@ -267,9 +292,9 @@ def warp_grids(
     workers: int = 2,
     cache: bool = True,
 ) -> np.ndarray:
-    """Sampling coordinates of every (target pixel, candidate) in the source grids.
+    """Sampling coordinates of every (target pixel, candidate) in the stacked source grids.
 
-    Returns (2, G, G, D, h, w, 2) float32 (see the module table). A candidate
+    Returns (2, G, D, h, w, 2) float32 (see the module table). A candidate
     point X = R (r_k d) + t in source-camera coordinates, r_k = 1/inv_depths[k].
     The result depends only on the two relative poses (float32), the
     candidates, the grids and the size; with ``cache`` it is kept in a small

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from export.aggregation import CostAggregation
 from export.config import make_config
-from export.cost_volume import WindowMatcher, domain_mask, sample_maps
+from export.cost_volume import WindowMatcher, sample_maps
 from export.fine_sweep import FineSweep, _lon, project_normalised
 from export.readout import DepthReadout
 from rasterizer.geometry import grid_directions, project_to_grid
@@ -31,6 +31,11 @@ def test_lon_matches_atan2(x, z):
     else:
         assert abs(got - want) < 1e-9
 
+
+
+def domain_mask(grid: torch.Tensor) -> torch.Tensor:
+    """(..., 2) grid_sample coordinates -> (...) float 1 inside [-1, 1]^2, else 0."""
+    return (grid.abs().amax(-1) <= 1.0).to(grid.dtype)
 
 def test_lon_seam_and_axes_are_finite():
     x = torch.tensor([0.0, -0.0, 1e-30, -1.0, 0.0, 1.0])
@@ -70,12 +75,12 @@ def test_stacked_sampling_is_the_mask_blend_with_yin_priority():
     maps = torch.rand(4, 1, h, w)
     inv = torch.rand(4, 1, j, h, w) + 0.2
     fs = FineSweep(("yin", "yang"), j, None, None, None)
-    pts = fs.points(inv, _rays(h, w), _rel_rt())
+    pts = fs.points(inv, _rays(h, w), _rel_rt())  # (x, y, z)
     got = fs.sample(maps, pts).reshape(2, 2, j, h, w)
     src = maps.reshape(2, 2, 1, h, w).flip(0)
     per_grid = []
     for g, kind in enumerate(("yin", "yang")):
-        coords = project_normalised(pts, kind)
+        coords = project_normalised(torch.stack(pts, dim=-1), kind)
         per_grid.append((sample_maps(src[:, g], coords.reshape(2, -1, w, 2), False).reshape(2, 2, j, h, w),
                          domain_mask(coords)))
     (s_yin, m_yin), (s_yang, m_yang) = per_grid

@@ -24,6 +24,20 @@ def _unnormalise(kind, g, h, w):
     return col, (g[..., 1] + 1) * h / 2 - 0.5
 
 
+def _owner(kind_t, p_src, erp):
+    """The source grid a point is sampled in: Yin where its domain holds it, else Yang."""
+    if erp:
+        return "erp"
+    return "yin" if geo.in_grid_domain("yin", p_src) else "yang"
+
+
+def _unstack(g, h):
+    """grid_sample (x, y) in the stacked Yin-over-Yang source -> (x, y) in its own grid."""
+    row = (g[..., 1] + 1) * (2 * h + 2) / 2 - 0.5
+    row = np.where(row > h + 0.5, row - (h + 2), row)
+    return np.stack([g[..., 0], (2 * row + 1) / h - 1], axis=-1)
+
+
 def test_candidates_uniform_in_inverse_range():
     inv = sweep.inverse_depth_candidates(0.5, 10.0, 5)
     assert inv.dtype == np.float32
@@ -41,21 +55,27 @@ def test_warp_grids_hit_the_projected_world_point(erp):
     inv = sweep.inverse_depth_candidates(0.4, 12.0, 4)
     out = sweep.warp_grids(c2w_a, c2w_b, inv, sweep.grids_for_mode(erp), h, w)
     g = len(sweep.grids_for_mode(erp))
-    assert out.shape == (2, g, g, 4, h, w, 2) and out.dtype == np.float32
+    assert out.shape == (2, g, 4, h, w, 2) and out.dtype == np.float32
+    seen = set()
     for direction, (tgt, src) in enumerate(((c2w_a, c2w_b), (c2w_b, c2w_a))):
         for gt, kt in enumerate(sweep.grids_for_mode(erp)):
-            for gs, ks in enumerate(sweep.grids_for_mode(erp)):
-                for _ in range(5):
-                    k, r, c = rng.integers(4), rng.integers(h), rng.integers(w)
-                    ray = geo.grid_directions(kt, h, w)[r, c]
-                    world = tgt[:3, :3] @ (ray / inv[k]) + tgt[:3, 3]
-                    p_src = geo.world_to_camera(world, src)
-                    col, row = geo.project_to_grid(ks, p_src, h, w)
-                    gcol, grow = _unnormalise(ks, out[direction, gt, gs, k, r, c], h, w)
-                    dcol = (gcol - col + w / 2) % w - w / 2 if ks == "erp" else gcol - col
-                    assert abs(dcol) < 2e-3 * w and abs(grow - row) < 2e-3 * h
-                    inside = bool(np.all(np.abs(out[direction, gt, gs, k, r, c]) <= 1))
-                    assert inside == bool(geo.in_grid_domain(ks, p_src)) or ks == "erp"
+            for _ in range(20):
+                k, r, c = rng.integers(4), rng.integers(h), rng.integers(w)
+                ray = geo.grid_directions(kt, h, w)[r, c]
+                world = tgt[:3, :3] @ (ray / inv[k]) + tgt[:3, 3]
+                p_src = geo.world_to_camera(world, src)
+                ks = _owner(kt, p_src, erp)
+                seen.add(ks)
+                col, row = geo.project_to_grid(ks, p_src, h, w)
+                g_xy = out[direction, gt, k, r, c]
+                if not erp:
+                    assert (g_xy[1] <= 1 / (h + 1) - 1e-6) == (ks == "yin")  # Yin's rows (and its repeated one) on top
+                    g_xy = _unstack(g_xy, h)
+                    assert np.all(np.abs(g_xy) <= 1 + 1e-5)  # in the owning grid's domain
+                gcol, grow = _unnormalise(ks, g_xy, h, w)
+                dcol = (gcol - col + w / 2) % w - w / 2 if ks == "erp" else gcol - col
+                assert abs(dcol) < 2e-3 * w and abs(grow - row) < 2e-3 * h
+    assert seen == ({"erp"} if erp else {"yin", "yang"})
 
 
 def test_far_plane_with_pure_translation_is_near_identity():
@@ -64,15 +84,19 @@ def test_far_plane_with_pure_translation_is_near_identity():
     inv = sweep.inverse_depth_candidates(0.5, 1e6, 3)
     out = sweep.warp_grids(np.eye(4), c2w_b, inv, ("yin", "yang"), h, w)
     rr, cc = np.mgrid[0:h, 0:w]
-    for g in range(2):
-        col, row = _unnormalise("yin", out[0, g, g, 0], h, w)
-        assert np.allclose(col, cc, atol=1e-3) and np.allclose(row, rr, atol=1e-3)
+    for g, kind in enumerate(("yin", "yang")):
+        # each pixel in its own grid, except Yang pixels in the overlap, which Yin's domain holds
+        own = np.ones((h, w), dtype=bool) if kind == "yin" else \
+            ~geo.in_grid_domain("yin", geo.to_grid_frame("yang", geo.grid_directions("yin", h, w)))
+        col, row = _unnormalise("yin", _unstack(out[0, g, 0], h), h, w)
+        assert own.mean() > 0.5
+        assert np.allclose(col[own], cc[own], atol=1e-3) and np.allclose(row[own], rr[own], atol=1e-3)
 
 
 def test_sweep_inputs_shapes_and_zero_baseline():
     a, b = np.eye(4), _pose([0.0, 0.0, 1.0])
     si = sweep.sweep_inputs(a, b, near=0.3, far=20, num_planes=6, feature_size=(4, 12))
-    assert si["warp_grids"].shape == (2, 2, 2, 6, 4, 12, 2)
+    assert si["warp_grids"].shape == (2, 2, 6, 4, 12, 2)
     assert si["rel_rt"].shape == (2, 3, 4) and si["c2w"].shape == (2, 4, 4) and si["cam_quats"].shape == (2, 4)
     # rel_rt[0] maps A-camera points to B-camera points: A's centre sits at -1 z in B
     assert np.allclose(si["rel_rt"][0][:, 3], [0, 0, -1])
@@ -113,7 +137,7 @@ def test_warp_grids_are_invariant_to_a_global_similarity():
 
 @pytest.mark.parametrize("erp", [False, True])
 def test_warp_grids_bit_identical_to_geometry_projection(erp):
-    """The fused float32 projection equals normalised_coords(project_to_grid(.)) exactly."""
+    """The fused float32 projection equals normalised_coords(project_to_grid(.)) of the owning grid exactly."""
     a, b = _pose([0.2, -0.1, 0.4], 0.3), _pose([0.8, 0.2, -0.6], -0.9)
     grids = sweep.grids_for_mode(erp)
     h, w = (6, 12) if erp else (6, 18)
@@ -124,9 +148,15 @@ def test_warp_grids_bit_identical_to_geometry_projection(erp):
         rel = sweep.relative_pose(tgt, src).astype(np.float32)
         for gt, kt in enumerate(grids):
             pts = (geo.grid_directions(kt, h, w).astype(np.float32) @ rel[:3, :3].T)[None] * ranges + rel[:3, 3]
-            for gs, ks in enumerate(grids):
-                want = sweep.normalised_coords(ks, *geo.project_to_grid(ks, pts, h, w), h, w)
-                np.testing.assert_array_equal(out[direction, gt, gs], want)
+            if erp:
+                want = sweep.normalised_coords("erp", *geo.project_to_grid("erp", pts, h, w), h, w)
+            else:
+                yin = sweep.in_yin_domain(*np.moveaxis(pts, -1, 0))
+                assert yin.any() and not yin.all()
+                want = np.where(yin[..., None], sweep.normalised_coords("yin", *geo.project_to_grid("yin", pts, h, w), h, w),
+                                sweep.normalised_coords("yang", *geo.project_to_grid("yang", pts, h, w), h, w))
+                want[..., 1] = sweep.stacked_rows(want[..., 1], yin, h)
+            np.testing.assert_array_equal(out[direction, gt], want)
 
 
 def test_warp_grid_cache_hits_and_evicts():
@@ -139,7 +169,7 @@ def test_warp_grid_cache_hits_and_evicts():
     np.testing.assert_array_equal(first, sweep.warp_grids(a, b, inv, ("yin", "yang"), 4, 12, cache=False))
     # a different pose, size or candidate set is a different entry
     assert sweep.warp_grids(a, c, inv, ("yin", "yang"), 4, 12) is not first
-    assert sweep.warp_grids(a, b, inv[:3], ("yin", "yang"), 4, 12).shape[3] == 3
+    assert sweep.warp_grids(a, b, inv[:3], ("yin", "yang"), 4, 12).shape[2] == 3
     for i in range(sweep.WARP_CACHE_SIZE + 1):
         sweep.warp_grids(a, _pose([0.0, 0.0, 2.0 + i]), inv, ("yin", "yang"), 4, 12)
     assert sweep.warp_grids(a, b, inv, ("yin", "yang"), 4, 12) is not first  # evicted (LRU)
