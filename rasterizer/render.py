@@ -47,6 +47,7 @@ from .composite import (
     normalise_range,
 )
 from .gaussians import Gaussians
+from .scene_resolution import reduced_pinhole, render_scale, resize_pinhole
 from .sh import sh_to_rgb
 from .splat import ALPHA_MIN, Footprints, footprints
 
@@ -58,6 +59,8 @@ _THREAD_MIN_GAUSSIANS = 20_000
 
 Method = Literal["yinyang", "direct"]
 METHODS = ("yinyang", "direct")
+Resolution = Literal["exact", "scene"]
+RESOLUTIONS = ("exact", "scene")
 
 
 class RenderOutput(NamedTuple):
@@ -90,9 +93,21 @@ def render_camera(gaussians: Gaussians, camera: Camera, threads: int = 1) -> Ren
     return RenderOutput(colour, alpha, normalise_range(range_sum, alpha))
 
 
+def _render_resized(gaussians: Gaussians, camera: Camera, scale: float, threads: int) -> RenderOutput:
+    """``camera``'s view rendered on the pinhole grid ``scale`` times as fine, resized to the camera's size."""
+    colour, alpha, range_sum = _premultiplied(gaussians, reduced_pinhole(camera, scale), threads)
+    stack = resize_pinhole(np.concatenate([colour, alpha[:, :, None], range_sum[:, :, None]], axis=2),
+                           camera.width, camera.height)
+    alpha = np.clip(stack[:, :, 3], 0.0, 1.0)
+    return RenderOutput(np.ascontiguousarray(stack[:, :, :3]), np.ascontiguousarray(alpha),
+                        normalise_range(np.ascontiguousarray(stack[:, :, 4]), alpha))
+
+
 def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: int, near: float,
-                    threads: int, divide: bool = True) -> RenderOutput:
+                    threads: int, divide: bool = True, scene_resolution: bool = False) -> RenderOutput:
     h = max(1, int(round(height / 2)))
+    if scene_resolution:  # the grids on the scene's own pitch; the merge resamples them bilinearly
+        h = max(1, int(round(h * render_scale(gaussians, Camera("yin", 3 * h, h, c2w, near=near)))))
     w = 3 * h
     cams = [Camera(kind, w, h, c2w, near=near) for kind in ("yin", "yang")]
     colours = sh_to_rgb(gaussians.sh, gaussians.means, cams[0].centre)
@@ -137,7 +152,7 @@ def _alpha_inverse(alpha: np.ndarray) -> np.ndarray:
 
 def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, height: int | None = None,
            fov_deg: float = 90.0, method: str = "yinyang", near: float = DEFAULT_NEAR,
-           threads: int = 2, normalize: bool | None = None) -> RenderOutput:
+           threads: int = 2, normalize: bool | None = None, resolution: Resolution = "exact") -> RenderOutput:
     """Render Gaussians seen from pose ``c2w``.
 
     Parameters
@@ -163,6 +178,10 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
         composite over black that every 3DGS viewer shows. None (default) keeps
         each method's historical behaviour: divided for the "yinyang" ERP, plain
         for everything else. The alpha and range outputs are the same either way.
+    resolution : "exact" (default) rasterises at the requested size. "scene" renders a perspective
+        view, or the Yin and Yang grids of a "yinyang" ERP, on a coarser pixel grid where the
+        requested one is finer than the scene's Gaussians, and resizes it bilinearly
+        (:mod:`rasterizer.scene_resolution`); other projections render exactly.
 
     Returns
     -------
@@ -173,6 +192,8 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
         raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if resolution not in RESOLUTIONS:
+        raise ValueError(f"resolution must be one of {RESOLUTIONS}, got {resolution!r}")
     width = int(width)
     if width <= 0:
         raise ValueError(f"width must be positive, got {width}")
@@ -185,8 +206,14 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
     if projection == "erp" and method == "yinyang":
         cam = Camera("erp", width, height, c2w, near=near)  # validates pose and sizes
         return _render_yinyang(gaussians, cam.c2w, width, height, near, int(threads),
-                               divide=True if normalize is None else bool(normalize))
-    out = render_camera(gaussians, Camera(projection, width, height, c2w, fov_deg=fov_deg, near=near), int(threads))
+                               divide=True if normalize is None else bool(normalize),
+                               scene_resolution=resolution == "scene")
+    camera = Camera(projection, width, height, c2w, fov_deg=fov_deg, near=near)
+    scale = render_scale(gaussians, camera) if resolution == "scene" and projection == "perspective" else 1.0
+    if scale < 1.0:
+        out = _render_resized(gaussians, camera, scale, int(threads))
+    else:
+        out = render_camera(gaussians, camera, int(threads))
     if not normalize:
         return out
     colour = out.colour * _alpha_inverse(out.alpha)[:, :, None]

@@ -31,8 +31,11 @@ SHELL_RADIUS_FACTOR = 4.0
 SHELL_RANGE_PERCENTILE = 99.0
 #: Pixels per shell disc side (largest of 4, 2, 1 that divides the grid).
 SHELL_BLOCK = 4
-#: Disc sigma in block pitches (a lattice of sigma 0.7 pitches covers ~99%; larger for oblique views).
-SHELL_SCALE = 1.0
+#: Disc sigma in block pitches. Each pixel sees two shells (one per reference), so one lattice need not
+#: close on its own: at 0.55 pitches one shell leaves ~10% at a block's corner and the two together cover
+#: every pixel of every pose measured; wider discs overlap more of each other and cost render time
+#: (docs/design.md, "Rendering").
+SHELL_SCALE = 0.55
 SHELL_OPACITY = 0.99
 
 

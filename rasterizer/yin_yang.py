@@ -165,10 +165,23 @@ def grid_pixel(p: np.ndarray, grids: tuple[str, ...], height: int, width: int) -
     return (g * height + row.astype(np.int64)) * width + col.astype(np.int64)
 
 
-@lru_cache(maxsize=16)
-def _from_grid_maps(h: int, w: int, height: int, width: int):
-    """Merged taps (P, 8) into the stacked [Yin; Yang] pixels for every ERP pixel."""
-    d = geo.grid_directions("erp", height, width).reshape(-1, 3)
+#: ERP merges of up to this many pixels keep their taps cached (about 36 bytes a pixel); larger
+#: ones compute them row block by row block as they gather, so their memory is set by the block.
+CACHED_TAPS_PIXELS = 2048 * 1024
+#: ERP pixels per row block of the taps.
+TAP_BLOCK_PIXELS = 1 << 18
+
+
+def _block_taps(h: int, w: int, height: int, width: int, r0: int, r1: int):
+    """Merge taps of ERP rows [r0, r1) into the stacked [Yin; Yang] pixels, zero-weight taps left out.
+
+    About 94% of ERP pixels read only one grid (4 of their 8 bilinear taps have weight 0).
+    Returns two (pixels, idx, wts) pieces, flat ERP pixel indices ascending: the pixels with 4
+    non-zero taps (in their original order) and the rest (all 8); idx int32 (the stacked grids hold
+    2 h w < 2^31 pixels).
+    """
+    lat, lon = geo.erp_lat_lon(height, width)
+    d = geo.direction_from_lat_lon(lat[r0:r1], lon).reshape(-1, 3)
     wy = blend_weight_yin(d, feather=FEATHER_PIXELS * 2 * geo.YIN_LAT_MAX / h).astype(np.float32)[:, None]
     taps = []
     for kind, scale in (("yin", wy), ("yang", 1.0 - wy)):
@@ -177,38 +190,33 @@ def _from_grid_maps(h: int, w: int, height: int, width: int):
         if kind == "yang":
             idx = idx + h * w
         taps.append((idx, wts * scale))
-    idx = np.concatenate([taps[0][0], taps[1][0]], axis=1)
+    idx = np.concatenate([taps[0][0], taps[1][0]], axis=1).astype(np.int32)
     wts = np.concatenate([taps[0][1], taps[1][1]], axis=1)
-    idx, wts = np.ascontiguousarray(idx), np.ascontiguousarray(wts)
-    idx.setflags(write=False)
-    wts.setflags(write=False)
-    return idx, wts
-
-
-@lru_cache(maxsize=4)
-def _sparse_taps(h: int, w: int, height: int, width: int):
-    """The taps of :func:`_from_grid_maps` without the zero-weight ones.
-
-    About 94% of ERP pixels read only one grid (4 of their 8 bilinear taps have
-    weight 0). Returns (pixels, idx, wts) for those with 4 taps (the non-zero
-    ones, in their original order; in two halves) and for the rest (all 8);
-    idx int32 (the stacked grids hold 2 h w < 2^31 pixels). The dense maps are
-    built for this and not kept (a 4096-wide ERP's weigh about 800 MB).
-    """
-    idx, wts = _from_grid_maps.__wrapped__(h, w, height, width)
-    idx = idx.astype(np.int32)
     yin_zero = ~np.any(wts[:, :4] != 0, axis=1)
     yang_zero = ~np.any(wts[:, 4:] != 0, axis=1)
     one = yin_zero | yang_zero
     four = np.flatnonzero(one)
     cols = np.where(yin_zero[four], 4, 0)[:, None] + np.arange(4)
-    idx4 = np.take_along_axis(idx[four], cols, axis=1)
-    wts4 = np.take_along_axis(wts[four], cols, axis=1)
     eight = np.flatnonzero(~one)
-    half = four.size // 2  # two pieces of the 4-tap pixels, for two threads
-    out = ((four[:half], np.ascontiguousarray(idx4[:half]), np.ascontiguousarray(wts4[:half])),
-           (four[half:], np.ascontiguousarray(idx4[half:]), np.ascontiguousarray(wts4[half:])),
-           (eight, np.ascontiguousarray(idx[eight]), np.ascontiguousarray(wts[eight])))
+    offset = r0 * width
+    return ((four + offset, np.take_along_axis(idx[four], cols, axis=1), np.take_along_axis(wts[four], cols, axis=1)),
+            (eight + offset, idx[eight], wts[eight]))
+
+
+def _row_blocks(height: int, width: int) -> list[tuple[int, int]]:
+    rows = max(1, TAP_BLOCK_PIXELS // width)
+    return [(r0, min(height, r0 + rows)) for r0 in range(0, height, rows)]
+
+
+@lru_cache(maxsize=4)
+def _sparse_taps(h: int, w: int, height: int, width: int):
+    """The taps of :func:`_block_taps` for the whole ERP, cached: the 4-tap pixels in two halves
+    (for two threads), then the 8-tap ones; read-only."""
+    blocks = [_block_taps(h, w, height, width, r0, r1) for r0, r1 in _row_blocks(height, width)]
+    four, eight = ([np.concatenate([b[k][i] for b in blocks]) for i in range(3)] for k in (0, 1))
+    half = four[0].size // 2
+    out = (tuple(np.ascontiguousarray(a[:half]) for a in four), tuple(np.ascontiguousarray(a[half:]) for a in four),
+           tuple(np.ascontiguousarray(a) for a in eight))
     for part in out:
         for a in part:
             a.setflags(write=False)
@@ -223,7 +231,9 @@ def yin_yang_to_erp(yin: np.ndarray, yang: np.ndarray, height: int, width: int, 
     partial coverage, pass premultiplied colour and alpha as channels and
     divide afterwards (what :func:`rasterizer.render.render` does). Taps of
     weight 0 are skipped (about 94% of ERP pixels read one grid only); with a
-    ``pool`` (an executor) the pieces of the gather run in its threads.
+    ``pool`` (an executor) the pieces of the gather run in its threads. The
+    taps of ERPs up to ``CACHED_TAPS_PIXELS`` are cached; larger ERPs make them
+    per row block.
     """
     a, squeeze = _as_hwc(yin)
     b, _ = _as_hwc(yang)
@@ -238,12 +248,21 @@ def yin_yang_to_erp(yin: np.ndarray, yang: np.ndarray, height: int, width: int, 
         if pixels.size:
             out[pixels] = _gather(both, idx, wts)
 
-    pieces = _sparse_taps(h, w, int(height), int(width))
+    height, width = int(height), int(width)
+    if height * width <= CACHED_TAPS_PIXELS:
+        pieces = _sparse_taps(h, w, height, width)
+        run = piece
+    else:  # taps made and used block by block: nothing of the size of the ERP's taps is held
+        pieces = _row_blocks(height, width)
+
+        def run(rows):
+            for taps in _block_taps(h, w, height, width, *rows):
+                piece(taps)
     if pool is None:
-        for taps in pieces:
-            piece(taps)
+        for item in pieces:
+            run(item)
     else:
-        list(pool.map(piece, pieces))
+        list(pool.map(run, pieces))
     out = out.reshape(int(height), int(width), c)
     return out[:, :, 0] if squeeze else out
 

@@ -173,7 +173,10 @@ class RenderQuery:
 
     def render_kwargs(self, *, normalize: bool) -> dict[str, Any]:
         """Keyword arguments of :func:`rasterizer.render.render` for this query (pose passed apart)."""
-        kwargs: dict[str, Any] = {"projection": self.projection, "width": self.width, "normalize": normalize}
+        # "scene": a view finer than the scene's Gaussians is rendered at their pitch and resized
+        # (rasterizer.scene_resolution; docs/design.md, "At the scene's own resolution")
+        kwargs: dict[str, Any] = {"projection": self.projection, "width": self.width, "normalize": normalize,
+                                  "resolution": "scene"}
         if self.projection == "perspective":
             kwargs.update(height=self.height, fov_deg=self.fov_deg)
         return kwargs

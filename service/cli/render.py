@@ -67,7 +67,8 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise CliError(f"cannot read {args.ply}: {exc}") from None
     fmt = "jpeg" if Path(args.output).suffix.lower() in (".jpg", ".jpeg") else "png"
     # as the API renders: plain compositing unless --compositing va
-    kwargs = {"projection": args.projection, "width": args.width, "normalize": args.compositing == "va"}
+    kwargs = {"projection": args.projection, "width": args.width, "normalize": args.compositing == "va",
+              "resolution": "scene"}
     if args.projection == "perspective":
         kwargs.update(height=args.height, fov_deg=args.fov_deg)
     layer = _rig_layer_from_args(args)

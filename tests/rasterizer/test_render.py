@@ -350,16 +350,39 @@ def test_grid_domain_cull_drops_only_gaussians_without_contributions(kind, monke
         assert np.array_equal(getattr(culled, f), getattr(full, f))
 
 
+def _bilinear_clamped(img, col, row):
+    """Slow reference: bilinear sample of img (h, w, C) at continuous (col, row), clamped to the border."""
+    h, w = img.shape[:2]
+    col, row = np.clip(col, 0, w - 1), np.clip(row, 0, h - 1)
+    c0 = np.minimum(np.floor(col).astype(int), max(w - 2, 0))
+    r0 = np.minimum(np.floor(row).astype(int), max(h - 2, 0))
+    fc, fr = (col - c0)[..., None], (row - r0)[..., None]
+    c1, r1 = np.minimum(c0 + 1, w - 1), np.minimum(r0 + 1, h - 1)
+    return ((img[r0, c0] * (1 - fc) + img[r0, c1] * fc) * (1 - fr)
+            + (img[r1, c0] * (1 - fc) + img[r1, c1] * fc) * fr)
+
+
 @pytest.mark.parametrize("h", [3, 16, 40])
-def test_sparse_yin_yang_merge_equals_the_dense_gather(h):
+def test_sparse_yin_yang_merge_equals_the_dense_blend(h, monkeypatch):
+    """The merge equals both grids sampled at every ERP pixel and blended by the Yin weight; the taps made
+    block by block (large ERPs) give the same bits as the cached ones, with and without threads."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from rasterizer.yin_yang import _from_grid_maps, _gather, yin_yang_to_erp
+    from rasterizer import yin_yang
+    from rasterizer.yin_yang import FEATHER_PIXELS, blend_weight_yin, yin_yang_to_erp
     rng = np.random.default_rng(h)
     a, b = (rng.random((h, 3 * h, 5)).astype(np.float32) for _ in range(2))
     a[rng.random((h, 3 * h)) < 0.3] = 0
-    both = np.concatenate([a.reshape(-1, 5), b.reshape(-1, 5)])[:, None, :]
-    ref = _gather(both, *_from_grid_maps(h, 3 * h, 2 * h, 4 * h)).reshape(2 * h, 4 * h, 5)  # all 8 taps
-    assert np.array_equal(yin_yang_to_erp(a, b, 2 * h, 4 * h), ref)
+    d = geo.grid_directions("erp", 2 * h, 4 * h)
+    wy = blend_weight_yin(d, feather=FEATHER_PIXELS * 2 * geo.YIN_LAT_MAX / h)[..., None]
+    ref = (wy * _bilinear_clamped(a, *geo.project_to_grid("yin", d, h, 3 * h))
+           + (1 - wy) * _bilinear_clamped(b, *geo.project_to_grid("yang", d, h, 3 * h)))
+    cached = yin_yang_to_erp(a, b, 2 * h, 4 * h)
+    np.testing.assert_allclose(cached, ref, atol=2e-6)
     with ThreadPoolExecutor(2) as pool:
-        assert np.array_equal(yin_yang_to_erp(a, b, 2 * h, 4 * h, pool=pool), ref)
+        assert np.array_equal(yin_yang_to_erp(a, b, 2 * h, 4 * h, pool=pool), cached)
+    monkeypatch.setattr(yin_yang, "CACHED_TAPS_PIXELS", 0)
+    monkeypatch.setattr(yin_yang, "TAP_BLOCK_PIXELS", 7 * h)  # several row blocks, the last one short
+    assert np.array_equal(yin_yang_to_erp(a, b, 2 * h, 4 * h), cached)
+    with ThreadPoolExecutor(2) as pool:
+        assert np.array_equal(yin_yang_to_erp(a, b, 2 * h, 4 * h, pool=pool), cached)

@@ -87,6 +87,17 @@ def test_shell_covers_behind_translucent_surfels():
     assert np.abs(ref.colour - opaque.colour).mean() < 0.05
 
 
+@pytest.mark.parametrize("projection", ["erp", "perspective"])
+def test_the_two_shells_alone_cover_every_pixel(projection):
+    """Both references' shells, without any surfel, leave no pixel see-through from a pose off the baseline."""
+    g, ranges, poses = _scene(opacity=0.3)
+    shell = environment_shell(g, ranges, poses, ("yin", "yang"))
+    target = pose_at([0.4, 0.2, 0.0])
+    size = {"erp": dict(width=96), "perspective": dict(width=160, height=120, fov_deg=100.0)}[projection]
+    alpha = render(shell, target, projection=projection, **size).alpha
+    assert alpha.min() >= 0.98
+
+
 def test_compaction_passes_the_shell_through():
     g, ranges, poses = _scene(opacity=0.9)
     shell = environment_shell(g, ranges, poses, ("yin", "yang"))

@@ -57,8 +57,9 @@ def test_api_default_is_plain_and_va_is_explicit(served, params, kwargs, pose):
     plain = client.get(f"/v1/scenes/{scene_id}/render", params={"c2w": pose, **params, "compositing": "plain"})
     va = client.get(f"/v1/scenes/{scene_id}/render", params={"c2w": pose, **params, "compositing": "va"})
     assert default.status_code == plain.status_code == va.status_code == 200
-    expect_plain = to_uint8(render(gaussians, c2w, normalize=False, **kwargs).colour)
-    expect_va = to_uint8(render(gaussians, c2w, normalize=True, **kwargs).colour)
+    # the API renders at the scene's own resolution (rasterizer.scene_resolution)
+    expect_plain = to_uint8(render(gaussians, c2w, normalize=False, resolution="scene", **kwargs).colour)
+    expect_va = to_uint8(render(gaussians, c2w, normalize=True, resolution="scene", **kwargs).colour)
     # the PLY round trip (logit/log/quaternion in float32) may move a pixel by one level
     assert _close(_png(default.content), expect_plain)
     assert _close(_png(plain.content), expect_plain)
@@ -102,7 +103,7 @@ def test_cli_render_default_plain_and_flag_va(served, tmp_path):
     assert cli.main([*base, "-o", str(tmp_path / "plain.png")]) == 0
     assert cli.main([*base, "--compositing", "va", "-o", str(tmp_path / "va.png")]) == 0
     c2w = np.array([float(v) for v in YAW.split(",")]).reshape(4, 4)
-    kw = dict(projection="perspective", width=96, height=64, fov_deg=90.0)
+    kw = dict(projection="perspective", width=96, height=64, fov_deg=90.0, resolution="scene")
     assert np.array_equal(np.asarray(Image.open(tmp_path / "plain.png").convert("RGB")),
                           to_uint8(render(g, c2w, normalize=False, **kw).colour))  # the CLI reads the same PLY
     assert np.array_equal(np.asarray(Image.open(tmp_path / "va.png").convert("RGB")),

@@ -1,0 +1,91 @@
+"""Rendering at the scene's own resolution: the same rays, close to the full-size rasterisation, exact where fine."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from rasterizer import geometry as geo
+from rasterizer.camera import Camera
+from rasterizer.render import render
+from rasterizer.scene_resolution import FULL_ABOVE, MIN_SCALE, reduced_pinhole, render_scale, resize_pinhole
+from tests.rasterizer._support import forward_scene, pose_at, toy_scene
+
+
+def _psnr(a, b):
+    return -10.0 * np.log10(np.mean((np.clip(a, 0, 1) - np.clip(b, 0, 1)) ** 2))
+
+
+@pytest.mark.parametrize("size,scale", [((320, 240), 0.4), ((101, 77), 0.33), ((64, 64), 0.5)])
+def test_resize_samples_the_same_rays(size, scale):
+    """A coarse image of each pixel's ray slopes, resized, gives the fine camera's slopes (bilinear is exact on them)."""
+    cam = Camera("perspective", *size, np.eye(4), fov_deg=80.0)
+    coarse = reduced_pinhole(cam, scale)
+    assert coarse.width == round(size[0] * scale) and coarse.fov_deg == cam.fov_deg
+    rays = geo.pinhole_directions(coarse.width, coarse.height, coarse.fov_deg)
+    slopes = (rays[:, :, :2] / rays[:, :, 2:]).astype(np.float32)
+    fine = resize_pinhole(slopes, cam.width, cam.height)
+    want = geo.pinhole_directions(cam.width, cam.height, cam.fov_deg)
+    want = want[:, :, :2] / want[:, :, 2:]
+    # inside the coarse grid's outermost pixel centres (beyond them the border pixel is repeated)
+    inner = np.abs(want[:, :, 0]) <= np.abs(slopes[0, 0, 0])
+    inner &= np.abs(want[:, :, 1]) <= np.abs(slopes[0, 0, 1])
+    assert inner.mean() > 0.8
+    np.testing.assert_allclose(fine[inner], want[inner], atol=1e-5)
+
+
+def test_coarse_gaussians_render_on_a_coarser_grid_close_to_exact():
+    """Large Gaussians (a room of 0.35 m blobs) seen at a fine pitch: a reduced grid, within 40 dB of the full size."""
+    g = toy_scene(seed=3)
+    c2w = pose_at([0.2, 0.1, 0.0])
+    for kw in (dict(projection="perspective", width=320, height=240, fov_deg=90.0), dict(projection="erp", width=512)):
+        cam = Camera("yin", 3 * 128, 128, c2w) if kw["projection"] == "erp" else Camera(
+            "perspective", kw["width"], kw["height"], c2w, fov_deg=kw["fov_deg"])
+        scale = render_scale(g, cam)
+        assert MIN_SCALE <= scale < FULL_ABOVE
+        exact = render(g, c2w, **kw)
+        scene = render(g, c2w, resolution="scene", **kw)
+        assert scene.colour.shape == exact.colour.shape and scene.colour.dtype == np.float32
+        assert np.all(np.isfinite(scene.colour)) and np.all(np.isfinite(scene.range))
+        assert _psnr(scene.colour, exact.colour) >= 40.0
+        assert np.abs(scene.alpha - exact.alpha).mean() < 0.01
+
+
+def test_fine_gaussians_render_exactly():
+    """Footprints of about a pixel already: the scene resolution is the full size, and the image is the exact one."""
+    g = forward_scene(np.random.default_rng(5), n=400)
+    g = g.with_(scales=g.scales * 0.05)
+    cam = Camera("perspective", 96, 64, np.eye(4), fov_deg=70.0)
+    assert render_scale(g, cam) == 1.0
+    kw = dict(projection="perspective", width=96, height=64, fov_deg=70.0)
+    exact, scene = render(g, np.eye(4), **kw), render(g, np.eye(4), resolution="scene", **kw)
+    np.testing.assert_array_equal(scene.colour, exact.colour)
+
+
+def test_no_visible_gaussian_renders_full_size():
+    g = forward_scene(np.random.default_rng(1), n=20)
+    behind = np.diag([1.0, 1.0, -1.0, 1.0])
+    behind[0, 0] = -1.0  # looking along -z: every Gaussian is behind the camera
+    assert render_scale(g, Camera("perspective", 64, 48, behind)) == 1.0
+    out = render(g, behind, projection="perspective", width=64, height=48, resolution="scene")
+    assert out.alpha.max() == 0.0
+
+
+def test_unknown_resolution_is_refused():
+    with pytest.raises(ValueError, match="resolution"):
+        render(toy_scene(), np.eye(4), width=64, resolution="half")
+
+
+@settings(max_examples=40, deadline=None)
+@given(width=st.integers(1, 80), height=st.integers(1, 80), fov=st.floats(5.0, 170.0),
+       scale=st.floats(MIN_SCALE, FULL_ABOVE))
+def test_any_size_resizes_to_the_requested_size(width, height, fov, scale):
+    """Odd, tiny and tall sizes: the coarse grid is at least 2x2 and the resized image has the requested size."""
+    g = toy_scene(seed=1, n=80)
+    cam = Camera("perspective", width, height, np.eye(4), fov_deg=fov)
+    coarse = reduced_pinhole(cam, scale)
+    assert coarse.width >= 2 and coarse.height >= 2
+    img = render(g, np.eye(4), projection="perspective", width=coarse.width, height=coarse.height, fov_deg=fov)
+    out = resize_pinhole(np.dstack([img.colour, img.alpha]), width, height)
+    assert out.shape == (height, width, 4) and np.all(np.isfinite(out))
+    assert out.min() >= 0.0 and out[:, :, 3].max() <= 1.0
