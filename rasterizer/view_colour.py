@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import geometry as geo
 from .gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
 from .sh import SH_C1
 from .yin_yang import grid_pixel
@@ -45,6 +44,11 @@ def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(...) a . b of (..., 3) vectors, summed in index order as numpy's reduction over the last axis does
     (column passes: a reduction over many rows of three is several times slower)."""
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def _unit_vectors(v: np.ndarray, floor: float) -> np.ndarray:
+    """geometry.unit_vectors of (M, 3) rows, the norm as :func:`_dot3` sums it (the same value)."""
+    return v / np.maximum(np.sqrt(_dot3(v, v)), floor)[:, None]
 
 
 def seen_pixels(points: np.ndarray, c2w: np.ndarray, range_map: np.ndarray, grids: tuple[str, ...], height: int,
@@ -88,8 +92,8 @@ def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, 
         u = 1 - v
         pix, seen = seen_pixels(means[v], poses[u], rng[u], grids, h, w, tol)
         seen &= shows[u, pix]
-        d_v = geo.unit_vectors(means[v] - poses[v, :3, 3], 1e-30).astype(np.float32)
-        d_u = geo.unit_vectors(means[v] - poses[u, :3, 3], 1e-30).astype(np.float32)
+        d_v = _unit_vectors(means[v] - poses[v, :3, 3], 1e-30).astype(np.float32)
+        d_u = _unit_vectors(means[v] - poses[u, :3, 3], 1e-30).astype(np.float32)
         dd = d_u - d_v
         wt = dd / (_dot3(dd, dd)[:, None] + np.float32(ridge))  # G = dc w^T
         dc = np.where(seen[:, None], rgb[u, pix] - rgb[v], np.float32(0.0))
