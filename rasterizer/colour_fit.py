@@ -69,35 +69,49 @@ def _grid_composite(part: Gaussians, colours: np.ndarray, c2w: np.ndarray, kind:
     # opacity 0 and an infinite range
     k = proj.index
     # one padded plane per parameter (component-major: the tap loop's array passes run on contiguous rows)
-    par = np.zeros((6, height + 2 * r, width + 2 * r), dtype=np.float32)
-    dist = np.full((height + 2 * r, width + 2 * r), np.inf)
-    rows, cols = r + k // width, r + k % width
-    par[0, rows, cols] = proj.mx - k % width
-    par[1, rows, cols] = proj.my - k // width
-    par[2, rows, cols] = proj.con_a
-    par[3, rows, cols] = proj.con_b
-    par[4, rows, cols] = proj.con_c
-    par[5, rows, cols] = part.opacities[k]
-    dist[rows, cols] = proj.ranges
-    col = np.zeros((3, height + 2 * r, width + 2 * r), dtype=np.float32)
-    col[:, r:r + height, r:r + width] = np.asarray(colours, dtype=np.float32).reshape(height, width, 3).transpose(2, 0, 1)
+    pad_w = width + 2 * r
+    par = np.zeros((6, height + 2 * r, pad_w), dtype=np.float32)
+    dist = np.full((height + 2 * r, pad_w), np.inf)
+    row, col = k // width, k % width
+    at = (row + r) * pad_w + (col + r)  # flat index into a padded plane
+    planes = par.reshape(6, -1)
+    planes[0, at] = proj.mx - col
+    planes[1, at] = proj.my - row
+    planes[2, at] = proj.con_a
+    planes[3, at] = proj.con_b
+    planes[4, at] = proj.con_c
+    planes[5, at] = part.opacities[k]
+    dist.reshape(-1)[at] = proj.ranges
+    rgb = np.zeros((3, height + 2 * r, pad_w), dtype=np.float32)
+    rgb[:, r:r + height, r:r + width] = np.asarray(colours, dtype=np.float32).reshape(height, width, 3).transpose(2, 0, 1)
     offsets = [(di, dj) for di in range(-r, r + 1) for dj in range(-r, r + 1)]
     windows = [(slice(r + di, r + di + height), slice(r + dj, r + dj + width)) for di, dj in offsets]
     n_taps = len(offsets)
     alpha = np.empty((n_taps, height, width), dtype=np.float32)
     rng = np.empty(alpha.shape, dtype=np.float64)
+    dx, dy, term = (np.empty((height, width), dtype=np.float32) for _ in range(3))
+    skip = np.empty((height, width), dtype=bool)
     for t, ((di, dj), win) in enumerate(zip(offsets, windows)):
         q = par[(slice(None),) + win]
-        dx = -dj - q[0]  # pixel centre minus the neighbour's projected centre
-        dy = -di - q[1]
-        a = q[2] * dx * dx
-        a += 2 * q[3] * dx * dy
-        a += q[4] * dy * dy
+        a = alpha[t]
+        np.subtract(-dj, q[0], out=dx)  # pixel centre minus the neighbour's projected centre
+        np.subtract(-di, q[1], out=dy)
+        np.multiply(q[2], dx, out=a)  # q2 dx dx + 2 q3 dx dy + q4 dy dy, products left to right
+        a *= dx
+        np.multiply(2, q[3], out=term)
+        term *= dx
+        term *= dy
+        a += term
+        np.multiply(q[4], dy, out=term)
+        term *= dy
+        a += term
         a *= np.float32(-0.5)
         np.exp(a, out=a)
         a *= q[5]
         np.minimum(a, ALPHA_MAX, out=a)
-        alpha[t] = np.where(a >= ALPHA_MIN, a, np.float32(0.0))  # skipped, as the compositor does (NaN-safe)
+        np.greater_equal(a, ALPHA_MIN, out=skip)
+        np.logical_not(skip, out=skip)
+        a[skip] = 0.0  # skipped, as the compositor does (NaN too)
         rng[t] = dist[win]
     alpha = alpha.reshape(n_taps, n_px)
     rng = rng.reshape(n_taps, n_px)
@@ -124,7 +138,7 @@ def _grid_composite(part: Gaussians, colours: np.ndarray, c2w: np.ndarray, kind:
     for t, win in enumerate(windows):
         wt = weight[t].reshape(height, width)
         for c in range(3):
-            out[c] += wt * col[(c,) + win]
+            out[c] += wt * rgb[(c,) + win]
     return out.reshape(3, -1).T, (1.0 - trans).reshape(-1)
 
 
