@@ -155,11 +155,26 @@ def _blend_of_margins(margin_yin: np.ndarray, margin_yang: np.ndarray, feather: 
     return t * t * (3.0 - 2.0 * t)
 
 
-def _blend_weight_yin_of(p: np.ndarray, q_yang: np.ndarray) -> np.ndarray:
-    """:func:`blend_weight_yin` (no feather) of camera-frame points ``p`` (..., 3) given ``q_yang``, the same
-    points in Yang's grid frame (``geometry.to_grid_frame("yang", p)``), which the caller keeps."""
-    return _blend_of_margins(_lat_lon_margin(*geo.lat_lon_from_direction(p)),
-                             _lat_lon_margin(*geo.lat_lon_from_direction(q_yang)), 0.0)
+def _owned_by_yang(p: np.ndarray, q_yang: np.ndarray) -> np.ndarray:
+    """(...) bool: :func:`blend_weight_yin` (no feather) of camera-frame points ``p`` (..., 3) is below 0.5;
+    ``q_yang`` is ``p`` in Yang's grid frame (``geometry.to_grid_frame("yang", p)``).
+
+    Outside the overlap the weight is 0 or 1 without the blend formula: where only Yang's margin is
+    positive it is 0 (Yang), elsewhere outside it is 1 or 0.5 (Yin). A margin is positive exactly where
+    both of its terms are (cos(lat) > 0), so the cosines and the blend are taken in the overlap only.
+    """
+    inside = []
+    lat_lon = []
+    for q in (p, q_yang):
+        lat, lon = geo.lat_lon_from_direction(q)
+        inside.append((geo.YIN_LAT_MAX - np.abs(lat) > 0) & (geo.YIN_LON_MAX - np.abs(lon) > 0))
+        lat_lon.append((lat, lon))
+    yang = inside[1] & ~inside[0]
+    both = np.flatnonzero(inside[0] & inside[1])
+    if both.size:
+        margins = [_lat_lon_margin(lat.reshape(-1)[both], lon.reshape(-1)[both]) for lat, lon in lat_lon]
+        yang.reshape(-1)[both] = _blend_of_margins(margins[0], margins[1], 0.0) < 0.5
+    return yang
 
 
 def grid_pixel(p: np.ndarray, grids: tuple[str, ...], height: int, width: int) -> np.ndarray:
@@ -175,7 +190,7 @@ def grid_pixel(p: np.ndarray, grids: tuple[str, ...], height: int, width: int) -
         # the blend weight from each grid frame's lat/lon, then one projection of the owner's grid-frame
         # point: Yang's projection is Yin's of its grid frame (geometry.project_to_grid)
         q_yang = geo.to_grid_frame("yang", p)
-        yang = _blend_weight_yin_of(p, q_yang) < 0.5
+        yang = _owned_by_yang(p, q_yang)
         g = yang.astype(np.int64)
         col, row = geo.project_to_grid("yin", np.where(yang[..., None], q_yang, p), height, width)
         col = np.clip(np.rint(col), 0, width - 1)
