@@ -27,7 +27,8 @@ import numpy as np
 from .camera import DEFAULT_NEAR, Camera
 from .composite import ALPHA_MAX, ALPHA_MIN
 from .gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
-from .splat import project
+from .splat import shared_pose
+from .splat.projection import project_columns
 
 #: Step size of the fit (x the Gaussian's confidence): 1 would be a plain Jacobi step, more
 #: over-relaxes it; chosen on the dev scenes (docs/design.md).
@@ -52,53 +53,93 @@ def check_colour_fit(value) -> float:
 
 def _grid_composite(part: Gaussians, colours: np.ndarray, c2w: np.ndarray, kind: str, height: int, width: int,
                     taps: int, near: float) -> tuple[np.ndarray, np.ndarray]:
-    """One grid of :func:`own_view_render`: (colour (H W, 3), coverage alpha (H W,)) float32."""
+    """One grid of :func:`own_view_render`: (colour (H W, 3), coverage alpha (H W,)) float32.
+
+    Arrays are tap-major, (T, H W) with T = taps^2, so every pass runs over whole image rows. Front to
+    back is range order with ties in window order (a stable sort): each tap's place in it is counted
+    from the T (T - 1) / 2 pairwise comparisons of the window's ranges, far cheaper than sorting
+    H W rows of T keys; the transmittance is then the running product in that order.
+    """
     r = taps // 2
-    proj = project(part, Camera(kind, width, height, c2w, near=near))
+    n_px = height * width
+    camera = Camera(kind, width, height, c2w, near=near)
+    proj = project_columns(shared_pose(part, camera), camera)
     # per pixel-aligned Gaussian: centre offset from its own pixel (px), conic, opacity; its range
-    # (float64, the rasterizer's sort key, ties in index order as there); culled ones (behind, too near,
-    # outside the domain) keep opacity 0 and an infinite range
+    # (float64, the rasterizer's sort key); culled ones (behind, too near, outside the domain) keep
+    # opacity 0 and an infinite range
     k = proj.index
     # one padded plane per parameter (component-major: the tap loop's array passes run on contiguous rows)
-    par = np.zeros((6, height + 2 * r, width + 2 * r), dtype=np.float32)
-    dist = np.full((height + 2 * r, width + 2 * r), np.inf)
-    rows, cols = r + k // width, r + k % width
-    par[0, rows, cols] = proj.mean[:, 0] - k % width
-    par[1, rows, cols] = proj.mean[:, 1] - k // width
-    par[2:5, rows, cols] = proj.conic.T
-    par[5, rows, cols] = part.opacities[k]
-    dist[rows, cols] = proj.ranges
-    col = np.zeros((3, height + 2 * r, width + 2 * r), dtype=np.float32)
-    col[:, r:r + height, r:r + width] = np.asarray(colours, dtype=np.float32).reshape(height, width, 3).transpose(2, 0, 1)
+    pad_w = width + 2 * r
+    par = np.zeros((6, height + 2 * r, pad_w), dtype=np.float32)
+    dist = np.full((height + 2 * r, pad_w), np.inf)
+    row, col = k // width, k % width
+    at = (row + r) * pad_w + (col + r)  # flat index into a padded plane
+    planes = par.reshape(6, -1)
+    planes[0, at] = proj.mx - col
+    planes[1, at] = proj.my - row
+    planes[2, at] = proj.con_a
+    planes[3, at] = proj.con_b
+    planes[4, at] = proj.con_c
+    planes[5, at] = part.opacities[k]
+    dist.reshape(-1)[at] = proj.ranges
+    rgb = np.zeros((3, height + 2 * r, pad_w), dtype=np.float32)
+    rgb[:, r:r + height, r:r + width] = np.asarray(colours, dtype=np.float32).reshape(height, width, 3).transpose(2, 0, 1)
     offsets = [(di, dj) for di in range(-r, r + 1) for dj in range(-r, r + 1)]
     windows = [(slice(r + di, r + di + height), slice(r + dj, r + dj + width)) for di, dj in offsets]
-    alpha = np.empty((height, width, len(offsets)), dtype=np.float32)
+    n_taps = len(offsets)
+    alpha = np.empty((n_taps, height, width), dtype=np.float32)
     rng = np.empty(alpha.shape, dtype=np.float64)
+    dx, dy, term = (np.empty((height, width), dtype=np.float32) for _ in range(3))
+    skip = np.empty((height, width), dtype=bool)
     for t, ((di, dj), win) in enumerate(zip(offsets, windows)):
         q = par[(slice(None),) + win]
-        dx = -dj - q[0]  # pixel centre minus the neighbour's projected centre
-        dy = -di - q[1]
-        a = q[2] * dx * dx
-        a += 2 * q[3] * dx * dy
-        a += q[4] * dy * dy
+        a = alpha[t]
+        np.subtract(-dj, q[0], out=dx)  # pixel centre minus the neighbour's projected centre
+        np.subtract(-di, q[1], out=dy)
+        np.multiply(q[2], dx, out=a)  # q2 dx dx + 2 q3 dx dy + q4 dy dy, products left to right
+        a *= dx
+        np.multiply(2, q[3], out=term)
+        term *= dx
+        term *= dy
+        a += term
+        np.multiply(q[4], dy, out=term)
+        term *= dy
+        a += term
         a *= np.float32(-0.5)
         np.exp(a, out=a)
         a *= q[5]
         np.minimum(a, ALPHA_MAX, out=a)
-        alpha[..., t] = np.where(a >= ALPHA_MIN, a, np.float32(0.0))  # skipped, as the compositor does (NaN-safe)
-        rng[..., t] = dist[win]
-    order = np.argsort(rng, axis=-1, kind="stable")  # front to back
-    front = np.take_along_axis(alpha, order, axis=-1)
-    trans = np.cumprod(1.0 - front, axis=-1)
-    front[..., 1:] *= trans[..., :-1]  # alpha x transmittance before it
-    weight = np.empty_like(front)
-    np.put_along_axis(weight, order, front, axis=-1)  # back to window order
+        np.greater_equal(a, ALPHA_MIN, out=skip)
+        np.logical_not(skip, out=skip)
+        a[skip] = 0.0  # skipped, as the compositor does (NaN too)
+        rng[t] = dist[win]
+    alpha = alpha.reshape(n_taps, n_px)
+    rng = rng.reshape(n_taps, n_px)
+    # place of each tap front to back: the taps before it in range order, ties in window order
+    place = np.zeros((n_taps, n_px), dtype=np.int16)
+    before = np.empty(n_px, dtype=bool)
+    for t in range(1, n_taps):
+        for s in range(t):
+            np.less_equal(rng[s], rng[t], out=before)
+            place[t] += before
+            place[s] += 1
+            place[s] -= before
+    flat = place * np.int64(n_px) + np.arange(n_px)  # (T, H W) flat index of each tap in the front-to-back array
+    front = np.empty((n_taps, n_px), dtype=np.float32)
+    front.reshape(-1)[flat] = alpha
+    # alpha x transmittance before it, the running product taken front to back
+    trans = np.subtract(np.float32(1.0), front[0])
+    for t in range(1, n_taps):
+        keep = np.subtract(np.float32(1.0), front[t])
+        front[t] *= trans
+        trans *= keep
+    weight = front.reshape(-1)[flat]  # back to window order
     out = np.zeros((3, height, width), dtype=np.float32)
     for t, win in enumerate(windows):
-        wt = np.ascontiguousarray(weight[..., t])
+        wt = weight[t].reshape(height, width)
         for c in range(3):
-            out[c] += wt * col[(c,) + win]
-    return out.reshape(3, -1).T, (1.0 - trans[..., -1]).reshape(-1)
+            out[c] += wt * rgb[(c,) + win]
+    return out.reshape(3, -1).T, (1.0 - trans).reshape(-1)
 
 
 def _check_taps(taps: int) -> None:

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import geometry as geo
 from .gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
 from .sh import SH_C1
 from .yin_yang import grid_pixel
@@ -41,10 +40,30 @@ def check_sh_degree(value) -> int:
     return int(value)
 
 
-def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(...) a . b of (..., 3) vectors, summed in index order as numpy's reduction over the last axis does
-    (column passes: a reduction over many rows of three is several times slower)."""
-    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+def _dot3(a, b) -> np.ndarray:
+    """(M,) a . b of vectors given as three (M,) columns each (a (3, M) array or a list), summed in index
+    order as numpy's reduction over the last axis of (M, 3) rows does (column passes: that reduction
+    over many rows of three is several times slower)."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _unit_columns(cols, floor: float) -> list[np.ndarray]:
+    """geometry.unit_vectors of rows given as three (M,) columns, as three float32 columns (the same values:
+    the norm is the same sum of squares)."""
+    norm = np.maximum(np.sqrt(_dot3(cols, cols)), floor)
+    return [(c / norm).astype(np.float32) for c in cols]
+
+
+def _camera_columns(points: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+    """(3, M) float64 camera-frame coordinates of world ``points`` (M, 3): geo.world_to_camera's (x - t) R,
+    the three products of each coordinate summed in order, on contiguous columns."""
+    pose = np.asarray(c2w, dtype=np.float64)
+    pts = np.asarray(points)
+    d = [pts[:, j].astype(np.float64) - pose[j, 3] for j in range(3)]
+    out = np.empty((3, pts.shape[0]))
+    for k in range(3):
+        out[k] = d[0] * pose[0, k] + d[1] * pose[1, k] + d[2] * pose[2, k]
+    return out
 
 
 def seen_pixels(points: np.ndarray, c2w: np.ndarray, range_map: np.ndarray, grids: tuple[str, ...], height: int,
@@ -52,12 +71,9 @@ def seen_pixels(points: np.ndarray, c2w: np.ndarray, range_map: np.ndarray, grid
     """Where another view sees world ``points`` (M, 3): (pix (M,) flat index into its (G, H, W) grid
     layout, seen (M,) bool). ``range_map`` (G H W,) is that view's estimated range per pixel; a point
     counts as seen when its range from that camera (``c2w``) is > 0 and at most (1 + tol) times it."""
-    pose = np.asarray(c2w, dtype=np.float64)
-    # geo.world_to_camera's (x - t) R as an einsum: the same three products summed in order, without a
-    # multi-threaded BLAS call per (M, 3) x (3, 3) product (slow on a loaded 2-core machine)
-    p = np.einsum("...k,kj->...j", np.asarray(points, dtype=np.float64) - pose[:3, 3], pose[:3, :3])
+    p = _camera_columns(points, c2w)
     r = np.sqrt(_dot3(p, p))  # np.linalg.norm's sum of squares, without a reduction over rows of 3
-    pix = grid_pixel(p, grids, height, width)
+    pix = grid_pixel(p.T, grids, height, width)
     return pix, np.isfinite(r) & (r > 0) & (r <= range_map[pix] * (1.0 + tol))
 
 
@@ -78,23 +94,29 @@ def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, 
         raise ValueError(f"need two views' pixel-aligned layout; got {len(layout)} Gaussians for {np.shape(range_maps)}")
     if not ridge > 0:
         raise ValueError(f"ridge must be > 0, got {ridge}")
-    rgb = sh_dc_to_rgb(layout.sh[:, 0, :]).reshape(2, n, 3)
+    # per-Gaussian maths on contiguous (n,) columns, one per coordinate or colour channel
+    rgb = np.ascontiguousarray(sh_dc_to_rgb(layout.sh[:, 0, :]).T).reshape(3, 2, n)
     rng = np.asarray(range_maps, dtype=np.float64).reshape(2, n)
     shows = np.ones((2, n), dtype=bool) if hidden is None else ~np.asarray(hidden, dtype=bool).reshape(2, n)
-    means = layout.means.astype(np.float64).reshape(2, n, 3)
+    means = layout.means.reshape(2, n, 3)
     poses = np.asarray(c2w, dtype=np.float64)
-    sh = np.zeros((2, n, 4, 3), dtype=np.float32)
+    sh = np.empty((2, n, 4, 3), dtype=np.float32)
     for v in range(2):  # the two views, each against the other
         u = 1 - v
         pix, seen = seen_pixels(means[v], poses[u], rng[u], grids, h, w, tol)
         seen &= shows[u, pix]
-        d_v = geo.unit_vectors(means[v] - poses[v, :3, 3], 1e-30).astype(np.float32)
-        d_u = geo.unit_vectors(means[v] - poses[u, :3, 3], 1e-30).astype(np.float32)
-        dd = d_u - d_v
-        wt = dd / (_dot3(dd, dd)[:, None] + np.float32(ridge))  # G = dc w^T
-        dc = np.where(seen[:, None], rgb[u, pix] - rgb[v], np.float32(0.0))
-        sh[v, :, 0] = rgb_to_sh_dc(rgb[v] - dc * _dot3(wt, d_v)[:, None])  # a = c_v - G d_v
+        d_v = _unit_columns([means[v, :, j].astype(np.float64) - poses[v, j, 3] for j in range(3)], 1e-30)
+        d_u = _unit_columns([means[v, :, j].astype(np.float64) - poses[u, j, 3] for j in range(3)], 1e-30)
+        dd = [d_u[j] - d_v[j] for j in range(3)]
+        den = _dot3(dd, dd) + np.float32(ridge)
+        wt = [dd[j] / den for j in range(3)]  # G = dc w^T
+        dc = [np.where(seen, rgb[j, u][pix] - rgb[j, v], np.float32(0.0)) for j in range(3)]
+        g_dv = _dot3(wt, d_v)
+        for j in range(3):
+            sh[v, :, 0, j] = rgb_to_sh_dc(rgb[j, v] - dc[j] * g_dv)  # a = c_v - G d_v
         # 3DGS degree-1 basis: -C1 y, C1 z, -C1 x (rasterizer.sh.sh_basis)
         for k, (axis, sign) in enumerate(((1, -1.0), (2, 1.0), (0, -1.0)), start=1):
-            sh[v, :, k] = dc * (np.float32(sign / SH_C1) * wt[:, axis:axis + 1])
+            scaled = np.float32(sign / SH_C1) * wt[axis]
+            for j in range(3):
+                sh[v, :, k, j] = dc[j] * scaled
     return layout.with_(sh=sh.reshape(2 * n, 4, 3))

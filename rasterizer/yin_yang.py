@@ -126,7 +126,11 @@ FEATHER_PIXELS = 1.0
 
 def _margin(kind: str, d: np.ndarray) -> np.ndarray:
     """Angular margin (radians, <0 outside) of directions inside a Yin/Yang domain."""
-    lat, lon = geo.lat_lon_from_direction(geo.to_grid_frame(kind, d))
+    return _lat_lon_margin(*geo.lat_lon_from_direction(geo.to_grid_frame(kind, d)))
+
+
+def _lat_lon_margin(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+    """:func:`_margin` of grid-frame latitude and longitude."""
     return np.minimum(geo.YIN_LAT_MAX - np.abs(lat), (geo.YIN_LON_MAX - np.abs(lon)) * np.cos(lat))
 
 
@@ -139,11 +143,38 @@ def blend_weight_yin(d: np.ndarray, feather: float = 0.0) -> np.ndarray:
     switch sources between two pixels. Samples up to ``feather`` outside a
     grid read its clamped border pixel.
     """
-    m_yin = np.maximum(_margin("yin", d) + feather, 0.0)
-    m_yang = np.maximum(_margin("yang", d) + feather, 0.0)
+    return _blend_of_margins(_margin("yin", d), _margin("yang", d), feather)
+
+
+def _blend_of_margins(margin_yin: np.ndarray, margin_yang: np.ndarray, feather: float) -> np.ndarray:
+    """:func:`blend_weight_yin` of the directions' margins inside Yin and Yang (:func:`_margin`)."""
+    m_yin = np.maximum(margin_yin + feather, 0.0)
+    m_yang = np.maximum(margin_yang + feather, 0.0)
     tot = m_yin + m_yang
     t = np.where(tot > 0, m_yin / np.where(tot > 0, tot, 1.0), 0.5)
     return t * t * (3.0 - 2.0 * t)
+
+
+def _owned_by_yang(p: np.ndarray, q_yang: np.ndarray) -> np.ndarray:
+    """(...) bool: :func:`blend_weight_yin` (no feather) of camera-frame points ``p`` (..., 3) is below 0.5;
+    ``q_yang`` is ``p`` in Yang's grid frame (``geometry.to_grid_frame("yang", p)``).
+
+    Outside the overlap the weight is 0 or 1 without the blend formula: where only Yang's margin is
+    positive it is 0 (Yang), elsewhere outside it is 1 or 0.5 (Yin). A margin is positive exactly where
+    both of its terms are (cos(lat) > 0), so the cosines and the blend are taken in the overlap only.
+    """
+    inside = []
+    lat_lon = []
+    for q in (p, q_yang):
+        lat, lon = geo.lat_lon_from_direction(q)
+        inside.append((geo.YIN_LAT_MAX - np.abs(lat) > 0) & (geo.YIN_LON_MAX - np.abs(lon) > 0))
+        lat_lon.append((lat, lon))
+    yang = inside[1] & ~inside[0]
+    both = np.flatnonzero(inside[0] & inside[1])
+    if both.size:
+        margins = [_lat_lon_margin(lat.reshape(-1)[both], lon.reshape(-1)[both]) for lat, lon in lat_lon]
+        yang.reshape(-1)[both] = _blend_of_margins(margins[0], margins[1], 0.0) < 0.5
+    return yang
 
 
 def grid_pixel(p: np.ndarray, grids: tuple[str, ...], height: int, width: int) -> np.ndarray:
@@ -156,11 +187,13 @@ def grid_pixel(p: np.ndarray, grids: tuple[str, ...], height: int, width: int) -
         g = np.zeros(p.shape[:-1], dtype=np.int64)
         col = np.mod(np.rint(col), width)
     else:
-        g = (blend_weight_yin(p) < 0.5).astype(np.int64)
-        col_yin, row_yin = geo.project_to_grid("yin", p, height, width)
-        col_yang, row_yang = geo.project_to_grid("yang", p, height, width)
-        col = np.clip(np.rint(np.where(g == 1, col_yang, col_yin)), 0, width - 1)
-        row = np.where(g == 1, row_yang, row_yin)
+        # the blend weight from each grid frame's lat/lon, then one projection of the owner's grid-frame
+        # point: Yang's projection is Yin's of its grid frame (geometry.project_to_grid)
+        q_yang = geo.to_grid_frame("yang", p)
+        yang = _owned_by_yang(p, q_yang)
+        g = yang.astype(np.int64)
+        col, row = geo.project_to_grid("yin", np.where(yang[..., None], q_yang, p), height, width)
+        col = np.clip(np.rint(col), 0, width - 1)
     row = np.clip(np.rint(row), 0, height - 1)
     return (g * height + row.astype(np.int64)) * width + col.astype(np.int64)
 

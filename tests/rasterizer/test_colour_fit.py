@@ -7,10 +7,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.ndimage import gaussian_filter
 
+from rasterizer.camera import DEFAULT_NEAR, Camera
 from rasterizer.colour_fit import check_colour_fit, fit_reference_colours, own_view_render
 from rasterizer.depth_gaussians import gaussians_from_depth
 from rasterizer.gaussians import Gaussians, sh_dc_to_rgb
 from rasterizer.render import render
+from rasterizer.splat import project
 from tests.rasterizer._support import box_range, pose_at
 
 H, W = 32, 96  # one Yin/Yang grid
@@ -65,6 +67,58 @@ def test_own_view_render_is_the_rasterizer_within_the_window():
     narrow = np.abs(own_view_render(own, colours, poses[0], GRIDS, H, W, taps=3)[0] - local).mean()
     single = np.abs(own_view_render(own, colours, poses[0], GRIDS, H, W, taps=1)[0] - local).mean()
     assert narrow < 0.03 < single
+
+
+def _sorted_window_composite(g, colours, pose, kind, taps):
+    """own_view_render of one grid written directly: each pixel's taps x taps window of neighbours'
+    alphas sorted by range with a stable sort, running transmittance product (cumprod) front to back."""
+    r = taps // 2
+    proj = project(g, Camera(kind, W, H, pose, near=DEFAULT_NEAR))
+    k = proj.index
+    par = np.zeros((6, H + 2 * r, W + 2 * r), dtype=np.float32)
+    dist = np.full((H + 2 * r, W + 2 * r), np.inf)
+    rows, cols = r + k // W, r + k % W
+    par[0, rows, cols], par[1, rows, cols] = proj.mean[:, 0] - k % W, proj.mean[:, 1] - k // W
+    par[2:5, rows, cols] = proj.conic.T
+    par[5, rows, cols] = g.opacities[k]
+    dist[rows, cols] = proj.ranges
+    col = np.pad(colours.reshape(H, W, 3).astype(np.float32), ((r, r), (r, r), (0, 0)))
+    alpha, rng, rgb = [], [], []
+    for di in range(-r, r + 1):
+        for dj in range(-r, r + 1):
+            q = par[:, r + di:r + di + H, r + dj:r + dj + W]
+            dx, dy = -dj - q[0], -di - q[1]
+            a = np.minimum(q[5] * np.exp(np.float32(-0.5) * (q[2] * dx * dx + 2 * q[3] * dx * dy + q[4] * dy * dy)),
+                           np.float32(0.99))
+            alpha.append(np.where(a >= np.float32(1 / 255), a, np.float32(0)))
+            rng.append(dist[r + di:r + di + H, r + dj:r + dj + W])
+            rgb.append(col[r + di:r + di + H, r + dj:r + dj + W])
+    alpha, rng, rgb = np.stack(alpha, -1), np.stack(rng, -1), np.stack(rgb, -2)
+    order = np.argsort(rng, axis=-1, kind="stable")
+    front = np.take_along_axis(alpha, order, axis=-1)
+    trans = np.cumprod(1 - front, axis=-1)
+    front[..., 1:] *= trans[..., :-1]
+    weight = np.take_along_axis(front, np.argsort(order, axis=-1), axis=-1)
+    return (weight[..., None] * rgb).sum(axis=-2).reshape(-1, 3), (1 - trans[..., -1]).reshape(-1)
+
+
+def test_own_view_render_sorts_each_window_front_to_back_ties_in_window_order():
+    g, _, poses = _scene()
+    n1 = H * W
+    own = g.subset(np.arange(0, 2 * n1))
+    means = own.means.copy()
+    means[1:n1:2] = means[0:n1:2]  # pairs of Yin neighbours at one point: equal ranges, the window order decides
+    means[n1 + 5:2 * n1:7] *= 3.0  # Yang Gaussians far behind their neighbours
+    own = own.with_(means=means)
+    colours = sh_dc_to_rgb(own.sh[:, 0])
+    for taps in (3, 5):
+        local, cover = own_view_render(own, colours, poses[0], GRIDS, H, W, taps=taps)
+        for gi, kind in enumerate(GRIDS):
+            part = slice(gi * n1, (gi + 1) * n1)
+            want, want_cover = _sorted_window_composite(own.subset(np.arange(gi * n1, (gi + 1) * n1)), colours[part],
+                                                        poses[0], kind, taps)
+            np.testing.assert_allclose(local[part], want, atol=1e-6)
+            np.testing.assert_array_equal(cover[part], want_cover)
 
 
 def test_the_step_brings_each_own_render_closer_to_its_image():

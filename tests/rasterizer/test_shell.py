@@ -6,7 +6,7 @@ import pytest
 from rasterizer import geometry as geo
 from rasterizer.compaction import CompactionError, CompactionOptions, Provenance, compact_result
 from rasterizer.depth_gaussians import gaussians_from_depth
-from rasterizer.gaussians import Gaussians, sh_dc_to_rgb
+from rasterizer.gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
 from rasterizer.render import render
 from rasterizer.shell import SHELL_OPACITY, SHELL_RADIUS_FACTOR, environment_shell, shell_block, shell_layout, shell_radius
 from tests.rasterizer._support import box_range, pose_at
@@ -53,6 +53,9 @@ def test_geometry_and_colour():
     # colour: the block mean of the pixel-aligned colours
     rgb = sh_dc_to_rgb(g.sh[: H * W, 0]).reshape(H // 4, 4, W // 4, 4, 3).mean(axis=(1, 3)).reshape(-1, 3)
     np.testing.assert_allclose(sh_dc_to_rgb(shell.sh[:n, 0]), np.clip(rgb, 0, 1), atol=1e-5)
+    # exactly numpy's block mean, in every view and grid
+    blocks = sh_dc_to_rgb(g.sh[:, 0]).reshape(2, 2, H // 4, 4, W // 4, 4, 3).mean(axis=(3, 5)).reshape(-1, 3)
+    np.testing.assert_array_equal(shell.sh[:, 0], rgb_to_sh_dc(np.clip(blocks, 0, 1)))
 
 
 def test_radius_ignores_invalid_ranges():

@@ -5,7 +5,7 @@ import pytest
 
 from bench.metrics import psnr
 from rasterizer import geometry as geo
-from rasterizer.yin_yang import blend_weight_yin, erp_to_yin_yang, resize_erp, yin_yang_to_erp
+from rasterizer.yin_yang import blend_weight_yin, erp_to_yin_yang, grid_pixel, resize_erp, yin_yang_to_erp
 
 
 def smooth_erp(h, w):
@@ -73,3 +73,27 @@ def test_resize_erp():
     assert np.allclose(resize_erp(np.full((10, 20), 0.3), 7, 14), 0.3, atol=1e-6)
     with pytest.raises(ValueError):
         resize_erp(img, 0, 10)
+
+
+def test_grid_pixel_is_the_owner_grids_nearest_pixel():
+    h, w = 16, 48
+    rng = np.random.default_rng(5)
+    d = rng.standard_normal((20000, 3)) * rng.uniform(0.1, 30.0, (20000, 1))
+    centres = np.concatenate([geo.grid_directions(k, h, w).reshape(-1, 3) for k in ("yin", "yang")])
+    seams = geo.direction_from_lat_lon(np.linspace(-np.pi / 2, np.pi / 2, 101)[:, None],
+                                       np.array([-3, -1, 0, 1, 3]) * np.pi / 4)
+    p = np.concatenate([d, 2.5 * centres, seams.reshape(-1, 3)])
+    # the definition: Yang where Yin's blend weight is below 0.5, each grid's projection rounded and clamped
+    yang = blend_weight_yin(p) < 0.5
+    want = []
+    for kind in ("yin", "yang"):
+        col, row = geo.project_to_grid(kind, p, h, w)
+        want.append(np.clip(np.rint(row), 0, h - 1).astype(np.int64) * w + np.clip(np.rint(col), 0, w - 1).astype(np.int64))
+    want = np.where(yang, h * w + want[1], want[0])
+    got = grid_pixel(p, ("yin", "yang"), h, w)
+    np.testing.assert_array_equal(got, want)
+    # a pixel centre the blend gives to its own grid is its own nearest pixel
+    n = centres.shape[0]
+    own = np.where(yang[20000:20000 + n], np.arange(n) >= h * w, np.arange(n) < h * w)
+    assert own.mean() > 0.9
+    np.testing.assert_array_equal(got[20000:20000 + n][own], np.arange(n)[own])
