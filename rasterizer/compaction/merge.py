@@ -1,4 +1,4 @@
-"""Smooth-region merge: 2x2 (4x4, ...) blocks of one grid's pixels that are flat and evenly coloured
+"""Smooth-region merge: 2x2 (4x4, ...) blocks of one grid's pixels that are flat and carry no texture
 become one moment-matched Gaussian with the block's optical depth (:func:`smooth_merge_blocks`)."""
 
 from __future__ import annotations
@@ -125,7 +125,8 @@ def _block_min_max(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _level1_merge(gaussians: Gaussians, prov: Provenance, alive: np.ndarray, colour_tol: float, opacity_tol: float,
                   plane_tol: float, cos_incidence: float, pitch: float):
-    """2x2 blocks that merge: (block ids into the (P, H/2, W/2) block grid, their units, (m, 4) member indices).
+    """2x2 blocks that merge: (block ids into the (P, H/2, W/2) block grid, their units, (m, 4) member indices,
+    and the (3, P, H, W) DC colour planes and (P, H, W) alive mask of the layout).
 
     The colour, opacity and all-alive tests run on the block-reshaped layout
     (no per-pixel gathers); only the blocks passing them are gathered, in
@@ -161,6 +162,8 @@ def _level1_merge(gaussians: Gaussians, prov: Provenance, alive: np.ndarray, col
     crange = cmax - cmin
     ok &= (np.maximum(np.maximum(crange[0], crange[1]), crange[2]) <= np.float32(colour_tol / SH_C0)).reshape(
         ok.shape)  # colour tolerance in DC units
+    planes = dct.reshape(3, n_grids, h, w), al.reshape(n_grids, h, w)
+    ok &= texture_ok(*planes, 1, TEXTURE_TOL)
     blk = np.flatnonzero(ok)
     top = _block_tops(n_grids, h, w)[blk]  # layout position of each candidate's top-left pixel
     plane = top // (h * w)
@@ -177,7 +180,78 @@ def _level1_merge(gaussians: Gaussians, prov: Provenance, alive: np.ndarray, col
     units = _Units(cat(1, (0,)), cat(2, (0, 3)), cat(3, (0, 6)), cat(4, (0, 6)), cat(5, (0, k, 3)), cat(6, (0,)),
                    cmin[:, b].T.astype(np.float64), cmax[:, b].T.astype(np.float64),
                    amin.reshape(-1)[b].astype(np.float64), amax.reshape(-1)[b].astype(np.float64))
-    return b, units, mem[:, sel].T
+    return b, units, mem[:, sel].T, planes
+
+
+#: Luma weights (Rec. 601) of the texture test: the eye (and the sharpness metric) sees luma detail most.
+LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+#: A block merges when its texture is at most this many times its grid's mean block texture at that level
+#: (:func:`texture_ok`). 1.4 keeps the Gaussian count of the earlier absolute colour-range test within +8% on
+#: the dev scenes (docs/design.md, Compaction).
+TEXTURE_TOL = 0.1
+
+
+def _up2(m: np.ndarray, valid: np.ndarray, axis: int) -> np.ndarray:
+    """Bilinear 2x upsampling of block values along ``axis`` (half-pixel centres: 3/4 of the block, 1/4 of the
+    nearer neighbour); a neighbour that is not ``valid`` (or off the edge) is replaced by the block itself."""
+    n = m.shape[axis]
+    out = []
+    for idx, edge in ((np.r_[0, np.arange(n - 1)], 0), (np.r_[np.arange(1, n), n - 1], n - 1)):
+        nb = np.where(np.take(valid, idx, axis=axis - 1), np.take(m, idx, axis=axis), m)
+        out.append(0.75 * m + 0.25 * nb)
+    shape = list(m.shape)
+    shape[axis] = 2 * n
+    return np.stack(out, axis=axis + 1).reshape(shape)
+
+
+def _means2(x: np.ndarray) -> np.ndarray:
+    """Means of the 2x2 blocks of (C, G, h, w) planes (odd last row / column left out)."""
+    c, g, h, w = x.shape
+    return x[:, :, : h // 2 * 2, : w // 2 * 2].reshape(c, g, h // 2, 2, w // 2, 2).mean(axis=(3, 5))
+
+
+def _all2(p: np.ndarray) -> np.ndarray:
+    """(G, h//2, w//2): all four pixels of each 2x2 block of a (G, h, w) mask."""
+    g, h, w = p.shape
+    return p[:, : h // 2 * 2, : w // 2 * 2].reshape(g, h // 2, 2, w // 2, 2).all(axis=(2, 4))
+
+
+def block_texture(dc: np.ndarray, present: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]:
+    """Texture of each block of side 2**level, the detail one Gaussian loses, and which blocks are whole.
+
+    ``dc``: (3, G, h, w) DC colour planes of the layout; ``present``: (G, h, w) pixels that have a
+    Gaussian. At level L the block's four children (pixels at L = 1, the means of 2**(L-1) blocks
+    above) are compared with the bilinear upsampling of the block means (a neighbour that is not whole
+    counts as the block itself), i.e. with what merged Gaussians that overlap their neighbours draw:
+    texture = luma-weighted (:data:`LUMA`) mean |child - prediction| over the four children. A colour
+    ramp has none; a checkerboard, stripes or grain have it at any contrast. Returns ((G, h >> L, w >> L)
+    texture, the same-shaped mask of blocks whose pixels are all present).
+    """
+    x, p = dc.astype(np.float32), np.asarray(present, bool)
+    for _ in range(int(level) - 1):
+        x, p = _means2(x), _all2(p)
+    m, whole = _means2(x), _all2(p)
+    c, g, h2, w2 = m.shape
+    pred = _up2(_up2(m, whole, 2), np.repeat(whole, 2, axis=1), 3)
+    r = np.abs(x[:, :, : 2 * h2, : 2 * w2] - pred)
+    return np.tensordot(LUMA, r.reshape(c, g, h2, 2, w2, 2).mean(axis=(3, 5)), axes=1), whole
+
+
+def texture_ok(dc: np.ndarray, present: np.ndarray, level: int, tol: float) -> np.ndarray:
+    """(G, h >> level, w >> level) bool: whole blocks whose :func:`block_texture` is at most ``tol`` x their
+    grid's contrast (the luma-weighted mean |colour - the grid's mean colour| over its present pixels).
+
+    Scale-free: scaling every colour about mid-grey (the DC planes by a factor) scales texture and
+    contrast alike and leaves each decision unchanged. A ramp merges at any steepness, a faint grain
+    on a plain wall is kept where the room's own contrast is faint too.
+    """
+    t, whole = block_texture(dc, present, level)
+    p = np.asarray(present, bool)
+    n = np.maximum(p.reshape(p.shape[0], -1).sum(axis=1), 1)
+    mean = np.where(p, dc, 0).reshape(3, p.shape[0], -1).sum(axis=2) / n  # (3, G)
+    dev = np.where(p, np.abs(dc - mean[:, :, None, None]), 0).reshape(3, p.shape[0], -1).sum(axis=2) / n
+    contrast = np.tensordot(LUMA, dev.astype(np.float32), axes=1)  # (G,)
+    return whole & (t <= np.float32(tol) * contrast[:, None, None])
 
 
 #: Candidate blocks per chunk of :func:`_level1_chunk` (its float64 temporaries then stay in the CPU cache).
@@ -338,8 +412,11 @@ def smooth_merge_blocks(gaussians: Gaussians, prov: Provenance, alive: np.ndarra
                         max_incidence_deg: float = CompactionOptions.smooth_max_incidence_deg) -> SmoothMerge:
     """Replace 2x2 (then 4x4, ... up to 2**levels) blocks of one grid's pixels by one Gaussian each.
 
-    A block merges when all its pixels are alive, every DC colour channel
-    varies by at most ``colour_tol`` and opacity by at most ``opacity_tol``
+    A block merges when all its pixels are alive, its texture is at most
+    :data:`TEXTURE_TOL` times its grid's mean (:func:`texture_ok`: scale-free,
+    luma-weighted, against the bilinear prediction from the block means),
+    every DC colour channel varies by at most ``colour_tol`` (an absolute cap;
+    1 leaves the texture test alone) and opacity by at most ``opacity_tol``
     over it, and its (weighted) centres lie on a plane (rms residual <=
     ``plane_tol`` x range) whose normal is within ``max_incidence_deg`` of
     the ray to the block. Larger blocks are built from four merged children
@@ -366,8 +443,8 @@ def smooth_merge_blocks(gaussians: Gaussians, prov: Provenance, alive: np.ndarra
         shape = (ids_shape[0], ids_shape[1] // 2, ids_shape[2] // 2)
         if level == 1:
             # children: the (m, 4) input indices of each merged block's pixels
-            chosen, units, children = _level1_merge(gaussians, prov, alive, colour_tol, opacity_tol, plane_tol,
-                                                    cos_inc, pitch)
+            chosen, units, children, planes = _level1_merge(gaussians, prov, alive, colour_tol, opacity_tol,
+                                                            plane_tol, cos_inc, pitch)
         else:
             ids = np.full(ids_shape[0] * ids_shape[1] * ids_shape[2], -1, dtype=np.int64)
             ids[per_level[-1][0]] = np.arange(per_level[-1][0].size)
@@ -375,7 +452,8 @@ def smooth_merge_blocks(gaussians: Gaussians, prov: Provenance, alive: np.ndarra
             cand = np.flatnonzero(np.all(blocks >= 0, axis=1))
             u = _combine(per_level[-1][1], blocks[cand])
             ok = ((max3(u.cmax - u.cmin) <= np.float32(colour_tol / SH_C0))
-                  & (u.amax - u.amin <= np.float32(opacity_tol)) & (u.w > 0))
+                  & (u.amax - u.amin <= np.float32(opacity_tol)) & (u.w > 0)
+                  & texture_ok(*planes, level, TEXTURE_TOL).reshape(-1)[cand])
             ok &= plane_ok_c(np.where(u.w > 0, u.w, 1.0), u.mu[:, 0], u.mu[:, 1], u.mu[:, 2],
                               [u.m2[:, k] for k in range(6)], plane_tol, cos_inc)
             sel = np.flatnonzero(ok)

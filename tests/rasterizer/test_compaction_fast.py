@@ -33,6 +33,43 @@ def _reference_plane_ok(u_w, mu, m2, plane_tol: float, cos_incidence: float) -> 
     return ok & (rng > 0) & (lam <= (plane_tol * rng) ** 2) & (cos_inc >= cos_incidence)
 
 
+def _reference_texture_ok(g: Gaussians, prov: Provenance, alive, tol: float) -> np.ndarray:
+    """(P, h/2, w/2) texture test of the 2x2 blocks, block by block: the luma-weighted mean |pixel - bilinear
+    prediction from the block means| (a neighbour block with a missing pixel counts as the block itself)
+    against ``tol`` x the grid's luma-weighted mean |colour - its mean| over its alive pixels."""
+    n_grids, h, w = prov.views * len(prov.grids), prov.height, prov.width
+    flat = prov.flat_index(len(g))
+    img = np.zeros((prov.full_count, 3), np.float32)
+    img[flat] = g.sh[:, 0, :]
+    img = img.reshape(n_grids, h, w, 3)
+    present = np.zeros(prov.full_count, bool)
+    present[flat[alive]] = True
+    present = present.reshape(n_grids, h, w)
+    h2, w2 = h // 2, w // 2
+    pix = [(a, b) for a in range(2) for b in range(2)]
+    blk = lambda x, a, b: x[:, a: 2 * h2: 2, b: 2 * w2: 2]  # noqa: E731
+    mean = sum(blk(img, a, b) for a, b in pix) / 4
+    whole = np.logical_and.reduce([blk(present, a, b) for a, b in pix])
+    ii, jj = np.meshgrid(np.arange(h2), np.arange(w2), indexing="ij")
+    tex = np.zeros((n_grids, h2, w2), np.float32)
+    for a, b in pix:
+        ni = np.clip(ii + (1 if a else -1), 0, h2 - 1)  # the nearer block row / column
+        nj = np.clip(jj + (1 if b else -1), 0, w2 - 1)
+
+        def along_rows(j):
+            nb = np.where(whole[:, ni, j][..., None], mean[:, ni, j], mean[:, ii, j])
+            return 0.75 * mean[:, ii, j] + 0.25 * nb
+        nb = np.where(whole[:, ii, nj][..., None], along_rows(nj), along_rows(jj))
+        pred = 0.75 * along_rows(jj) + 0.25 * nb
+        tex += np.abs(blk(img, a, b) - pred) @ merge.LUMA / 4
+    ok = np.zeros((n_grids, h2, w2), bool)
+    for p in range(n_grids):
+        px = img[p][present[p]]
+        contrast = np.abs(px - px.mean(axis=0)).mean(axis=0) @ merge.LUMA if px.size else 0.0
+        ok[p] = whole[p] & (tex[p] <= np.float32(tol) * np.float32(contrast))
+    return ok
+
+
 def _reference_level1(g: Gaussians, prov: Provenance, alive, colour_tol=_DEFAULTS.smooth_colour_tol,
                       opacity_tol=_DEFAULTS.smooth_opacity_tol, plane_tol=_DEFAULTS.smooth_plane_tol,
                       max_incidence_deg=_DEFAULTS.smooth_max_incidence_deg):
@@ -54,6 +91,7 @@ def _reference_level1(g: Gaussians, prov: Provenance, alive, colour_tol=_DEFAULT
     c = [dc[members[:, k]] for k in range(4)]
     cmin, cmax = np.minimum.reduce(c), np.maximum.reduce(c)
     ok = maths.max3(cmax - cmin) <= np.float32(colour_tol / SH_C0)
+    ok &= _reference_texture_ok(g, prov, alive, merge.TEXTURE_TOL).reshape(-1)[cand]
     o = [g.opacities[members[:, k]] for k in range(4)]
     amin, amax = np.minimum.reduce(o), np.maximum.reduce(o)
     ok &= amax - amin <= np.float32(opacity_tol)

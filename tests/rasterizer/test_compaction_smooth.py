@@ -158,6 +158,32 @@ def test_textured_blocks_are_not_merged():
     assert stats["merge_smooth"]["added"] == 0
 
 
+def test_texture_test_keeps_grain_merges_ramps_and_is_scale_free():
+    """A faint checker grain (+-0.01) on one half of a wall is kept, the
+    smooth ramp on the other half merges, and doubling the contrast about mid-grey changes no decision."""
+    h = 32
+
+    def wall(contrast):
+        def colour(d):
+            j = np.indices(d.shape[:2])[1]
+            grain = np.where(np.indices(d.shape[:2]).sum(0) % 2 == 0, 0.01, -0.01) * (j >= d.shape[1] // 2)
+            c = (0.5 + 0.15 * d[..., 0] + grain)[..., None] * np.array([1.0, 0.9, 0.8])
+            return 0.5 + contrast * (c - 0.5)
+        return wall_scene(h=h, colour=colour, cos_max=0.8)
+
+    g, prov, _ = wall(1.0)
+    alive = np.ones(len(g), bool)
+    sm = smooth_merge_blocks(g, prov, alive)
+    col = prov.index % prov.width
+    textured = col >= prov.width // 2
+    assert not sm.drop[textured].any()
+    assert sm.drop[~textured].mean() > 0.6  # all but the ragged border
+    g2, prov2, _ = wall(2.0)
+    sm2 = smooth_merge_blocks(g2, prov2, alive)
+    np.testing.assert_array_equal(sm2.drop, sm.drop)
+    np.testing.assert_array_equal(sm2.index, sm.index)
+
+
 def test_depth_steps_are_not_merged():
     # every other column 30% farther: each 2x2 block straddles a step
     step = lambda d, rng: rng * np.where(np.arange(d.shape[1]) % 2 == 0, 1.0, 1.3)[None, :]
