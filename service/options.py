@@ -46,7 +46,8 @@ class CompactionSettings(BaseModel):
                                              description="largest footprint ratio of two duplicates")
     merge_smooth: bool = Field(_COMPACTION.merge_smooth, description="merge smooth 2x2 blocks into one Gaussian")
     smooth_colour_tol: float = Field(_COMPACTION.smooth_colour_tol, ge=0.0, le=1.0,
-                                     description="largest spread of a block's colour channels (0..1)")
+                                     description="a cap on a merged block's colour range per channel (0..1; 1 = none: "
+                                     "blocks merge when their texture is small against the image's contrast)")
     smooth_opacity_tol: float = Field(_COMPACTION.smooth_opacity_tol, ge=0.0, le=1.0,
                                       description="largest spread of a block's opacities")
     smooth_plane_tol: float = Field(_COMPACTION.smooth_plane_tol, ge=0.0, le=1.0,
