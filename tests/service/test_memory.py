@@ -6,6 +6,7 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 CHILD = r"""
@@ -36,3 +37,29 @@ def test_release_memory_returns_freed_heap_pages():
     res = json.loads(out.stdout.strip().splitlines()[-1])
     assert res["ran"] is True
     assert res["before"] - res["after"] > 150 << 20, res  # most of the 300 MB freed in the worker
+
+
+def test_large_uint8_input_reconstructs_as_when_resampled_in_float(model_path):
+    """A panorama at 4x the model's size, sent as uint8 (resampled in row blocks, scaled after), gives the
+    Gaussians of the same image converted to float at full size and resampled (the whole-image path)."""
+    from rasterizer.yin_yang import resize_erp
+    from service.encoder import OnnxEncoder
+
+    enc = OnnxEncoder(model_path)
+    rng = np.random.default_rng(3)
+    h = 4 * enc.height
+    yy, xx = np.mgrid[0:h, 0:2 * h] / h
+    base = np.stack([np.sin(5 * xx + yy), np.cos(3 * yy - 2 * xx), np.sin(7 * xx * yy)], -1)
+    img_a = np.clip(127.5 + 100 * base + rng.normal(0, 20, base.shape), 0, 255).astype(np.uint8)
+    img_b = np.roll(img_a, 16, axis=1)
+    keep = img_a.copy()
+    a, b = np.eye(4), np.eye(4)
+    b[0, 3] = 0.5
+    big = enc.reconstruct(img_a, img_b, a, b)
+    assert np.array_equal(img_a, keep)  # the caller's array is untouched
+    small = [resize_erp(im.astype(np.float32) / np.float32(255.0), enc.height, enc.width) for im in (img_a, img_b)]
+    ref = enc.reconstruct(*small, a, b)
+    assert len(big.gaussians) == len(ref.gaussians)
+    assert np.abs(big.gaussians.sh[:, 0] - ref.gaussians.sh[:, 0]).max() < 1e-3
+    assert np.abs(big.gaussians.means - ref.gaussians.means).max() < 1e-3
+    assert np.abs(big.range_maps - ref.range_maps).max() < 1e-3
