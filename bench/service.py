@@ -3,7 +3,8 @@
     omnisplat-bench service --model MODEL.onnx [--height 512] [--repeats 5] [--json out.json] [--readme README.md]
 
 Starts ``omnisplat serve`` as a subprocess on 127.0.0.1 (fresh temporary store), posts two
-512x1024 panoramas (the dev scene when present, else synthetic ones) ``repeats`` times with
+``height`` x 2 ``height`` panoramas (512 by default; ``--height 2880 --repeats 1`` gives a 5760x2880 pair's peak
+memory; the dev scene when present, else synthetic ones) ``repeats`` times with
 distinct options so each POST really reconstructs, then GETs ``repeats`` renders of each view
 (a 1024-wide ERP and a 1280x720 90-degree perspective, from the dev scene's target pose when
 present) and reads the server's peak RSS (VmHWM) from /proc. Prints a table of the medians with

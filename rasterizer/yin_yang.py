@@ -332,21 +332,31 @@ def _axis_taps(n_in: int, n_out: int, wrap: bool):
 
 
 def resize_erp(img: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Resize an ERP image (H, W[, C]) to (height, width[, C]) float32.
+    """Resize an ERP image (H, W[, C]) of any real dtype to (height, width[, C]) float32 (values unscaled).
 
     Area averaging when shrinking an axis, bilinear when enlarging it;
     longitude wraps, latitude repeats the edge row. Same size: a float32 copy.
+    Works in blocks of output rows, each converted to float32 from its own input rows, so a large
+    uint8 panorama (5760x2880) never exists as a full-size float copy: the extra memory is the
+    output plus about 16 MB.
     """
     a, squeeze = _as_hwc(img)
     if height < 1 or width < 1:
         raise ValueError(f"target size must be positive, got {height}x{width}")
-    a = a.astype(np.float32)
     h, w, c = a.shape
+    height, width = int(height), int(width)
     if h != height:
-        k, wts = _axis_taps(h, int(height), False)
-        a = np.einsum("ot,otwc->owc", wts, a[k])
-    if w != width:
-        k, wts = _axis_taps(w, int(width), True)
-        a = np.einsum("ot,hotc->hoc", wts, a[:, k])
-    a = np.ascontiguousarray(a, dtype=np.float32)
-    return a[:, :, 0] if squeeze else a
+        k_rows, w_rows = _axis_taps(h, height, False)
+    else:
+        k_rows, w_rows = np.arange(h)[:, None], np.ones((h, 1), np.float32)
+    cols = _axis_taps(w, width, True) if w != width else None
+    out = np.empty((height, width, c), np.float32)
+    step = max(1, (16 << 20) // (k_rows.shape[1] * max(w, width) * c * 4))  # output rows per ~16 MB block
+    for o0 in range(0, height, step):
+        o1 = min(o0 + step, height)
+        block = a[k_rows[o0:o1]].astype(np.float32)  # (rows, taps, W, C): only this block's input rows
+        rows = block[:, 0] if h == height else np.einsum("ot,otwc->owc", w_rows[o0:o1], block)
+        if cols is not None:
+            rows = np.einsum("ot,hotc->hoc", cols[1], rows[:, cols[0]])
+        out[o0:o1] = rows
+    return out[:, :, 0] if squeeze else out

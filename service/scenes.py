@@ -82,7 +82,9 @@ def _at_model_size(erp: np.ndarray, height: int) -> np.ndarray:
 
     if erp.shape[0] == height:
         return erp
-    return resize_erp(np.asarray(erp, dtype=np.float32) / np.float32(255.0), height, 2 * height)
+    out = resize_erp(erp, height, 2 * height)  # converts in row blocks: no full-size float copy
+    out /= np.float32(255.0)
+    return out
 
 
 def check_free_space(store: SceneStore, need_bytes: int) -> None:

@@ -99,7 +99,9 @@ def test_any_2to1_size_and_dtype(encoder, m3d):
     small_b = fb.image()[::2, ::2]  # 256 x 512
     r1 = encoder.reconstruct(a8, small_b, fa.c2w, fb.c2w)
     r2 = encoder.reconstruct(a8.astype(np.float32) / 255, small_b, fa.c2w, fb.c2w)
-    np.testing.assert_allclose(r1.range_maps, r2.range_maps, rtol=1e-5)
+    # uint8 is scaled after the resample, float before it: inputs equal to ~1e-7, which the small
+    # model's untrained weights amplify to ~1e-4 in its ranges
+    np.testing.assert_allclose(r1.range_maps, r2.range_maps, rtol=1e-3)
 
 
 def test_near_far_override_and_pruning(encoder, m3d):

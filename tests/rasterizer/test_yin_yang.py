@@ -97,3 +97,38 @@ def test_grid_pixel_is_the_owner_grids_nearest_pixel():
     own = np.where(yang[20000:20000 + n], np.arange(n) >= h * w, np.arange(n) < h * w)
     assert own.mean() > 0.9
     np.testing.assert_array_equal(got[20000:20000 + n][own], np.arange(n)[own])
+
+
+def _dense_resize(img, height, width):
+    """Reference: resize_erp as its two axis operators applied to the whole image at once (float64)."""
+    h, w = img.shape[:2]
+    rows = resize_erp(np.eye(h)[:, :, None], height, h)[:, :, 0].astype(np.float64)  # (height, h)
+    cols = resize_erp(np.eye(w)[:, :, None], w, width)[:, :, 0].astype(np.float64)  # (w, width): row i = response to column i
+    return np.einsum("owc,wx->oxc", np.einsum("oh,hwc->owc", rows, img.astype(np.float64), optimize=True), cols,
+                     optimize=True)
+
+
+@pytest.mark.parametrize("shape,size", [((1440, 2880, 3), (512, 1024)),  # shrink over several row blocks
+                                        ((300, 600, 3), (512, 1024)),  # enlarge
+                                        ((512, 1024, 3), (512, 1024))])  # same size
+def test_resize_erp_blocks_equal_whole_image(shape, size):
+    rng = np.random.default_rng(7)
+    img = rng.integers(0, 256, shape, dtype=np.uint8)
+    out = resize_erp(img, *size)
+    assert out.dtype == np.float32 and out.shape == (*size, 3)
+    assert np.abs(out - _dense_resize(img, *size)).max() < 1e-3  # float32 rounding of values up to 255
+    # uint8 and its float copy resample alike (uint8 -> float32 is exact)
+    assert np.array_equal(out, resize_erp(img.astype(np.float32), *size))
+
+
+def test_resize_erp_never_holds_a_full_size_float_copy():
+    import tracemalloc
+
+    img = np.random.default_rng(8).integers(0, 256, (1440, 2880, 3), dtype=np.uint8)
+    tracemalloc.start()
+    try:
+        resize_erp(img, 512, 1024)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < img.size * 4  # less than one float32 copy of the input
