@@ -53,6 +53,8 @@ from .geometry import YIN_LAT_MAX, YIN_LON_MAX, grid_directions, rigid_inverse
 #: :mod:`export` (which writes the graph) and :mod:`service.encoder` (which feeds it).
 INPUT_NAMES = ("erp_a", "erp_b", "warp_grids", "rel_rt", "inv_depths", "c2w", "cam_quats")
 OUTPUT_NAMES = ("means", "scales", "quats", "opacities", "sh_dc", "range_maps", "confidence", "matches")
+#: Dimensions of ``warp_grids`` (table above); a model built for another layout cannot take these inputs.
+WARP_GRIDS_RANK = 6
 
 #: Columns of circular padding added on each side of an ERP before sampling.
 ERP_PAD = 2

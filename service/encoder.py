@@ -27,6 +27,7 @@ from rasterizer.sweep import (
     MIN_BASELINE,
     NEAR_PER_BASELINE,
     OUTPUT_NAMES,
+    WARP_GRIDS_RANK,
     SweepRangeError,
     baseline,
     check_scene_scale,
@@ -136,6 +137,10 @@ class OnnxEncoder:
         self.output_names = [n for n in OUTPUT_NAMES if n in have]  # older models lack ``matches``
         if names != INPUT_NAMES:
             raise ValueError(f"{self.path} is not an omnisplat encoder (inputs {names})")
+        rank = len(self.session.get_inputs()[INPUT_NAMES.index("warp_grids")].shape)
+        if rank != WARP_GRIDS_RANK:
+            raise ValueError(f"{self.path} was built by an older exporter (its warp_grids input has {rank} dimensions, "
+                             f"this runtime feeds {WARP_GRIDS_RANK}): rebuild it with `omnisplat export`")
         self._meta = {**props, "sha256": sha256_file(self.path), "path": str(self.path), "threads": int(threads)}
         self.height = int(props["input_height"])
         self.width = int(props["input_width"])

@@ -119,7 +119,9 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     timings["resample"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     build = build_scene(runtime.encoder, erp_a, erp_b, c2w_a, c2w_b, pipeline_options)
-    timings.update(build.timings)
+    stages = dict(build.timings)
+    timings["resample"] += stages.pop("resample", 0.0)  # the encoder's own, after the one above
+    timings.update(stages)
     timings.setdefault("reconstruct", time.perf_counter() - t0)
     gaussians = build.gaussians
     if len(gaussians) == 0:
