@@ -79,7 +79,7 @@ class Settings(BaseSettings):
     min_image_height: int = Field(32, ge=2, description="smallest ERP height accepted")
     max_render_width: int = Field(4096, ge=8)
     max_render_pixels: int = Field(4096 * 2048, ge=64)
-    max_render_cost: float = Field(2048 * 1024 * 1.0e6, gt=0, description="output pixels x (scene Gaussians + "
+    max_render_cost: float = Field(4096 * 2048 * 1.2e6, gt=0, description="output pixels x (scene Gaussians + "
                                    "150k per pixel for the image's buffers) one render may cost "
                                    "(service.limits.render_cost); 413 beyond")
     heavy_render_cost: float = Field(1024 * 1024 * 1.0e6, gt=0, description="renders above this pixel-Gaussian "

@@ -32,8 +32,8 @@ T = TypeVar("T")
 #: What one output pixel weighs in :func:`render_cost`, in Gaussians. The renderer's memory is
 #: bounded by the image and a depth chunk, not by pixels x Gaussians (rasterizer.front_to_back),
 #: but the image's own buffers and maps cost at any scene size: a 4096-wide ERP of one Gaussian
-#: took 12 CPU s and 2.7 GB peak (the Yin-Yang merge maps), about what 130k Gaussians cost per
-#: pixel on the m3d scene (10.8 CPU s for a 2048-wide ERP of 469k Gaussians).
+#: takes about 9 CPU s and 0.55 GB (the Yin-Yang merge's taps, made per row block), about what
+#: 150k Gaussians cost per pixel on the m3d scene (10.8 CPU s for a 2048-wide ERP of 469k Gaussians).
 RENDER_PIXEL_GAUSSIANS = 150_000
 
 
