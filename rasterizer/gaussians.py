@@ -170,17 +170,24 @@ class Gaussians:
 
     @staticmethod
     def concatenate(parts: "list[Gaussians]") -> "Gaussians":
+        """All ``parts`` in order; SH bands a part lacks are zero. Each field is written once into its output."""
         if not parts:
             return Gaussians.empty()
         k = max(p.sh.shape[1] for p in parts)
-        shs = [np.pad(p.sh, ((0, 0), (0, k - p.sh.shape[1]), (0, 0))) for p in parts]
-        return Gaussians(
-            np.concatenate([p.means for p in parts]),
-            np.concatenate([p.scales for p in parts]),
-            np.concatenate([p.quats for p in parts]),
-            np.concatenate([p.opacities for p in parts]),
-            np.concatenate(shs),
-        )
+        n = sum(len(p) for p in parts)
+        out = {name: np.empty((n, *getattr(parts[0], name).shape[1:]), np.float32)
+               for name in ("means", "scales", "quats", "opacities")}
+        sh = np.empty((n, k, 3), np.float32)
+        start = 0
+        for p in parts:  # a loop over the parts (a few), not over Gaussians
+            rows = slice(start, start + len(p))
+            for name, arr in out.items():
+                arr[rows] = getattr(p, name)
+            kp = p.sh.shape[1]
+            sh[rows, :kp] = p.sh
+            sh[rows, kp:] = 0.0
+            start = rows.stop
+        return Gaussians(out["means"], out["scales"], out["quats"], out["opacities"], sh)
 
     def check_finite(self) -> None:
         """Raise :class:`GaussiansError` naming the first field with NaN/Inf or bad range."""

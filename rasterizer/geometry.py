@@ -133,8 +133,14 @@ def project_to_grid(kind: GridKind, p: np.ndarray, height: int, width: int) -> t
     may fall outside [-0.5, size - 0.5]: the caller decides what is in view
     (see :func:`in_grid_domain`).
     """
-    q = to_grid_frame(kind, p)
-    lat, lon = lat_lon_from_direction(q)
+    lat, lon = lat_lon_from_direction(to_grid_frame(kind, p))
+    return grid_coords_from_lat_lon(kind, lat, lon, height, width)
+
+
+def grid_coords_from_lat_lon(kind: GridKind, lat: np.ndarray, lon: np.ndarray, height: int,
+                             width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous pixel coordinates (col, row) of latitude/longitude (radians) in the grid's own frame
+    (:func:`to_grid_frame`): the second half of :func:`project_to_grid`, for callers that hold them already."""
     if kind == "erp":
         col = (lon + np.pi) / (2 * np.pi) * width - 0.5
         row = (np.pi / 2 - lat) / np.pi * height - 0.5

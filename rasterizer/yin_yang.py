@@ -155,9 +155,10 @@ def _blend_of_margins(margin_yin: np.ndarray, margin_yang: np.ndarray, feather: 
     return t * t * (3.0 - 2.0 * t)
 
 
-def _owned_by_yang(p: np.ndarray, q_yang: np.ndarray) -> np.ndarray:
+def _owned_by_yang(p: np.ndarray, q_yang: np.ndarray):
     """(...) bool: :func:`blend_weight_yin` (no feather) of camera-frame points ``p`` (..., 3) is below 0.5;
-    ``q_yang`` is ``p`` in Yang's grid frame (``geometry.to_grid_frame("yang", p)``).
+    ``q_yang`` is ``p`` in Yang's grid frame (``geometry.to_grid_frame("yang", p)``). Also returns the
+    (lat, lon) of ``p`` and of ``q_yang`` that it took.
 
     Outside the overlap the weight is 0 or 1 without the blend formula: where only Yang's margin is
     positive it is 0 (Yang), elsewhere outside it is 1 or 0.5 (Yin). A margin is positive exactly where
@@ -174,7 +175,7 @@ def _owned_by_yang(p: np.ndarray, q_yang: np.ndarray) -> np.ndarray:
     if both.size:
         margins = [_lat_lon_margin(lat.reshape(-1)[both], lon.reshape(-1)[both]) for lat, lon in lat_lon]
         yang.reshape(-1)[both] = _blend_of_margins(margins[0], margins[1], 0.0) < 0.5
-    return yang
+    return yang, lat_lon
 
 
 def grid_pixel(p: np.ndarray, grids: tuple[str, ...], height: int, width: int) -> np.ndarray:
@@ -187,12 +188,13 @@ def grid_pixel(p: np.ndarray, grids: tuple[str, ...], height: int, width: int) -
         g = np.zeros(p.shape[:-1], dtype=np.int64)
         col = np.mod(np.rint(col), width)
     else:
-        # the blend weight from each grid frame's lat/lon, then one projection of the owner's grid-frame
-        # point: Yang's projection is Yin's of its grid frame (geometry.project_to_grid)
+        # the blend weight from each grid frame's lat/lon, then the owner's pixel from the same lat/lon:
+        # Yang's projection is Yin's of its grid frame (geometry.project_to_grid)
         q_yang = geo.to_grid_frame("yang", p)
-        yang = _owned_by_yang(p, q_yang)
+        yang, ((lat_yin, lon_yin), (lat_yang, lon_yang)) = _owned_by_yang(p, q_yang)
         g = yang.astype(np.int64)
-        col, row = geo.project_to_grid("yin", np.where(yang[..., None], q_yang, p), height, width)
+        col, row = geo.grid_coords_from_lat_lon("yin", np.where(yang, lat_yang, lat_yin), np.where(yang, lon_yang, lon_yin),
+                                                height, width)
         col = np.clip(np.rint(col), 0, width - 1)
     row = np.clip(np.rint(row), 0, height - 1)
     return (g * height + row.astype(np.int64)) * width + col.astype(np.int64)

@@ -62,3 +62,24 @@ def test_container_validates_shapes_and_values():
         g.with_(means=np.array([[np.nan, 0, 0], [0, 0, 0]])).check_finite()
     both = Gaussians.concatenate([g, g.subset(np.array([True, False]))])
     assert len(both) == 3
+
+
+def test_concatenate_keeps_order_and_pads_missing_sh_bands_with_zeros():
+    rng = np.random.default_rng(3)
+
+    def random_gaussians(n, k):
+        return Gaussians(rng.normal(size=(n, 3)), rng.random((n, 3)), rng.normal(size=(n, 4)), rng.random(n),
+                         rng.normal(size=(n, k, 3)))
+
+    parts = [random_gaussians(5, 4), random_gaussians(0, 1), random_gaussians(3, 1), random_gaussians(2, 9)]
+    both = Gaussians.concatenate(parts)
+    assert len(both) == 10 and both.sh.shape == (10, 9, 3)
+    for name in ("means", "scales", "quats", "opacities"):
+        np.testing.assert_array_equal(getattr(both, name), np.concatenate([getattr(p, name) for p in parts]))
+    start = 0
+    for p in parts:
+        k = p.sh.shape[1]
+        np.testing.assert_array_equal(both.sh[start:start + len(p), :k], p.sh)
+        assert not both.sh[start:start + len(p), k:].any()
+        start += len(p)
+    assert len(Gaussians.concatenate([])) == 0
