@@ -19,6 +19,7 @@ Matcher = Literal["window", "descriptor"]
 Readout = Literal["wta", "softargmin"]
 Fill = Literal["pushpull", "guided", "planar", "planar_guided"]
 Upsample = Literal["guided", "bilinear"]
+CandidateSpacing = Literal["inverse", "parallax"]
 
 #: Named settings on the error/run-time curve (``omnisplat-bench depth``); docs/design.md.
 PRESETS: dict[str, dict] = {
@@ -121,8 +122,11 @@ class EncoderConfig:
     # default runtime sweep range in units of the baseline (rasterizer.sweep.default_near_far)
     near_per_baseline: float = NEAR_PER_BASELINE
     far_per_baseline: float = FAR_PER_BASELINE
+    # the depth candidates' law (rasterizer.sweep.inverse_depth_candidates): uniform in inverse range, or
+    # uniform in the parallax angle atan(baseline / range); written to the model's metadata (docs/design.md)
+    candidate_spacing: CandidateSpacing = "inverse"
     name: str = "omnisplat-trainingfree"
-    version: str = "0.15.0"
+    version: str = "0.16.0"
 
     def __post_init__(self) -> None:
         if self.width != 2 * self.height:
@@ -130,7 +134,8 @@ class EncoderConfig:
         full_h, full_w = self.full_size
         if full_h % self.downscale or full_w % self.downscale:
             raise ValueError(f"grid size {full_h}x{full_w} is not divisible by downscale={self.downscale}")
-        for name, choices in (("matcher", Matcher), ("readout", Readout), ("fill", Fill), ("upsample", Upsample)):
+        for name, choices in (("matcher", Matcher), ("readout", Readout), ("fill", Fill), ("upsample", Upsample),
+                              ("candidate_spacing", CandidateSpacing)):
             if getattr(self, name) not in get_args(choices):
                 raise ValueError(f"{name} must be one of {get_args(choices)}, got {getattr(self, name)!r}")
         if not 0 < self.scale_factor_confident <= self.scale_factor:

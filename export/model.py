@@ -72,6 +72,7 @@ class OmniSplatEncoder(nn.Module):
     def __init__(self, cfg: EncoderConfig) -> None:
         super().__init__()
         self.cfg = cfg
+        self.parallax = cfg.candidate_spacing == "parallax"  # the candidates' law (export.readout.plane_step)
         wrap = cfg.erp_encoder
         self.num_grids = len(cfg.grids)
         self.full_h, self.full_w = cfg.full_size
@@ -146,7 +147,8 @@ class OmniSplatEncoder(nn.Module):
         hs, ws = source.shape[-2:]
         source = source.unsqueeze(1).expand(2, g_count, 1, hs, ws).reshape(2 * g_count, 1, hs, ws)
         seen = sample_maps(source, loc, self.cfg.erp_encoder).reshape(2, g_count, h, w)
-        step = plane_step(expected, inv_depths, b)  # one candidate step at the source's inverse range
+        # one candidate step at the source's inverse range
+        step = plane_step(expected, inv_depths, b, parallax=self.parallax)
         ok = ((seen - expected).abs() <= self.cfg.lr_tol_planes * step).to(k.dtype)
         return ok.reshape(2, g_count, 1, h, w)
 
@@ -202,12 +204,13 @@ class OmniSplatEncoder(nn.Module):
         size = (self.fine_h, self.fine_w)
         grey = F.avg_pool2d(grey_full, cfg.fine_downscale) if cfg.fine_downscale > 1 else grey_full
         seed = guided_upsample(grey_low, inv, grey, cfg.upsample_radius, cfg.upsample_eps, wrap).clamp(min=lo, max=hi)
-        step = plane_step(seed, inv_depths, b)  # (2G, 1, h, w) one coarse candidate step at each pixel
+        # (2G, 1, h, w) one coarse candidate step at each pixel
+        step = plane_step(seed, inv_depths, b, parallax=self.parallax)
         refined, _, conf_fill = self.fine(seed, grey, self.fine_rays, rel_rt, step * cfg.fine_step, lo, hi)
         if not cfg.fine_fill:
             return refined, grey
         ok = self.fine.lr_consistency(refined, self.fine_rays, rel_rt,
-                                      lambda e: plane_step(e, inv_depths, b) * cfg.fine_lr_tol)
+                                      lambda e: plane_step(e, inv_depths, b, parallax=self.parallax) * cfg.fine_lr_tol)
         obs = F.interpolate(obs.reshape(2 * g_count, 1, *obs.shape[-2:]), size=size, mode="bilinear",
                             align_corners=False)
         guide = self.fine_plane_guide.unsqueeze(0).expand(2, g_count, 3, *size).reshape(2 * g_count, 3, *size)
@@ -294,7 +297,7 @@ class OmniSplatEncoder(nn.Module):
         means, scales, quats, opac, sh_dc = self.head(rng, conf_full, full, c2w, cam_quats, opaque)
 
         def tol(expected):  # lr_tol_planes candidate steps at the other view's inverse range
-            return self.cfg.lr_tol_planes * plane_step(expected, inv_depths, b)
+            return self.cfg.lr_tol_planes * plane_step(expected, inv_depths, b, parallax=self.parallax)
 
         matches = self.matches(rng, conf_full, self.head.rays, rel_rt, tol)
         return means, scales, quats, opac, sh_dc, rng, conf_full, matches

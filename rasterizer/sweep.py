@@ -24,7 +24,9 @@ name            shape                   meaning
 ``rel_rt``      (2, 3, 4)               [R | t] target camera -> source camera.
 ``inv_depths``  (D,)                    candidate inverse ranges (1/m),
                                         ascending: 1/far ... 1/near, uniform
-                                        in the parallax angle atan(b / r)
+                                        in inverse range or in the parallax
+                                        angle atan(b / r), as the model's
+                                        ``candidate_spacing`` says
                                         (:func:`inverse_depth_candidates`).
 ``c2w``         (2, 4, 4)               camera-to-world of A and B (OpenCV).
 ``cam_quats``   (2, 4)                  (w, x, y, z) of the c2w rotations.
@@ -113,7 +115,7 @@ def baseline(c2w_a: np.ndarray, c2w_b: np.ndarray) -> float:
 
 #: Default sweep range in units of the baseline b: near = NEAR_PER_BASELINE * b,
 #: far = FAR_PER_BASELINE * b (see :func:`default_near_far`).
-NEAR_PER_BASELINE = 0.05
+NEAR_PER_BASELINE = 0.3
 FAR_PER_BASELINE = 20.0
 
 
@@ -123,13 +125,10 @@ def default_near_far(c2w_a: np.ndarray, c2w_b: np.ndarray, *, near_ratio: float 
 
     Pure proportionality makes the encoder equivariant to a global scale of the scene (poses and
     geometry scaled together give the same planes in units of b, hence the same warp grids and the same
-    images). The candidates are uniform in the parallax angle atan(b / r)
-    (:func:`inverse_depth_candidates`), so each of D planes moves a point by about
-    (atan(1 / near_ratio) - atan(1 / far_ratio)) / (D - 1) radians in the other view whatever its range,
-    and a near plane far inside the room costs almost no far resolution: 0.05 b puts it at 0.2 m for the
-    4.25 m tripod pair of zind_room09 and 0.04-0.1 m for hand-held photos 0.8-1.9 m apart (real rooms
-    have walls 0.4 m and ceilings 0.9 m from the camera, whatever the baseline), at 1.34 degrees per
-    plane for 64 planes (0.3 b with uniform inverse range: 3 degrees per plane at the far end).
+    images). The default model's candidates are uniform in inverse range from 0.3 b
+    (:func:`inverse_depth_candidates`): a nearer near plane or candidates uniform in the parallax angle
+    spread the 64 planes more evenly over the far room but leave thin near objects (lamps, chair and table
+    legs) between planes, and selections on them lose half their IoU (docs/design.md).
     """
     if not (0 < near_ratio < far_ratio) or not np.isfinite(far_ratio):
         raise ValueError(f"need 0 < near_ratio < far_ratio < inf, got {near_ratio}, {far_ratio}")
