@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import direction_from_lat_lon, lat_lon_from_direction
+from .camera import sample_erp
+from .geometry import direction_from_lat_lon, project_to_grid
 
 
 def _box_sum(img: np.ndarray, r: int) -> np.ndarray:
@@ -44,25 +45,6 @@ def _zncc(a: np.ndarray, a_stats: tuple[np.ndarray, np.ndarray], b: np.ndarray, 
     return cov / np.sqrt((va[None] + eps) * (vb + eps))
 
 
-def _erp_pixel(p: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Continuous (col, row) of directions ``p`` (..., 3) in an ERP of ``height`` rows (pixel centre c at c)."""
-    lat, lon = lat_lon_from_direction(p)
-    return (lon + np.pi) * (height / np.pi) - 0.5, (np.pi / 2 - lat) * (height / np.pi) - 0.5
-
-
-def _sample(img: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of a one-channel ERP (H, W) at continuous pixel coordinates; columns wrap, rows clamp."""
-    h, w = img.shape
-    c0, r0 = np.floor(col), np.floor(row)
-    fc, fr = (col - c0).astype(np.float32), (row - r0).astype(np.float32)
-    c0, r0 = c0.astype(np.int64) % w, np.clip(r0.astype(np.int64), 0, h - 1)
-    c1, r1 = (c0 + 1) % w, np.minimum(r0 + 1, h - 1)
-    flat = img.ravel()
-    top = flat[r0 * w + c0] * (1 - fc) + flat[r0 * w + c1] * fc
-    bottom = flat[r1 * w + c0] * (1 - fc) + flat[r1 * w + c1] * fc
-    return top * (1 - fr) + bottom * fr
-
-
 def plane_zncc(ref: np.ndarray, other: np.ndarray, level_ref: np.ndarray, level_other: np.ndarray, R: np.ndarray,
                t: np.ndarray, normal: np.ndarray, offsets: np.ndarray, *, band_deg: tuple[float, float] = (20.0, 80.0),
                nadir_deg: float = 20.0, radius: int = 2, min_std: float = 0.02, chunk: int = 16) -> np.ndarray:
@@ -83,7 +65,7 @@ def plane_zncc(ref: np.ndarray, other: np.ndarray, level_ref: np.ndarray, level_
     dirs = direction_from_lat_lon(lat[rows, None], lon[None, :])  # (h, w, 3), levelled frame
     cos_n = dirs @ np.asarray(normal, np.float64)
     ang = np.arccos(np.clip(cos_n, -1.0, 1.0))
-    a = _sample(ref.astype(np.float32), *_erp_pixel(dirs @ level_ref, height))
+    a = sample_erp(ref.astype(np.float32)[..., None], *project_to_grid("erp", dirs @ level_ref, height, 2 * height))[..., 0]
     stats = _window_stats(a, radius)
     keep = (ang >= lo) & (ang <= hi) & (stats[1] >= min_std ** 2)
     out = np.full((len(offsets),) + a.shape, np.nan, np.float32)
@@ -94,7 +76,8 @@ def plane_zncc(ref: np.ndarray, other: np.ndarray, level_ref: np.ndarray, level_
     for s in range(0, len(offsets), chunk):
         off = np.asarray(offsets[s:s + chunk], np.float32)
         xo = (ray[None] * off[:, None, None, None] - t32) @ R32  # R^T (X - t): other's levelled frame
-        warped = _sample(other, *_erp_pixel(xo @ level_other.astype(np.float32), height))
+        warped = sample_erp(other[..., None], *project_to_grid("erp", xo @ level_other.astype(np.float32), height,
+                                                              2 * height))[..., 0]
         z = _zncc(a, stats, warped, radius, 1e-4)
         ok = keep[None] & (xo[..., 1] < cos_nadir * np.linalg.norm(xo, axis=-1)) & (off[:, None, None] > 0)
         out[s:s + chunk] = np.where(ok, z, np.nan)
