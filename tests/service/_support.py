@@ -10,6 +10,7 @@ import json
 import socket
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
@@ -104,6 +105,21 @@ def post_scene(client: httpx.Client, a: bytes, b: bytes, poses: str = POSES, opt
     if options is not None:
         data["options"] = options
     return client.post("/v1/scenes", files={"image_a": (names[0], a), "image_b": (names[1], b)}, data=data)
+
+
+def new_scene(client: httpx.Client, seed: int, shift: int) -> str:
+    """Id of a scene POSTed from two random panoramas (:func:`panorama` ``seed``, the second shifted by ``shift``)."""
+    r = post_scene(client, panorama(seed=seed), panorama(seed=seed, shift=shift))
+    assert r.status_code == 201, r.text
+    return r.json()["id"]
+
+
+@contextmanager
+def edit_server(model: Path, store: Path):
+    """A live server for selection and edit tests (renders up to 512 x 256), ``server.store`` its store folder."""
+    with LiveServer(make_settings(model, store, max_render_width=512, max_render_pixels=512 * 256)) as server:
+        server.store = store
+        yield server
 
 
 def stored_scene_count(store: Path) -> int:

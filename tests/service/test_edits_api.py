@@ -8,7 +8,7 @@ import pytest
 from PIL import Image
 
 from rasterizer.scene_folder import load_scene
-from tests.service._support import LiveServer, make_settings, post_scene
+from tests.service._support import edit_server, post_scene
 
 IDENTITY = ",".join(str(float(x)) for x in np.eye(4).ravel())
 
@@ -21,9 +21,7 @@ def _png(img) -> bytes:
 
 @pytest.fixture(scope="module")
 def live(model_path, tmp_path_factory):
-    store = tmp_path_factory.mktemp("edit-store")
-    with LiveServer(make_settings(model_path, store, max_render_width=512, max_render_pixels=512 * 256)) as server:
-        server.store = store
+    with edit_server(model_path, tmp_path_factory.mktemp("edit-store")) as server:
         yield server
 
 

@@ -30,6 +30,7 @@ from tests.service._support import (
     POSES,
     LiveServer,
     make_settings,
+    new_scene,
     panorama,
     post_scene,
 )
@@ -48,9 +49,7 @@ def guarded(model_path, tmp_path_factory):
 @pytest.fixture(scope="module")
 def scene(guarded) -> str:
     with guarded.client() as c:
-        r = post_scene(c, panorama(seed=41), panorama(seed=41, shift=4))
-    assert r.status_code == 201, r.text
-    return r.json()["id"]
+        return new_scene(c, seed=41, shift=4)
 
 
 def _connect(url: str) -> socket.socket:

@@ -24,7 +24,7 @@ from service.config import Settings
 from service.errors import install_error_handlers
 from service.limits import BodySizeLimit
 from service.server import server_config
-from tests.service._support import POSES, LiveServer, make_settings, panorama, post_scene
+from tests.service._support import POSES, LiveServer, make_settings, new_scene, panorama, post_scene
 
 
 class TinyServer:
@@ -225,9 +225,7 @@ def slots(model_path, tmp_path_factory):
 @pytest.fixture(scope="module")
 def slots_scene(slots) -> str:
     with slots.client() as c:
-        r = post_scene(c, panorama(seed=141), panorama(seed=141, shift=4))
-    assert r.status_code == 201, r.text
-    return r.json()["id"]
+        return new_scene(c, seed=141, shift=4)
 
 
 def _slow_upload(url: str, path: str) -> socket.socket:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from ._support import IDENTITY, POSES, LiveServer, make_settings, panorama, pose, post_scene, stored_scene_count
+from ._support import IDENTITY, POSES, LiveServer, make_settings, new_scene, panorama, pose, post_scene, stored_scene_count
 
 
 @pytest.fixture(scope="module")
@@ -34,9 +34,7 @@ def client(live):
 
 @pytest.fixture(scope="module")
 def scene_id(client) -> str:
-    r = post_scene(client, panorama(seed=1), panorama(seed=1, shift=5))
-    assert r.status_code == 201, r.text
-    return r.json()["id"]
+    return new_scene(client, seed=1, shift=5)
 
 
 # -- round trip ------------------------------------------------------------------------------------

@@ -6,14 +6,12 @@ import numpy as np
 import pytest
 
 from service.store import SceneStore
-from tests.service._support import LiveServer, make_settings, panorama, post_scene
+from tests.service._support import edit_server, new_scene
 
 
 @pytest.fixture(scope="module")
 def live(model_path, tmp_path_factory):
-    store = tmp_path_factory.mktemp("store-edits")
-    with LiveServer(make_settings(model_path, store, max_render_width=512, max_render_pixels=512 * 256)) as server:
-        server.store = store
+    with edit_server(model_path, tmp_path_factory.mktemp("store-edits")) as server:
         yield server
 
 
@@ -24,9 +22,7 @@ def client(live):
 
 
 def _scene(client, seed: int) -> str:
-    r = post_scene(client, panorama(seed=seed), panorama(seed=seed, shift=7))
-    assert r.status_code == 201, r.text
-    return r.json()["id"]
+    return new_scene(client, seed, shift=7)
 
 
 def _selection(client, scene_id: str) -> str:
