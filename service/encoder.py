@@ -94,6 +94,24 @@ def _as_image(img, name: str) -> np.ndarray:
     return arr
 
 
+def unit_image_at_size(img: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(height, width, 3) float32 in [0, 1] of an (H, W, 3) uint8 or float-in-[0, 1] panorama.
+
+    Resampled first (:func:`rasterizer.yin_yang.resize_erp` converts in row blocks, so a large upload
+    never exists as a full-size float copy), then scaled (uint8) or clipped (float); the caller's array
+    is never modified.
+    """
+    if img.shape[:2] != (height, width):
+        out = resize_erp(img, height, width)
+    else:
+        out = img.astype(np.float32)
+    if img.dtype == np.uint8:
+        out /= np.float32(255.0)
+    else:
+        np.clip(out, 0.0, 1.0, out=out)
+    return out
+
+
 #: cameras whose midpoint lies farther than this many baselines from the origin are moved
 #: next to it for the float32 graph (dev scenes, near the origin, are untouched)
 RECENTRE_BEYOND_BASELINES = 10.0
@@ -156,19 +174,9 @@ class OnnxEncoder:
         self.parallax_candidates = props.get("candidate_spacing") == "parallax"
 
     def _to_chw(self, img: np.ndarray) -> np.ndarray:
-        """(H, W, 3) uint8 or float in [0, 1] (:func:`_as_image`) -> (1, 3, height, width) float32 in [0, 1].
-
-        Resampled first (:func:`~rasterizer.yin_yang.resize_erp` converts in row blocks), then scaled
-        (uint8) or clipped (float) at the model's size; the caller's array is never modified.
-        """
-        if img.shape[:2] != (self.height, self.width):
-            out = resize_erp(img, self.height, self.width)
-        else:
-            out = img.astype(np.float32)
-        if img.dtype == np.uint8:
-            out /= np.float32(255.0)
-        else:
-            np.clip(out, 0.0, 1.0, out=out)
+        """(H, W, 3) uint8 or float in [0, 1] (:func:`_as_image`) -> (1, 3, height, width) float32 in [0, 1]
+        (:func:`unit_image_at_size`)."""
+        out = unit_image_at_size(img, self.height, self.width)
         return np.ascontiguousarray(out.transpose(2, 0, 1))[None]
 
     @property

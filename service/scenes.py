@@ -21,6 +21,7 @@ from rasterizer.render import to_uint8
 from rasterizer.rig import NoRigError, overlay_rig, require_rig_layer
 
 from .edits import edit_artifacts
+from .encoder import unit_image_at_size
 from .errors import BadInput, PayloadTooLarge, ServiceError, StoreUnavailable
 from .images import check_header, decode_rgb, encode
 from .inputs import Poses, RenderQuery, check_sweep_range
@@ -78,13 +79,9 @@ def precheck_uploads(image_a: bytes, image_b: bytes, limits: UploadLimits) -> No
 
 def _at_model_size(erp: np.ndarray, height: int) -> np.ndarray:
     """The panorama at the encoder's input size: fed to the encoder and kept for refinement."""
-    from rasterizer.yin_yang import resize_erp
-
     if erp.shape[0] == height:
         return erp
-    out = resize_erp(erp, height, 2 * height)  # converts in row blocks: no full-size float copy
-    out /= np.float32(255.0)
-    return out
+    return unit_image_at_size(erp, height, 2 * height)
 
 
 def check_free_space(store: SceneStore, need_bytes: int) -> None:
