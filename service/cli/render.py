@@ -60,17 +60,16 @@ def cmd_render(args: argparse.Namespace) -> int:
     from rasterizer.render import render, to_uint8
 
     from ..images import encode
+    from ..inputs import RenderQuery
 
     try:
         gaussians = read_ply(args.ply)
     except (OSError, ValueError) as exc:
         raise CliError(f"cannot read {args.ply}: {exc}") from None
     fmt = "jpeg" if Path(args.output).suffix.lower() in (".jpg", ".jpeg") else "png"
-    # as the API renders: plain compositing unless --compositing va
-    kwargs = {"projection": args.projection, "width": args.width, "normalize": args.compositing == "va",
-              "resolution": "scene"}
-    if args.projection == "perspective":
-        kwargs.update(height=args.height, fov_deg=args.fov_deg)
+    # as the API renders (the same query's arguments): plain compositing unless --compositing va
+    query = RenderQuery(c2w, args.projection, args.width, args.height, args.fov_deg, fmt, args.compositing)
+    kwargs = query.render_kwargs(normalize=args.compositing == "va")
     layer = _rig_layer_from_args(args)
     say(f"rendering {len(gaussians)} Gaussians, {args.projection} {args.width} px wide")
     t0 = time.perf_counter()
