@@ -77,6 +77,16 @@ def score(pred: np.ndarray, target: np.ndarray) -> dict:
     return {**metrics.real_capture_scores(pred, target), "ssim": metrics.ssim(pred, target)}
 
 
+#: Bin edges of the per-split opacity histogram: unconfident surfels sit at 0.3-0.4, confident ones near 0.99.
+OPACITY_BINS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+
+
+def opacity_shares(opacities: np.ndarray) -> list[float]:
+    """Share of ``opacities`` (N,) in each :data:`OPACITY_BINS` bin (the last one includes 1.0); sums to 1."""
+    counts, _ = np.histogram(np.asarray(opacities, dtype=np.float64), bins=OPACITY_BINS)
+    return (counts / max(int(counts.sum()), 1)).tolist()
+
+
 def copy_floor(refs: list[tuple[np.ndarray, np.ndarray]], c2w_target: np.ndarray, target: np.ndarray) -> dict:
     """The copy floor of conventions section 6 (nearest reference turned to the target, rotation only),
     scored as :func:`bench.metrics.real_capture_scores`."""
@@ -245,6 +255,9 @@ def run(scene_dirs: list[Path], settings: list[Setting], *, models_dir: Path, th
                 model_info = {}
                 if setting.kind != "copy":
                     g, stages = runner.gaussians(setting, refs, depths)
+                surfels = None
+                if g is not None:  # the environment shell (the last info["shell"] of an API scene) is a backdrop
+                    surfels = opacity_shares(g.opacities[:len(g) - int(runner.last_info.get("shell", 0))])
                 if setting.kind == "model":
                     enc = runner.encoder(setting)
                     model_info = {"model_file": enc.path.name, "model_sha256": enc.metadata.get("sha256", "")[:16]}
@@ -281,6 +294,7 @@ def run(scene_dirs: list[Path], settings: list[Setting], *, models_dir: Path, th
                         rec["psnr_alpha_normalised"] = metrics.psnr(np.clip(alpha_normalised(pred, alpha), 0, 1), gt)
                     if g is not None:
                         rec["num_gaussians"] = len(g)
+                        rec["opacity_shares"] = surfels
                     rec.update(model_info)
                     records.append(rec)
                     _log(f"{setting.name} | {group} {name}: above nadir {rec['psnr_above_nadir']:.2f} dB "
@@ -319,6 +333,23 @@ def targets_markdown(records: list[dict]) -> str:
         lines.append(f"| {r['setting']} | {r['scene']} | {r['target']} | {r['psnr_above_nadir']:.2f} | {r['psnr']:.2f} "
                      f"| {r['ws_psnr']:.2f} | {r['sharpness']:.2f} | {r['gmsd']:.3f} | {floor:.2f} "
                      f"| {r['psnr_above_nadir'] - floor:+.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def opacity_markdown(records: list[dict]) -> str:
+    """Per split (first target's record), the share of its surfels (environment shell left out) per opacity bin."""
+    edges = OPACITY_BINS
+    head = " | ".join(f"{a:.1f}-{b:.1f}" for a, b in zip(edges[:-1], edges[1:]))
+    lines = ["Opacity of each split's surfels (the environment shell left out): share per bin, in percent.", "",
+             f"| setting | scene | references | {head} |", "|---|---|---|" + "---|" * (len(edges) - 1)]
+    seen = set()
+    for r in records:
+        key = (r["setting"], r["scene"], tuple(r["references"]))
+        if "opacity_shares" not in r or key in seen:
+            continue
+        seen.add(key)
+        cells = " | ".join(f"{100 * x:.0f}" for x in r["opacity_shares"])
+        lines.append(f"| {r['setting']} | {r['scene']} | {'+'.join(r['references'])} | {cells} |")
     return "\n".join(lines) + "\n"
 
 
@@ -417,6 +448,7 @@ def main(argv: list[str] | None = None) -> int:
     md = markdown(summary, line, notes) + f"\n![PSNR against seconds]({args.name}_psnr_vs_seconds.png)\n"
     md += "".join("\n" + t for t in ablation_tables(settings, summary))
     md += "\n" + targets_markdown(records)
+    md += "\n" + opacity_markdown(records)
     (args.out / f"{args.name}.md").write_text(md)
     plot(summary, args.out / f"{args.name}_psnr_vs_seconds.png", line)
     _log(f"wrote {args.out / (args.name + '.md')}")

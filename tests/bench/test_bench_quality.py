@@ -35,6 +35,15 @@ def test_short_quality_bench_writes_json_table_plot(tmp_path, m3d_dir, bench_mod
     md = (out / "quality.md").read_text()
     assert "| 64x128, 16 planes, features /1, YY encoder, Yin-Yang rasterizer, plain |" in md and data["machine"]["numpy"] in md
     assert (out / "quality_psnr_vs_seconds.png").read_bytes()[:4] == b"\x89PNG"
+    shares = model["opacity_shares"]
+    assert len(shares) == len(bench_quality.OPACITY_BINS) - 1 and sum(shares) == pytest.approx(1.0)
+    assert "| 64x128_p16_d1_yyenc_yinyang | m3d_bedroom | 00+02 |" in md
+
+
+def test_opacity_shares_bins_every_opacity_once():
+    shares = bench_quality.opacity_shares(np.array([0.0, 0.05, 0.35, 0.35, 0.95, 1.0]))
+    assert shares == pytest.approx([2 / 6, 0, 0, 2 / 6, 0, 0, 0, 0, 0, 2 / 6])
+    assert bench_quality.opacity_shares(np.array([])) == [0.0] * 10
 
 
 def test_quality_rejects_non_scene_folder(tmp_path):
