@@ -1,6 +1,6 @@
 """Shared fixtures: where the dev data lives (``../shared/data``, beside the checkout).
 
-A test that needs a dev scene takes it from a fixture here (``m3d_dir``, ``zind_dir``), never from
+A test that needs a dev scene takes it from a fixture here (``m3d_dir``, ``zind_dir``, ``zind2k_dir``), never from
 a path of its own. A missing scene SKIPS the test, naming what is missing, so a fresh clone with
 nothing beside it runs the rest; with ``CI=true`` (CI has the data) it FAILS instead, so a CI run
 cannot pass by skipping.
@@ -34,3 +34,9 @@ def m3d_dir() -> Path:
 @pytest.fixture(scope="session")
 def zind_dir() -> Path:
     return dev_scene("zind_room09")
+
+
+@pytest.fixture(scope="session")
+def zind2k_dir() -> Path:
+    """zind_room09 at its 2048x1024 capture size (the same poses)."""
+    return dev_scene("zind_room09_2k")

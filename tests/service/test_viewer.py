@@ -6,7 +6,7 @@ opens the viewer at frame 01's pose turned by several yaws and each screenshot i
 API's perspective render of the same pose (default compositing = plain, over black): PSNR >= 35 dB.
 Any console error, request leaving 127.0.0.1, failed request or a loaded splat count different from
 the PLY's vertex count fails. ``scripts/test.sh`` installs chromium and the npm packages; this test is
-never skipped.
+never skipped. The same check runs on a scene POSTed from 2048x1024 panoramas (zind_room09_2k, two yaws).
 
 Also runnable as a script for the README figures:
 
@@ -82,8 +82,8 @@ def default_model(folder: Path) -> Path:
 
 
 @contextmanager
-def m3d_server(model: Path, store: Path, scene_dir: Path):
-    """A live server holding the m3d scene ``scene_dir`` (split 0 references); yields (server, scene id, scene.json)."""
+def scene_server(model: Path, store: Path, scene_dir: Path):
+    """A live server holding the dev scene ``scene_dir`` (split 0 references); yields (server, scene id, scene.json)."""
     scene = json.loads((scene_dir / "scene.json").read_text())
     frames = {f["name"]: f for f in scene["frames"]}
     ref_a, ref_b = scene["splits"][0]["references"]
@@ -140,31 +140,48 @@ def measure(server_url: str, scene_id: str, c2w_base: np.ndarray, out_dir: Path,
 @pytest.fixture(scope="module")
 def m3d(tmp_path_factory, m3d_dir):
     model = default_model(tmp_path_factory.getbasetemp() / "omnisplat-default-model")
-    with m3d_server(model, tmp_path_factory.mktemp("viewer-store"), m3d_dir) as served:
+    with scene_server(model, tmp_path_factory.mktemp("viewer-store"), m3d_dir) as served:
+        yield served
+
+
+@pytest.fixture(scope="module")
+def zind2k(tmp_path_factory, zind2k_dir):
+    model = default_model(tmp_path_factory.getbasetemp() / "omnisplat-default-model")
+    with scene_server(model, tmp_path_factory.mktemp("viewer-store-2k"), zind2k_dir) as served:
         yield served
 
 
 # -- the browser test --------------------------------------------------------------------------------
 
-def test_viewer_matches_api_render_in_chromium(m3d, tmp_path):
+def check_viewer_matches_api(served, out_dir: Path, yaws=YAWS) -> None:
+    """The browser check of the module docstring on a served scene, at its first target's pose turned by ``yaws``."""
     assert shutil.which("node"), "node is not installed: run `bash scripts/test.sh` (installs nodejs, npm)"
     assert Path(find_chromium()).exists(), "chromium is not installed: run `bash scripts/test.sh`"
     assert not viewer_route.missing_assets(), "viewer npm packages missing: run `npm ci` (scripts/test.sh does)"
-    server, scene_id, scene = m3d
+    server, scene_id, scene = served
     t0 = time.perf_counter()
-    report = measure(server.url, scene_id, target_pose(scene), tmp_path)
+    report = measure(server.url, scene_id, target_pose(scene), out_dir, yaws=yaws)
     elapsed = time.perf_counter() - t0
     print(json.dumps({"seconds": elapsed, **report}, indent=1))
     assert report["console_errors"] == [], report["console_errors"]
     assert report["page_errors"] == [], report["page_errors"]
     assert report["external_requests"] == [], report["external_requests"]
     assert report["failed_requests"] == [], report["failed_requests"]
-    assert len(report["views"]) == len(YAWS)
+    assert len(report["views"]) == len(yaws)
     assert report["views"][0]["cross_origin_isolated"] is True  # COOP/COEP: SharedArrayBuffer sort
     for view in report["views"]:
         assert view["error"] is None, view
         assert view["splat_count"] == report["ply_vertex_count"], view
         assert view["psnr_db"] is not None and view["psnr_db"] >= MIN_PSNR, view
+
+
+def test_viewer_matches_api_render_in_chromium(m3d, tmp_path):
+    check_viewer_matches_api(m3d, tmp_path)
+
+
+def test_viewer_matches_api_render_at_2048_input(zind2k, tmp_path):
+    """A scene POSTed from 2048x1024 panoramas (zind_room09_2k): the same PLY contract at the larger input."""
+    check_viewer_matches_api(zind2k, tmp_path, yaws=(0, 180))
 
 
 # -- the page without a browser ------------------------------------------------------------------------
@@ -241,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
         out = args.out or tmp / "shots"
         out.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
-        with m3d_server(model, tmp / "store", DEV_DATA / "m3d_bedroom") as (server, scene_id, scene):
+        with scene_server(model, tmp / "store", DEV_DATA / "m3d_bedroom") as (server, scene_id, scene):
             report = measure(server.url, scene_id, target_pose(scene), out, page_shot=args.page_shot,
                              page_shot_at_reference_a=args.page_shot_at_reference_a)
         if args.page_shot:  # small enough to commit
