@@ -500,7 +500,7 @@ def smooth_merge_blocks(gaussians: Gaussians, prov: Provenance, alive: np.ndarra
             c = (bj[:, None] * bs + np.arange(bs)[None, :])
             pos = ((plane[:, None, None] * h + r[:, :, None]) * w + c[:, None, :]).ravel()
             drop[slot[pos]] = True
-    merged = Gaussians.concatenate(parts) if parts else Gaussians.empty(gaussians.sh_degree)
+    merged = (parts[0] if len(parts) == 1 else Gaussians.concatenate(parts)) if parts else Gaussians.empty(gaussians.sh_degree)
     if parts and merged.sh.shape[1] != gaussians.sh.shape[1]:
         merged = merged.with_(sh=np.pad(merged.sh, ((0, 0), (0, gaussians.sh.shape[1] - merged.sh.shape[1]), (0, 0))))
     return SmoothMerge(drop, merged, np.concatenate(index) if index else np.zeros(0, np.int64),
