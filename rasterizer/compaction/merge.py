@@ -191,6 +191,12 @@ LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 TEXTURE_TOL = 0.1
 
 
+def _luma(x: np.ndarray) -> np.ndarray:
+    """LUMA-weighted sum over the first axis of (3, ...) float32 colour planes, as three array passes (no BLAS
+    call: its worker threads spin on after it, taking a core from the rest of the request)."""
+    return LUMA[0] * x[0] + LUMA[1] * x[1] + LUMA[2] * x[2]
+
+
 def _up2(m: np.ndarray, valid: np.ndarray, axis: int) -> np.ndarray:
     """Bilinear 2x upsampling of block values along ``axis`` (half-pixel centres: 3/4 of the block, 1/4 of the
     nearer neighbour); a neighbour that is not ``valid`` (or off the edge) is replaced by the block itself."""
@@ -234,7 +240,7 @@ def block_texture(dc: np.ndarray, present: np.ndarray, level: int) -> tuple[np.n
     c, g, h2, w2 = m.shape
     pred = _up2(_up2(m, whole, 2), np.repeat(whole, 2, axis=1), 3)
     r = np.abs(x[:, :, : 2 * h2, : 2 * w2] - pred)
-    return np.tensordot(LUMA, r.reshape(c, g, h2, 2, w2, 2).mean(axis=(3, 5)), axes=1), whole
+    return _luma(r.reshape(c, g, h2, 2, w2, 2).mean(axis=(3, 5))), whole
 
 
 def texture_ok(dc: np.ndarray, present: np.ndarray, level: int, tol: float) -> np.ndarray:
@@ -250,7 +256,7 @@ def texture_ok(dc: np.ndarray, present: np.ndarray, level: int, tol: float) -> n
     n = np.maximum(p.reshape(p.shape[0], -1).sum(axis=1), 1)
     mean = np.where(p, dc, 0).reshape(3, p.shape[0], -1).sum(axis=2) / n  # (3, G)
     dev = np.where(p, np.abs(dc - mean[:, :, None, None]), 0).reshape(3, p.shape[0], -1).sum(axis=2) / n
-    contrast = np.tensordot(LUMA, dev.astype(np.float32), axes=1)  # (G,)
+    contrast = _luma(dev.astype(np.float32))  # (G,)
     return whole & (t <= np.float32(tol) * contrast[:, None, None])
 
 
