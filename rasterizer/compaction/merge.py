@@ -211,15 +211,20 @@ def _up2(m: np.ndarray, valid: np.ndarray, axis: int) -> np.ndarray:
 
 
 def _means2(x: np.ndarray) -> np.ndarray:
-    """Means of the 2x2 blocks of (C, G, h, w) planes (odd last row / column left out)."""
-    c, g, h, w = x.shape
-    return x[:, :, : h // 2 * 2, : w // 2 * 2].reshape(c, g, h // 2, 2, w // 2, 2).mean(axis=(3, 5))
+    """Means of the 2x2 blocks of (C, G, h, w) planes (odd last row / column left out): four strided views
+    added as numpy's mean over the block axes adds them, (x00 + x01) + (x10 + x11), then / 4 (the same bits,
+    several times faster than the reduction over two short axes)."""
+    h, w = x.shape[2] // 2 * 2, x.shape[3] // 2 * 2
+    top = x[:, :, 0:h:2, 0:w:2] + x[:, :, 0:h:2, 1:w:2]
+    top += x[:, :, 1:h:2, 0:w:2] + x[:, :, 1:h:2, 1:w:2]
+    top /= np.asarray(4, dtype=top.dtype)
+    return top
 
 
 def _all2(p: np.ndarray) -> np.ndarray:
     """(G, h//2, w//2): all four pixels of each 2x2 block of a (G, h, w) mask."""
-    g, h, w = p.shape
-    return p[:, : h // 2 * 2, : w // 2 * 2].reshape(g, h // 2, 2, w // 2, 2).all(axis=(2, 4))
+    h, w = p.shape[1] // 2 * 2, p.shape[2] // 2 * 2
+    return p[:, 0:h:2, 0:w:2] & p[:, 0:h:2, 1:w:2] & p[:, 1:h:2, 0:w:2] & p[:, 1:h:2, 1:w:2]
 
 
 def block_texture(dc: np.ndarray, present: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]:
@@ -240,7 +245,7 @@ def block_texture(dc: np.ndarray, present: np.ndarray, level: int) -> tuple[np.n
     c, g, h2, w2 = m.shape
     pred = _up2(_up2(m, whole, 2), np.repeat(whole, 2, axis=1), 3)
     r = np.abs(x[:, :, : 2 * h2, : 2 * w2] - pred)
-    return _luma(r.reshape(c, g, h2, 2, w2, 2).mean(axis=(3, 5))), whole
+    return _luma(_means2(r)), whole
 
 
 def texture_ok(dc: np.ndarray, present: np.ndarray, level: int, tol: float) -> np.ndarray:
