@@ -261,3 +261,17 @@ def test_quaternion_helpers_match_gaussians_module():
     np.testing.assert_allclose(np.einsum("nji,njk->nik", vecs, vecs), np.broadcast_to(np.eye(3), full.shape), atol=1e-14)
     rot = quat_to_rotmat(rng.standard_normal((500, 4)))
     np.testing.assert_array_equal(maths.rotmat_to_quat(rot), rotmat_to_quat(rot))
+
+
+@pytest.mark.parametrize("shape", [(3, 4, 32, 96), (3, 2, 7, 13), (1, 1, 2, 2)])
+def test_block_means_are_numpys_mean_bit_for_bit(shape):
+    """The texture test's 2x2 block means add four strided views in the order numpy's mean over the block
+    axes does: the same bits (odd last row / column left out), and the block masks the same booleans."""
+    rng = np.random.default_rng(7)
+    x = (rng.random(shape) * rng.choice([1e-3, 1.0, 1e3], shape)).astype(np.float32)
+    c, g, h, w = shape
+    want = x[:, :, : h // 2 * 2, : w // 2 * 2].reshape(c, g, h // 2, 2, w // 2, 2).mean(axis=(3, 5))
+    np.testing.assert_array_equal(merge._means2(x), want)
+    p = rng.random(shape[1:]) < 0.8
+    want_p = p[:, : h // 2 * 2, : w // 2 * 2].reshape(g, h // 2, 2, w // 2, 2).all(axis=(2, 4))
+    np.testing.assert_array_equal(merge._all2(p), want_p)
