@@ -70,16 +70,27 @@ def _grid_composite(part: Gaussians, colours: np.ndarray, c2w: np.ndarray, kind:
     pad_w = width + 2 * r
     par = np.zeros((6, height + 2 * r, pad_w), dtype=np.float32)
     dist = np.full((height + 2 * r, pad_w), np.inf)
-    row, col = k // width, k % width
-    at = (row + r) * pad_w + (col + r)  # flat index into a padded plane
-    planes = par.reshape(6, -1)
-    planes[0, at] = proj.mx - col
-    planes[1, at] = proj.my - row
-    planes[2, at] = proj.con_a
-    planes[3, at] = proj.con_b
-    planes[4, at] = proj.con_c
-    planes[5, at] = part.opacities[k]
-    dist.reshape(-1)[at] = proj.ranges
+    n_px = height * width
+    if k.size == n_px and (k.size == 0 or (k[0] == 0 and k[-1] == n_px - 1 and np.all(k[1:] > k[:-1]))):
+        # every pixel's Gaussian projected (the usual case): the planes' interiors in row-major order
+        inner = (slice(r, r + height), slice(r, r + width))
+        par[(0,) + inner] = proj.mx.reshape(height, width) - np.arange(width)
+        par[(1,) + inner] = proj.my.reshape(height, width) - np.arange(height)[:, None]
+        for c, col in enumerate((proj.con_a, proj.con_b, proj.con_c), start=2):
+            par[(c,) + inner] = col.reshape(height, width)
+        par[(5,) + inner] = part.opacities.reshape(height, width)
+        dist[inner] = proj.ranges.reshape(height, width)
+    else:
+        row, col = k // width, k % width
+        at = (row + r) * pad_w + (col + r)  # flat index into a padded plane
+        planes = par.reshape(6, -1)
+        planes[0, at] = proj.mx - col
+        planes[1, at] = proj.my - row
+        planes[2, at] = proj.con_a
+        planes[3, at] = proj.con_b
+        planes[4, at] = proj.con_c
+        planes[5, at] = part.opacities[k]
+        dist.reshape(-1)[at] = proj.ranges
     rgb = np.zeros((3, height + 2 * r, pad_w), dtype=np.float32)
     rgb[:, r:r + height, r:r + width] = np.asarray(colours, dtype=np.float32).reshape(height, width, 3).transpose(2, 0, 1)
     out = np.empty((3, height, width), dtype=np.float32)

@@ -122,6 +122,26 @@ def test_own_view_render_sorts_each_window_front_to_back_ties_in_window_order():
             np.testing.assert_array_equal(cover[part], want_cover)
 
 
+def test_culled_gaussians_leave_their_pixels_to_the_neighbours():
+    """Gaussians the projection culls (here: at the camera, nearer than the near plane) add nothing: the
+    composite of the rest is the direct one's."""
+    g, _, poses = _scene()
+    n1 = H * W
+    own = g.subset(np.arange(0, 2 * n1))
+    means = own.means.copy()
+    means[::11] = poses[0, :3, 3]
+    own = own.with_(means=means)
+    colours = sh_dc_to_rgb(own.sh[:, 0])
+    local, cover = own_view_render(own, colours, poses[0], GRIDS, H, W, taps=3)
+    for gi, kind in enumerate(GRIDS):
+        part = slice(gi * n1, (gi + 1) * n1)
+        sub = own.subset(np.arange(gi * n1, (gi + 1) * n1))
+        assert project(sub, Camera(kind, W, H, poses[0], near=DEFAULT_NEAR)).index.size < n1
+        want, want_cover = _sorted_window_composite(sub, colours[part], poses[0], kind, 3)
+        np.testing.assert_allclose(local[part], want, atol=1e-6)
+        np.testing.assert_array_equal(cover[part], want_cover)
+
+
 def test_bands_give_the_one_pass_composite(monkeypatch):
     """The window composite runs band by band of rows; bands of any height (one row, an uneven last band)
     give every pixel the bits of one pass over the grid."""
