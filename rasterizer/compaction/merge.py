@@ -33,6 +33,7 @@ def _dilog(x: np.ndarray) -> np.ndarray:
 
 
 _LI2_Y = _dilog(_LI2_X)
+_LI2_SLOPE = (_LI2_Y[1:] - _LI2_Y[:-1]) / (_LI2_X[1:] - _LI2_X[:-1])
 
 
 def opacity_depth(alpha: np.ndarray) -> np.ndarray:
@@ -40,8 +41,19 @@ def opacity_depth(alpha: np.ndarray) -> np.ndarray:
 
     ``int -ln(1 - a exp(-q/2)) dA = 2 pi sigma_1 sigma_2 Li2(a)``; summed over
     overlapping Gaussians it is the mean optical depth of a surface patch.
+
+    ``np.interp`` in the table with its arithmetic (the same bits, NaN in NaN out), the interval found from
+    the table's even spacing instead of a binary search (several times faster).
     """
-    return np.interp(np.clip(alpha, 0.0, MERGED_OPACITY_MAX), _LI2_X, _LI2_Y)
+    x = np.asarray(np.clip(alpha, 0.0, MERGED_OPACITY_MAX), dtype=np.float64)
+    last = _LI2_X.size - 2
+    with np.errstate(invalid="ignore"):  # NaN: any interval, NaN out
+        j = np.clip((x * (last + 1) / MERGED_OPACITY_MAX).astype(np.intp), 0, last)
+    j -= _LI2_X[j] > x  # the estimate is at most one interval off
+    j += _LI2_X[j + 1] <= x
+    j = np.minimum(j, last)
+    out = _LI2_SLOPE[j] * (x - _LI2_X[j]) + _LI2_Y[j]
+    return np.where(x >= _LI2_X[-1], _LI2_Y[-1], out)
 
 
 def opacity_for_depth(depth: np.ndarray) -> np.ndarray:

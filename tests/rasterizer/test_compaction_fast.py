@@ -275,3 +275,15 @@ def test_block_means_are_numpys_mean_bit_for_bit(shape):
     p = rng.random(shape[1:]) < 0.8
     want_p = p[:, : h // 2 * 2, : w // 2 * 2].reshape(g, h // 2, 2, w // 2, 2).all(axis=(2, 4))
     np.testing.assert_array_equal(merge._all2(p), want_p)
+
+
+def test_opacity_depth_is_numpys_interp_bit_for_bit():
+    """The table lookup finds its interval from the even spacing and keeps np.interp's arithmetic: the same
+    bits at, between and beside the table's points, beyond its ends and for NaN, in float64 and float32."""
+    x_tab, y_tab = merge._LI2_X, merge._LI2_Y
+    rng = np.random.default_rng(8)
+    a = np.concatenate([rng.random(100_000) * 1.2 - 0.1, x_tab, np.nextafter(x_tab, 1.0), np.nextafter(x_tab, 0.0),
+                        [0.0, 0.99, 1.0, -0.5, np.nan, np.inf, -np.inf]])
+    for x in (a, a.astype(np.float32)):
+        want = np.interp(np.clip(x, 0.0, merge.MERGED_OPACITY_MAX), x_tab, y_tab)
+        np.testing.assert_array_equal(cp.opacity_depth(x), want)
