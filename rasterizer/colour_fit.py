@@ -152,16 +152,18 @@ def _band_composite(par: np.ndarray, dist: np.ndarray, rgb: np.ndarray, r: int, 
         rng[t] = dist[win]
     alpha = alpha.reshape(n_taps, n_px)
     rng = rng.reshape(n_taps, n_px)
-    # place of each tap front to back: the taps before it in range order, ties in window order
-    place = np.zeros((n_taps, n_px), dtype=np.int16)
+    # place of each tap front to back: the taps before it in range order, ties in window order. Tap s starts
+    # before all T - 1 - s later taps and moves behind each one that is not behind it (never below 0).
+    place = np.repeat(np.arange(n_taps - 1, -1, -1, dtype=np.min_scalar_type(n_taps))[:, None], n_px, axis=1)
     before = np.empty(n_px, dtype=bool)
     for t in range(1, n_taps):
         for s in range(t):
             np.less_equal(rng[s], rng[t], out=before)
             place[t] += before
-            place[s] += 1
             place[s] -= before
-    flat = place * np.int64(n_px) + np.arange(n_px)  # (T, h w) flat index of each tap in the front-to-back array
+    flat = place.astype(np.intp)  # (T, h w) flat index of each tap in the front-to-back array
+    flat *= n_px
+    flat += np.arange(n_px)
     front = np.empty((n_taps, n_px), dtype=np.float32)
     front.reshape(-1)[flat] = alpha
     # alpha x transmittance before it, the running product taken front to back
