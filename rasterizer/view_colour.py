@@ -103,20 +103,36 @@ def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, 
     sh = np.empty((2, n, 4, 3), dtype=np.float32)
     for v in range(2):  # the two views, each against the other
         u = 1 - v
-        pix, seen = seen_pixels(means[v], poses[u], rng[u], grids, h, w, tol)
-        seen &= shows[u, pix]
-        d_v = _unit_columns([means[v, :, j].astype(np.float64) - poses[v, j, 3] for j in range(3)], 1e-30)
-        d_u = _unit_columns([means[v, :, j].astype(np.float64) - poses[u, j, 3] for j in range(3)], 1e-30)
-        dd = [d_u[j] - d_v[j] for j in range(3)]
-        den = _dot3(dd, dd) + np.float32(ridge)
-        wt = [dd[j] / den for j in range(3)]  # G = dc w^T
-        dc = [np.where(seen, rgb[j, u][pix] - rgb[j, v], np.float32(0.0)) for j in range(3)]
-        g_dv = _dot3(wt, d_v)
-        for j in range(3):
-            sh[v, :, 0, j] = rgb_to_sh_dc(rgb[j, v] - dc[j] * g_dv)  # a = c_v - G d_v
-        # 3DGS degree-1 basis: -C1 y, C1 z, -C1 x (rasterizer.sh.sh_basis)
-        for k, (axis, sign) in enumerate(((1, -1.0), (2, 1.0), (0, -1.0)), start=1):
-            scaled = np.float32(sign / SH_C1) * wt[axis]
-            for j in range(3):
-                sh[v, :, k, j] = dc[j] * scaled
+        for c0 in range(0, n, CHUNK):  # each Gaussian's maths is its own: chunks give the values of one pass
+            c = slice(c0, min(n, c0 + CHUNK))
+            _fit_chunk(sh[v, c], means[v, c], rgb[:, v, c], rgb[:, u], poses[v], poses[u], rng[u], shows[u], grids,
+                       h, w, ridge, tol)
     return layout.with_(sh=sh.reshape(2 * n, 4, 3))
+
+
+#: Gaussians per chunk of :func:`fit_view_colour`: its float64 temporaries then stay in the CPU cache.
+CHUNK = 16384
+
+
+def _fit_chunk(sh: np.ndarray, means: np.ndarray, rgb_v: np.ndarray, rgb_u: np.ndarray, pose_v: np.ndarray,
+               pose_u: np.ndarray, rng_u: np.ndarray, shows_u: np.ndarray, grids: tuple[str, ...], h: int, w: int,
+               ridge: float, tol: float) -> None:
+    """:func:`fit_view_colour` of M Gaussians of view v against the other view u: writes their (M, 4, 3)
+    ``sh``. means (M, 3); rgb_v (3, M) their colours; rgb_u (3, G H W), rng_u (G H W,) and shows_u (G H W,)
+    u's pixel colours, ranges and pixels that show the scene; pose_v, pose_u (4, 4) float64."""
+    pix, seen = seen_pixels(means, pose_u, rng_u, grids, h, w, tol)
+    seen &= shows_u[pix]
+    d_v = _unit_columns([means[:, j].astype(np.float64) - pose_v[j, 3] for j in range(3)], 1e-30)
+    d_u = _unit_columns([means[:, j].astype(np.float64) - pose_u[j, 3] for j in range(3)], 1e-30)
+    dd = [d_u[j] - d_v[j] for j in range(3)]
+    den = _dot3(dd, dd) + np.float32(ridge)
+    wt = [dd[j] / den for j in range(3)]  # G = dc w^T
+    dc = [np.where(seen, rgb_u[j][pix] - rgb_v[j], np.float32(0.0)) for j in range(3)]
+    g_dv = _dot3(wt, d_v)
+    for j in range(3):
+        sh[:, 0, j] = rgb_to_sh_dc(rgb_v[j] - dc[j] * g_dv)  # a = c_v - G d_v
+    # 3DGS degree-1 basis: -C1 y, C1 z, -C1 x (rasterizer.sh.sh_basis)
+    for k, (axis, sign) in enumerate(((1, -1.0), (2, 1.0), (0, -1.0)), start=1):
+        scaled = np.float32(sign / SH_C1) * wt[axis]
+        for j in range(3):
+            sh[:, k, j] = dc[j] * scaled

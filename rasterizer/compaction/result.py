@@ -33,41 +33,54 @@ class CompactionResult:
     stats: dict
 
 
-def _interleave(gaussians: Gaussians, index: np.ndarray, pos: np.ndarray, merged: SmoothMerge):
-    """Kept inputs ``gaussians[index]`` (layout positions ``pos``) and the merged blocks, in layout order.
+def _interleave(gaussians: Gaussians, index: np.ndarray, pos: np.ndarray, merged: SmoothMerge | None,
+                tail: Gaussians | None = None):
+    """Kept inputs ``gaussians[index]`` (layout positions ``pos``) and the merged blocks (if any), in layout
+    order, then the ``tail`` Gaussians (in the returned Gaussians only, not in the positions or blocks).
 
-    The same as concatenating both and a stable argsort by position; when both position lists are
-    already ascending (the usual case) each output row is written once, at its merged place.
+    The same as concatenating them and a stable argsort by position (without merged blocks: the kept
+    inputs in their order); when both position lists are already ascending (the usual case) each output
+    row is written once, at its place. SH bands a part lacks are zero.
     """
-    m_pos = merged.index
-    if not (np.all(pos[1:] > pos[:-1]) and np.all(m_pos[1:] > m_pos[:-1])):
+    m_pos = np.zeros(0, np.int64) if merged is None else merged.index
+    if merged is not None and not (np.all(pos[1:] > pos[:-1]) and np.all(m_pos[1:] > m_pos[:-1])):
         out_g = Gaussians.concatenate([gaussians.subset(index), merged.gaussians])
         out_pos = np.concatenate([pos, m_pos])
         out_block = np.concatenate([np.ones(index.size, dtype=np.int64), merged.block])
         order = np.argsort(out_pos, kind="stable")
-        return out_g.subset(order), out_pos[order], out_block[order]
+        out_g = out_g.subset(order)
+        return (out_g if tail is None else Gaussians.concatenate([out_g, tail])), out_pos[order], out_block[order]
     total = index.size + m_pos.size
     m_slot = np.searchsorted(pos, m_pos, side="right") + np.arange(m_pos.size)  # inputs first on equal positions
     is_m = np.zeros(total, dtype=bool)
     is_m[m_slot] = True
-    in_slot = np.flatnonzero(~is_m)
-    mg = merged.gaussians
+    in_slot = np.flatnonzero(~is_m) if m_pos.size else slice(0, total)
+    rows = total + (0 if tail is None else len(tail))
+    pieces = [(gaussians, in_slot, index)]  # (part, its output rows, its rows taken from the part or None: all)
+    if merged is not None:
+        pieces.append((merged.gaussians, m_slot, None))
+    if tail is not None:
+        pieces.append((tail, slice(total, rows), None))
+    k = max(part.sh.shape[1] for part, _, _ in pieces)
     cols = []
     for f in fields(Gaussians):
-        src, add = getattr(gaussians, f.name), getattr(mg, f.name)
-        if f.name == "sh" and add.shape[1] != src.shape[1]:
-            k = max(add.shape[1], src.shape[1])
-            src = np.pad(src, ((0, 0), (0, k - src.shape[1]), (0, 0)))
-            add = np.pad(add, ((0, 0), (0, k - add.shape[1]), (0, 0)))
-        out = np.empty((total,) + src.shape[1:], dtype=np.float32)
-        out[in_slot] = np.take(src, index, axis=0)
-        out[m_slot] = add
+        out = np.empty((rows,) + ((k, 3) if f.name == "sh" else getattr(gaussians, f.name).shape[1:]), dtype=np.float32)
+        for part, at, take in pieces:
+            src = getattr(part, f.name)
+            if take is not None:
+                src = np.take(src, take, axis=0)
+            if f.name == "sh" and src.shape[1] < k:
+                out[at, :src.shape[1]] = src
+                out[at, src.shape[1]:] = 0.0
+            else:
+                out[at] = src
         cols.append(out)
     out_pos = np.empty(total, dtype=np.int64)
     out_pos[in_slot] = pos
     out_pos[m_slot] = m_pos
     out_block = np.ones(total, dtype=np.int64)
-    out_block[m_slot] = merged.block
+    if merged is not None:
+        out_block[m_slot] = merged.block
     return Gaussians(*cols), out_pos, out_block
 
 
@@ -77,6 +90,14 @@ def compact_result(gaussians: Gaussians, provenance: Provenance, options: Compac
     opts = options or CompactionOptions()
     if provenance.shell:
         return _compact_with_shell(gaussians, provenance, opts, confidence)
+    return _compact_layout(gaussians, provenance, opts, confidence)
+
+
+def _compact_layout(gaussians: Gaussians, provenance: Provenance, opts: CompactionOptions, confidence: np.ndarray | None,
+                    tail: Gaussians | None = None) -> CompactionResult:
+    """:func:`compact_result` of pixel-aligned Gaussians. ``tail``: Gaussians written after the output in the
+    same arrays (the shell; then its gaussians have more rows than its provenance and blocks), only
+    without a count cap."""
     n = len(gaussians)
     flat = provenance.flat_index(n)  # validates the count
     alive = np.ones(n, dtype=bool)
@@ -138,16 +159,15 @@ def compact_result(gaussians: Gaussians, provenance: Provenance, options: Compac
     t0 = time.perf_counter()
     index = np.flatnonzero(alive)
     out_pos = flat[index]
-    if merged is not None and len(merged.gaussians):
-        out_g, out_pos, out_block = _interleave(gaussians, index, out_pos, merged)
-    else:
-        out_g = gaussians.subset(index)
-        out_block = np.ones(index.size, dtype=np.int64)
+    out_g, out_pos, out_block = _interleave(gaussians, index, out_pos,
+                                            merged if merged is not None and len(merged.gaussians) else None, tail)
     out_prov = Provenance(provenance.grids, provenance.height, provenance.width, provenance.c2w, out_pos)
     seconds["assemble"] = round(time.perf_counter() - t0, 4)
 
     t0 = time.perf_counter()
     limit = count_limit(opts, gaussians.sh.shape[1])
+    if limit is not None and tail is not None:
+        raise CompactionError("a tail is appended only without a count cap")
     removed["cap"] = 0
     if limit is not None and limit < len(out_g):
         kept = np.flatnonzero(cap_keep_mask(out_g, out_prov, np.ones(len(out_g), bool), limit))
@@ -158,7 +178,7 @@ def compact_result(gaussians: Gaussians, provenance: Provenance, options: Compac
         out_prov = Provenance(provenance.grids, provenance.height, provenance.width, provenance.c2w, out_pos)
     seconds["cap"] = round(time.perf_counter() - t0, 4)
 
-    stats = {"input": n, "output": len(out_g), "removed": removed, "merge_smooth": smooth_stats,
+    stats = {"input": n, "output": out_block.size, "removed": removed, "merge_smooth": smooth_stats,
              "seconds": seconds, "options": opts.to_dict()}
     return CompactionResult(out_g, out_prov, out_block, index, stats)
 
@@ -185,10 +205,15 @@ def _compact_with_shell(gaussians: Gaussians, provenance: Provenance, opts: Comp
             thin[kept[np.linspace(0, kept.size - 1, limit).astype(np.int64)]] = True
             capped, keep = kept.size - int(thin.sum()), thin
         front_opts = replace(opts, max_count=limit - int(keep.sum()), max_bytes=None)
-    res = compact_result(gaussians.subset(slice(0, n - count)), replace(provenance, shell=0), front_opts,
-                         confidence=confidence)
-    out_g = Gaussians.concatenate([res.gaussians, shell.subset(keep)])
-    pos = np.concatenate([res.provenance.flat_index(len(res.gaussians)), index[keep]])
+    kept_shell = shell if keep.all() else shell.subset(keep)
+    front = gaussians.subset(slice(0, n - count))
+    if limit is None:  # the shell written into the output's arrays with it
+        res = _compact_layout(front, replace(provenance, shell=0), front_opts, confidence, tail=kept_shell)
+        out_g = res.gaussians
+    else:
+        res = _compact_layout(front, replace(provenance, shell=0), front_opts, confidence)
+        out_g = Gaussians.concatenate([res.gaussians, kept_shell])
+    pos = np.concatenate([res.provenance.flat_index(res.block.size), index[keep]])
     removed = dict(res.stats["removed"])
     removed["min_opacity"] += int(count - capped - keep.sum())
     removed["cap"] += capped

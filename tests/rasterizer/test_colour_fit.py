@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.ndimage import gaussian_filter
 
+from rasterizer import colour_fit
 from rasterizer.camera import DEFAULT_NEAR, Camera
 from rasterizer.colour_fit import check_colour_fit, fit_reference_colours, own_view_render
 from rasterizer.depth_gaussians import gaussians_from_depth
@@ -119,6 +120,41 @@ def test_own_view_render_sorts_each_window_front_to_back_ties_in_window_order():
                                                         poses[0], kind, taps)
             np.testing.assert_allclose(local[part], want, atol=1e-6)
             np.testing.assert_array_equal(cover[part], want_cover)
+
+
+def test_culled_gaussians_leave_their_pixels_to_the_neighbours():
+    """Gaussians the projection culls (here: at the camera, nearer than the near plane) add nothing: the
+    composite of the rest is the direct one's."""
+    g, _, poses = _scene()
+    n1 = H * W
+    own = g.subset(np.arange(0, 2 * n1))
+    means = own.means.copy()
+    means[::11] = poses[0, :3, 3]
+    own = own.with_(means=means)
+    colours = sh_dc_to_rgb(own.sh[:, 0])
+    local, cover = own_view_render(own, colours, poses[0], GRIDS, H, W, taps=3)
+    for gi, kind in enumerate(GRIDS):
+        part = slice(gi * n1, (gi + 1) * n1)
+        sub = own.subset(np.arange(gi * n1, (gi + 1) * n1))
+        assert project(sub, Camera(kind, W, H, poses[0], near=DEFAULT_NEAR)).index.size < n1
+        want, want_cover = _sorted_window_composite(sub, colours[part], poses[0], kind, 3)
+        np.testing.assert_allclose(local[part], want, atol=1e-6)
+        np.testing.assert_array_equal(cover[part], want_cover)
+
+
+def test_bands_give_the_one_pass_composite(monkeypatch):
+    """The window composite runs band by band of rows; bands of any height (one row, an uneven last band)
+    give every pixel the bits of one pass over the grid."""
+    g, _, poses = _scene()
+    own = g.subset(np.arange(0, 2 * H * W))
+    colours = sh_dc_to_rgb(own.sh[:, 0])
+    monkeypatch.setattr(colour_fit, "BAND_PIXELS", H * W)
+    whole = own_view_render(own, colours, poses[0], GRIDS, H, W, taps=5)
+    for rows in (1, 5, H - 1):
+        monkeypatch.setattr(colour_fit, "BAND_PIXELS", rows * W)
+        banded = own_view_render(own, colours, poses[0], GRIDS, H, W, taps=5)
+        np.testing.assert_array_equal(banded[0], whole[0])
+        np.testing.assert_array_equal(banded[1], whole[1])
 
 
 def test_the_step_brings_each_own_render_closer_to_its_image():

@@ -12,7 +12,14 @@ from rasterizer import compaction as cp
 from rasterizer import geometry as geo
 from rasterizer.compaction import CompactionOptions, Provenance, compact_result, maths, merge, smooth_merge_blocks, steps
 from rasterizer.depth_gaussians import gaussians_from_depth
-from rasterizer.gaussians import SH_C0, Gaussians, quat_to_rotmat, rotmat_to_quat, scale_rotation_from_covariance
+from rasterizer.gaussians import (
+    SH_C0,
+    Gaussians,
+    covariance_from_scale_rotation,
+    quat_to_rotmat,
+    rotmat_to_quat,
+    scale_rotation_from_covariance,
+)
 
 _DEFAULTS = CompactionOptions()
 
@@ -178,10 +185,15 @@ def room(h=32, seed=0, views=2):
 
 
 def _assert_same(sm, drop, merged, top):
+    """The same blocks and Gaussians; quaternions as the covariances they give (the eigenvectors' signs are a
+    free choice: a quaternion and its turns by 180 degrees about a principal axis give one Gaussian)."""
     np.testing.assert_array_equal(sm.drop, drop)
     np.testing.assert_array_equal(sm.index, top)
-    for f in ("means", "scales", "quats", "opacities", "sh"):
+    for f in ("means", "scales", "opacities", "sh"):
         np.testing.assert_allclose(getattr(sm.gaussians, f), getattr(merged, f), rtol=1e-6, atol=1e-7, err_msg=f)
+    cov, want = sm.gaussians.covariances(), merged.covariances()
+    size = np.abs(want).max(axis=(1, 2))
+    assert (np.abs(cov - want).max(axis=(1, 2)) <= 1e-6 * size).all()
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -232,9 +244,46 @@ def test_quaternion_helpers_match_gaussians_module():
     cov6 = np.stack([(a @ a.transpose(0, 2, 1))[:, i, j] for i, j in maths.SYM], axis=1)
     cov6[:5, 3:] = 0.0  # diagonal ones (the quaternion's other branches)
     cov6[5:10, :3] = 1.0
+    cov6[10:15] = (2.0, 2.0, 2.0, 0.0, 0.0, 0.0)  # isotropic: every axis is an eigenvector
+    cov6[15:20] = (1.0, 1.0, 3.0, 0.0, 0.0, 0.0)  # a repeated pair
+    cov6[20:25] = (2.0, 2.0, 2.0, 1.0, 1.0, 1.0)  # (4, 1, 1): a repeated pair, not axis-aligned
     s_ref, q_ref = scale_rotation_from_covariance(maths.sym_full(cov6))
     s, q = maths.scale_rotation6(cov6, 1e-12)
-    np.testing.assert_array_equal(s, s_ref)
-    np.testing.assert_array_equal(q, q_ref)
+    full = maths.sym_full(cov6)
+    np.testing.assert_allclose(s**2, s_ref**2, rtol=0, atol=1e-13 * np.abs(full).max())  # eigenvalues, to rounding
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, rtol=1e-12)
+    assert (q[:, 0] >= 0).all()
+    # the same Gaussians (rows 5-9 are not PSD: both floor their negative eigenvalues)
+    np.testing.assert_allclose(covariance_from_scale_rotation(s, q), covariance_from_scale_rotation(s_ref, q_ref), rtol=0,
+                               atol=1e-12 * np.abs(full).max())
+    evals, vecs = maths.sym3_eigh(cov6)
+    np.testing.assert_allclose(evals, np.linalg.eigh(full)[0], rtol=0, atol=1e-13 * np.abs(full).max())
+    np.testing.assert_allclose(np.einsum("nji,njk->nik", vecs, vecs), np.broadcast_to(np.eye(3), full.shape), atol=1e-14)
     rot = quat_to_rotmat(rng.standard_normal((500, 4)))
     np.testing.assert_array_equal(maths.rotmat_to_quat(rot), rotmat_to_quat(rot))
+
+
+@pytest.mark.parametrize("shape", [(3, 4, 32, 96), (3, 2, 7, 13), (1, 1, 2, 2)])
+def test_block_means_are_numpys_mean_bit_for_bit(shape):
+    """The texture test's 2x2 block means add four strided views in the order numpy's mean over the block
+    axes does: the same bits (odd last row / column left out), and the block masks the same booleans."""
+    rng = np.random.default_rng(7)
+    x = (rng.random(shape) * rng.choice([1e-3, 1.0, 1e3], shape)).astype(np.float32)
+    c, g, h, w = shape
+    want = x[:, :, : h // 2 * 2, : w // 2 * 2].reshape(c, g, h // 2, 2, w // 2, 2).mean(axis=(3, 5))
+    np.testing.assert_array_equal(merge._means2(x), want)
+    p = rng.random(shape[1:]) < 0.8
+    want_p = p[:, : h // 2 * 2, : w // 2 * 2].reshape(g, h // 2, 2, w // 2, 2).all(axis=(2, 4))
+    np.testing.assert_array_equal(merge._all2(p), want_p)
+
+
+def test_opacity_depth_is_numpys_interp_bit_for_bit():
+    """The table lookup finds its interval from the even spacing and keeps np.interp's arithmetic: the same
+    bits at, between and beside the table's points, beyond its ends and for NaN, in float64 and float32."""
+    x_tab, y_tab = merge._LI2_X, merge._LI2_Y
+    rng = np.random.default_rng(8)
+    a = np.concatenate([rng.random(100_000) * 1.2 - 0.1, x_tab, np.nextafter(x_tab, 1.0), np.nextafter(x_tab, 0.0),
+                        [0.0, 0.99, 1.0, -0.5, np.nan, np.inf, -np.inf]])
+    for x in (a, a.astype(np.float32)):
+        want = np.interp(np.clip(x, 0.0, merge.MERGED_OPACITY_MAX), x_tab, y_tab)
+        np.testing.assert_array_equal(cp.opacity_depth(x), want)

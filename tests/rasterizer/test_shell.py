@@ -118,6 +118,25 @@ def test_compaction_passes_the_shell_through():
         compact_result(both, Provenance(("yin", "yang"), H, W, poses, shell=len(shell) + 4), CompactionOptions())
 
 
+def test_the_shell_comes_after_the_compacted_surfels_as_they_are():
+    """The output is the surfels' own compaction, then the shell (its missing SH bands zero), field by field."""
+    g, ranges, poses = _scene(opacity=0.9)
+    sh = np.random.default_rng(2).normal(0.0, 0.3, (len(g), 4, 3))  # view-dependent colour
+    sh[:, 0] = g.sh[:, 0]
+    g = g.with_(sh=sh)
+    shell = environment_shell(g, ranges, poses, ("yin", "yang"))
+    assert shell.sh.shape[1] == 1
+    res = compact_result(Gaussians.concatenate([g, shell]), Provenance(("yin", "yang"), H, W, poses, shell=len(shell)),
+                         CompactionOptions())
+    front = compact_result(g, Provenance(("yin", "yang"), H, W, poses), CompactionOptions())
+    assert front.stats["merge_smooth"]["added"] > 0  # merged blocks interleaved with the kept surfels
+    want = Gaussians.concatenate([front.gaussians, shell])
+    for f in ("means", "scales", "quats", "opacities", "sh"):
+        np.testing.assert_array_equal(getattr(res.gaussians, f), getattr(want, f), err_msg=f)
+    np.testing.assert_array_equal(res.block[:len(front.block)], front.block)
+    assert res.stats["output"] == len(res.gaussians) == len(front.gaussians) + len(shell)
+
+
 @pytest.mark.parametrize("cap", [100, 10, 0])
 def test_cap_and_opacity_cut_count_the_shell(cap):
     g, ranges, poses = _scene(opacity=0.9)

@@ -6,6 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from rasterizer import view_colour
 from rasterizer.depth_gaussians import gaussians_from_depth
 from rasterizer.gaussians import Gaussians, sh_dc_to_rgb
 from rasterizer.render import render
@@ -53,6 +54,20 @@ def test_own_view_exact_and_other_view_pulled():
         k = np.sum(dd * dd, axis=1) / (np.sum(dd * dd, axis=1) + VIEW_COLOUR_RIDGE)
         np.testing.assert_allclose(_seen_from(fit, poses[1 - v])[sl], own + k[:, None] * (other - own), atol=1e-4)
         assert k.max() > 0.05  # the test box gives directions that differ
+
+
+def test_chunks_give_the_one_pass_fit(monkeypatch):
+    """The fit runs chunk by chunk of Gaussians; chunks of any size (an uneven last one too) give every
+    Gaussian the bits of one pass."""
+    g, ranges, poses = _scene((0.8, 0.2, 0.2), (0.2, 0.2, 0.8))
+    rng = np.random.default_rng(4)
+    g = g.with_(sh=rng.normal(0.0, 0.5, g.sh.shape).astype(np.float32))  # a different colour per Gaussian
+    hidden = rng.random(ranges.shape) < 0.1
+    monkeypatch.setattr(view_colour, "CHUNK", len(g))
+    whole = fit_view_colour(g, ranges, poses, GRIDS, hidden=hidden).sh
+    for size in (7, 500):
+        monkeypatch.setattr(view_colour, "CHUNK", size)
+        np.testing.assert_array_equal(fit_view_colour(g, ranges, poses, GRIDS, hidden=hidden).sh, whole)
 
 
 def test_hidden_from_the_other_view_keeps_one_colour():
