@@ -13,7 +13,10 @@ compositing rule's stop) takes no further contribution, so it drops out:
   "any live pixel in this box" in four lookups per box, wrapped columns in two
   pieces);
 * the contributions of the Gaussians that remain are dropped at dead pixels
-  before the sort.
+  before the sort when a sample shows that many are there
+  (:data:`rasterizer.splat.keys.MASK_MIN_DROP`); otherwise they are sorted and
+  composited with weight 0 (a dead pixel takes no contribution), which costs
+  less than the filter.
 
 Nothing a pixel would have composited is dropped, so the result is that of
 the single global sort up to float rounding of the carried log transmittance.

@@ -203,3 +203,18 @@ def test_row_bands_in_threads_match_one_thread(kind, monkeypatch):
         many = render(g, c2w, threads=threads, **kw)
         assert_same(many, one, atol=1e-5)
     assert one.alpha.max() > 0.5
+
+
+@pytest.mark.parametrize("min_drop", [0.0, 1.0])
+def test_keys_at_dead_pixels_dropped_or_kept_give_the_same_image(min_drop, monkeypatch):
+    """Dead pixels' keys filtered before the sort (MASK_MIN_DROP 0) or composited with weight 0 (1): the same images."""
+    from rasterizer.splat import keys
+
+    monkeypatch.setattr(front_to_back, "MIN_CHUNK", 1)
+    monkeypatch.setattr(front_to_back, "CHUNK_LAYERS", 0.5)
+    monkeypatch.setattr(keys, "MASK_MIN_DROP", min_drop)
+    g, _ = _wall_and_hidden()
+    for kind, (w, h) in (("perspective", (64, 48)), ("yin", (48, 16))):
+        cam = Camera(kind, w, h, np.eye(4))
+        assert_same(new_path(g, cam), old_path(g, cam))
+
