@@ -53,6 +53,11 @@ _CHUNK_ELEMENTS = 1 << 17
 #: costs about a tenth of what a kept key costs in the sort and the compositing after it.
 MASK_PROBE_STEP = 16
 MASK_MIN_DROP = 0.125
+#: A size-class group whose dense block would hold fewer elements than this moves to a coarser
+#: class (a few at most): every block costs about 40 numpy calls (~50 us) whatever its size, the
+#: time of some thousands of dense elements, and most blocks of the large classes hold a handful
+#: of Gaussians.
+SMALL_BLOCK = 1 << 12
 
 class RenderLimitError(ValueError):
     """The footprints would need more memory than the caller allowed."""
@@ -293,6 +298,8 @@ def _flat_keys(live, cols: Columns, qcut, rank, x0, kx, y0, ky, h, w, period, s0
         wraps = (lx0 < s0) | (lx0 + lkx - 1 >= s0 + period)
     else:
         wraps = None
+    if in_table:
+        px, py = _merge_small_groups(px, py, wraps, nc)
     origin = ly0 * (w + 2 * (period or 0) + 2) + lx0
     origin -= origin.min()
     obits = max(1, int(origin.max()).bit_length())
@@ -341,6 +348,26 @@ def _flat_keys(live, cols: Columns, qcut, rank, x0, kx, y0, ky, h, w, period, s0
                               qc[s], rkey[s], h, w, period, s0, layout, wrap=jw is not None and bool(jw[g0]),
                               out=buf, pos=pos)
     return buf[:pos], lrank[perm]
+
+
+def _merge_small_groups(px, py, wraps, nc: int):
+    """Size-class indices (px, py) with the Gaussians of small groups (:data:`SMALL_BLOCK`) in coarser classes.
+
+    Twice: the indices of a small group's Gaussians are rounded up to odd (then to 3 mod 4), at most
+    ``nc - 1``, so neighbouring classes share a block. A coarser class only pads the block with
+    misses: the keys are the same.
+    """
+    for bits in (1, 3):
+        grp = px * nc + py
+        if wraps is not None:
+            grp += wraps * (nc * nc)
+        dense = np.bincount(grp, weights=_SIZE_CLASSES[px] * _SIZE_CLASSES[py])[grp]
+        small = dense < SMALL_BLOCK
+        if not small.any():
+            break
+        px = np.where(small, np.minimum(px | bits, nc - 1), px)
+        py = np.where(small, np.minimum(py | bits, nc - 1), py)
+    return px, py
 
 
 def _estimated_hits(cols: Columns, qcut: np.ndarray, live, kx, ky, sph_box, limit: int) -> int:

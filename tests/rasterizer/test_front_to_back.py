@@ -218,3 +218,30 @@ def test_keys_at_dead_pixels_dropped_or_kept_give_the_same_image(min_drop, monke
         cam = Camera(kind, w, h, np.eye(4))
         assert_same(new_path(g, cam), old_path(g, cam))
 
+
+@pytest.mark.parametrize("kind", ["perspective", "yang", "erp"])
+def test_small_groups_in_coarser_classes_give_the_same_keys(kind, monkeypatch):
+    """Merging small size-class groups into coarser blocks pads them with misses only: the sorted keys are equal."""
+    from rasterizer.splat import keys
+
+    rng = np.random.default_rng(12)
+    g = random_scene(rng, 3000)
+    w = {"perspective": 96, "yang": 96, "erp": 128}[kind]
+    cam = Camera(kind, w, w // 2 if kind == "erp" else w // 3 if kind == "yang" else 64, pose(rng))
+    p = splat.shared_pose(g, cam)
+    cuts = splat.opacity_cuts(g.opacities, len(g))
+    got, blocks = [], []
+    class_keys = keys.class_keys
+
+    def counting(*a, **kw):
+        blocks[-1] += 1
+        return class_keys(*a, **kw)
+
+    monkeypatch.setattr(keys, "class_keys", counting)
+    for small in (0, 1 << 30):  # no group merged; every group merged as far as it goes
+        monkeypatch.setattr(keys, "SMALL_BLOCK", small)
+        blocks.append(0)
+        got.append(splat.sorted_keys(p, cam, cuts, splat.MAX_CONTRIBUTIONS)[0])
+    assert got[0].size > 1000
+    assert blocks[1] < blocks[0]
+    assert np.array_equal(got[0], got[1])
