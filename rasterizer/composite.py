@@ -108,16 +108,19 @@ def composite_segments(m: int, starts: np.ndarray, fetch, table: np.ndarray, ter
         log_keep = np.negative(alpha)
         np.log1p(log_keep, out=log_keep)
         log_keep = log_keep.astype(np.float64)  # <= 0; float64 ufuncs beat mixed-type ones
-        csum = np.cumsum(log_keep)  # inclusive, over the chunk
+        # one cumulative sum over the chunk restarts at every pixel: its first term also takes the
+        # pixel's starting log T minus what the sum holds there (the pixels before: their start, their total)
+        start = np.zeros(ls.size) if log_t is None else log_t[sa:sb].copy()
+        step = start.copy()
         if ls.size > 1:
-            before = np.zeros(ls.size, dtype=np.float64)
-            before[1:] = csum[ls[1:] - 1]
-            csum -= np.repeat(before, np.diff(np.append(ls, b - a)))  # inclusive log T within each pixel
+            step[1:] -= start[:-1] + np.add.reduceat(log_keep, ls)[:-1]
+        log_keep[ls] += step
+        csum = np.cumsum(log_keep)  # inclusive log T of each contribution
         if log_t is not None:
-            csum += np.repeat(log_t[sa:sb], np.diff(np.append(ls, b - a)))
             log_t[sa:sb] = csum[np.append(ls[1:], b - a) - 1]
         alive = csum >= log_tmin
         csum -= log_keep  # exclusive
+        csum[ls] = start
         trans = np.exp(csum, out=csum).astype(np.float32)
         weight = alpha * trans
         weight *= alive  # terminated: exactly 0
