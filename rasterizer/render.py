@@ -82,7 +82,7 @@ def _premultiplied(gaussians: Gaussians, camera: Camera, threads: int = 1):
     colours = sh_to_rgb(gaussians.sh, gaussians.means, camera.centre)
     pose = splat.shared_pose(gaussians, camera)
     qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
-    table = gaussian_table(gaussians.opacities, colours, pose.ranges)[pose.order]
+    table = gaussian_table(gaussians.opacities, colours, pose.ranges, pose.order)
     return front_to_back.premultiplied(pose, camera, qcut, table, threads=threads)
 
 
@@ -115,8 +115,7 @@ def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: i
     qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
 
     def rank_tables():
-        order = pose.order  # depth ranks (a sort of all N)
-        return gaussian_table(gaussians.opacities, colours, pose.ranges)[order]
+        return gaussian_table(gaussians.opacities, colours, pose.ranges, pose.order)  # order: a sort of all N
 
     def one(cam, tables):
         c, a, r = front_to_back.premultiplied(pose, cam, qcut, tables())
