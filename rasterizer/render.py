@@ -106,12 +106,13 @@ def _render_resized(gaussians: Gaussians, camera: Camera, scale: float, threads:
 def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: int, near: float,
                     threads: int, divide: bool = True, scene_resolution: bool = False) -> RenderOutput:
     h = max(1, int(round(height / 2)))
+    full = Camera("yin", 3 * h, h, c2w, near=near)
+    pose = splat.shared_pose(gaussians, full)  # Yin and Yang, at any size, share the pose
     if scene_resolution:  # the grids on the scene's own pitch; the merge resamples them bilinearly
-        h = max(1, int(round(h * render_scale(gaussians, Camera("yin", 3 * h, h, c2w, near=near)))))
+        h = max(1, int(round(h * render_scale(gaussians, full, pose))))
     w = 3 * h
     cams = [Camera(kind, w, h, c2w, near=near) for kind in ("yin", "yang")]
     colours = sh_to_rgb(gaussians.sh, gaussians.means, cams[0].centre)
-    pose = splat.shared_pose(gaussians, cams[0])  # Yin and Yang share the pose
     qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
 
     def rank_tables():

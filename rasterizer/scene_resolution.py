@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from .camera import Camera
-from .splat.projection import LOW_PASS, project
+from .splat.projection import LOW_PASS, SharedPose, project, project_columns
 
 #: Footprint sigma (px) that the SIGMA_QUANTILE-th smallest visible Gaussian keeps on the coarser grid.
 SCENE_SIGMA_PX = 1.0
@@ -36,21 +36,31 @@ FULL_ABOVE = 0.8
 SAMPLE = 65536
 
 
-def footprint_sigmas(gaussians, camera: Camera) -> np.ndarray:
-    """(n,) geometric-mean screen sigma (px) of the visible Gaussians of a sample of at most SAMPLE."""
+def footprint_sigmas(gaussians, camera: Camera, pose: SharedPose | None = None) -> np.ndarray:
+    """(n,) geometric-mean screen sigma (px) of the visible Gaussians of a sample of at most SAMPLE.
+
+    ``pose``: optional :class:`~rasterizer.splat.SharedPose` of all ``gaussians`` at ``camera``'s
+    pose, for a Yin or Yang camera: the sample is then read from the projection of all of them
+    (the same values; the render that follows at that size reuses the projection).
+    """
     n = len(gaussians)
-    if n > SAMPLE:
-        gaussians = gaussians.subset(np.arange(0, n, -(-n // SAMPLE)))
-    proj = project(gaussians, camera)
-    a = proj.cov[:, 0] - LOW_PASS
-    b = proj.cov[:, 1]
-    c = proj.cov[:, 2] - LOW_PASS
+    step = -(-n // SAMPLE) if n > SAMPLE else 1
+    if pose is not None and camera.kind in ("yin", "yang"):
+        cols = project_columns(pose, camera)
+        sel = cols.index % step == 0
+        a, b, c = cols.cov_a[sel] - LOW_PASS, cols.cov_b[sel], cols.cov_c[sel] - LOW_PASS
+    else:
+        if step > 1:
+            gaussians = gaussians.subset(np.arange(0, n, step))
+        proj = project(gaussians, camera)
+        a, b, c = proj.cov[:, 0] - LOW_PASS, proj.cov[:, 1], proj.cov[:, 2] - LOW_PASS
     return np.sqrt(np.sqrt(np.maximum(a * c - b * b, 0.0)))
 
 
-def render_scale(gaussians, camera: Camera) -> float:
-    """Scale in [MIN_SCALE, 1] of the pixel grid to render ``camera``'s view on (module docstring)."""
-    sigma = footprint_sigmas(gaussians, camera)
+def render_scale(gaussians, camera: Camera, pose: SharedPose | None = None) -> float:
+    """Scale in [MIN_SCALE, 1] of the pixel grid to render ``camera``'s view on (module docstring);
+    ``pose`` as in :func:`footprint_sigmas`."""
+    sigma = footprint_sigmas(gaussians, camera, pose)
     if sigma.size == 0:
         return 1.0
     q = float(np.quantile(sigma, SIGMA_QUANTILE))
