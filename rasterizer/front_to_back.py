@@ -198,7 +198,8 @@ def _composite_chunks(job, table: np.ndarray, sums: np.ndarray, h: int, w: int) 
         pixels = pix[starts].astype(np.int64)
         lt = log_t[pixels]
         seg, _ = composite_segments(key.size, starts, fetch, table, log_t=lt)
-        sums[pixels] += seg
+        seg += np.take(sums, pixels, axis=0)  # a take, an add and a store: faster than sums[pixels] += seg
+        sums[pixels] = seg
         log_t[pixels] = lt
         dead = pixels[lt < log_tmin]
         if dead.size:
