@@ -91,6 +91,14 @@ def _summed_area(alive: np.ndarray, h: int, w: int) -> np.ndarray:
     return sat
 
 
+def _by_rank(rank: np.ndarray, n_all: int) -> np.ndarray:
+    """Positions of ``rank`` (distinct integers in [0, n_all)) in increasing rank: an argsort by one
+    scatter into n_all slots (linear time)."""
+    slot = np.full(n_all, -1, dtype=np.int64)
+    slot[rank] = np.arange(rank.size)
+    return slot[slot >= 0]
+
+
 def premultiplied(pose: splat.SharedPose, camera, qcut_all: np.ndarray | None, table: np.ndarray,
                   threads: int = 1):
     """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) float32 of one camera, front to back.
@@ -167,7 +175,7 @@ def _composite_chunks(job, table: np.ndarray, sums: np.ndarray, h: int, w: int) 
         rows0, rows1 = np.concatenate([rows0, sy0]), np.concatenate([rows1, sy0 + sky - 1])
         rank = np.concatenate([rank, job.rank[job.polar]])
         area = np.concatenate([area, skx.astype(np.float64) * sky])
-    order = np.argsort(rank)  # ranks are unique: front to back
+    order = _by_rank(rank, job.n_all)  # front to back
     order = order[area[order] > 0]  # a band's clipped boxes may be empty
     if order.size == 0:
         return
