@@ -76,19 +76,24 @@ def _pieces(x0, kx, period, start, w):
     return out
 
 
-def _any_alive(sat: np.ndarray, rows0, rows1, a0, a1, b0, b1) -> np.ndarray:
-    """(n,) bool: some live pixel in rows rows0..rows1 and columns a0..a1 or b0..b1 (inclusive)."""
-    r0, r1 = rows0, rows1 + 1
-    count = sat[r1, a1 + 1] - sat[r0, a1 + 1] - sat[r1, a0] + sat[r0, a0]
-    count += sat[r1, b1 + 1] - sat[r0, b1 + 1] - sat[r1, b0] + sat[r0, b0]
+def _any_alive(sat: np.ndarray, top, bottom, a0, a1, b0, b1) -> np.ndarray:
+    """(n,) bool: some live pixel in a box, from the flat summed-area table ``sat`` ((H+1) (W+1),).
+
+    ``top``, ``bottom``: flat offsets of the box's first row and of the row after its last in
+    ``sat``; columns a0 .. a1 - 1 and b0 .. b1 - 1 (a1, b1 exclusive). Flat 1-D takes: a 2-D
+    fancy index of the table costs several times more.
+    """
+    count = np.take(sat, bottom + a1) - np.take(sat, top + a1) - np.take(sat, bottom + a0) + np.take(sat, top + a0)
+    count += np.take(sat, bottom + b1) - np.take(sat, top + b1) - np.take(sat, bottom + b0) + np.take(sat, top + b0)
     return count > 0
 
 
 def _summed_area(alive: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Flat ((H+1) (W+1),) int32 summed-area table of the (H*W,) bool mask (row 0 and column 0 zero)."""
     sat = np.zeros((h + 1, w + 1), dtype=np.int32)
     np.cumsum(alive.reshape(h, w), axis=0, dtype=np.int32, out=sat[1:, 1:])
     np.cumsum(sat[1:, 1:], axis=1, out=sat[1:, 1:])
-    return sat
+    return sat.reshape(-1)
 
 
 def _by_rank(rank: np.ndarray, n_all: int) -> np.ndarray:
@@ -184,6 +189,8 @@ def _composite_chunks(job, table: np.ndarray, sums: np.ndarray, h: int, w: int) 
     chunk = (cum - area[order]) // budget  # a chunk starts where the one before filled its budget
     cuts = np.concatenate([[0], np.flatnonzero(np.diff(chunk)) + 1, [order.size]])
 
+    top, bottom = rows0 * (w + 1), (rows1 + 1) * (w + 1)  # flat row offsets in the summed-area table
+    a0, a1, b0, b1 = pieces[0], pieces[1] + 1, pieces[2], pieces[3] + 1
     log_t = np.zeros(h * w)
     log_tmin = np.log(T_MIN)
     alive = sat = None  # None: every pixel is alive
@@ -194,7 +201,7 @@ def _composite_chunks(job, table: np.ndarray, sums: np.ndarray, h: int, w: int) 
     for c0, c1 in zip(cuts[:-1], cuts[1:]):
         sel = order[c0:c1]
         if sat is not None:
-            sel = sel[_any_alive(sat, rows0[sel], rows1[sel], *(p[sel] for p in pieces))]
+            sel = sel[_any_alive(sat, top[sel], bottom[sel], a0[sel], a1[sel], b0[sel], b1[sel])]
             if sel.size == 0:
                 continue
         flat = sel < nflat
