@@ -104,22 +104,26 @@ def _by_rank(rank: np.ndarray, n_all: int) -> np.ndarray:
     return slot[slot >= 0]
 
 
-def premultiplied(pose: splat.SharedPose, camera, qcut_all: np.ndarray | None, table: np.ndarray,
+def premultiplied(pose: splat.SharedPose, camera, qcut_all: np.ndarray | None, table,
                   threads: int = 1):
     """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) float32 of one camera, front to back.
 
     ``pose``: the :class:`~rasterizer.splat.SharedPose` of the camera's pose; ``qcut_all`` (N,)
     :func:`~rasterizer.splat.opacity_cuts` or None; ``table`` (N, 8) float32
     :func:`~rasterizer.composite.gaussian_table` rows in depth-rank order (row k = the Gaussian of
-    rank k). alpha is clipped to [0, 1]. ``threads`` > 1 splits the rows into that many bands of
-    about equal footprint area, composited side by side (numpy releases the GIL in its loops);
-    the bands touch disjoint pixels, so the result is the same up to float rounding.
+    rank k), or a function of the (n,) indices of the Gaussians the camera keeps that returns it
+    (only their rows are read: :func:`~rasterizer.composite.ranked_table`). alpha is clipped to
+    [0, 1]. ``threads`` > 1 splits the rows into that many bands of about equal footprint area,
+    composited side by side (numpy releases the GIL in its loops); the bands touch disjoint
+    pixels, so the result is the same up to float rounding.
     """
     h, w = camera.height, camera.width
     npix = h * w
     sums = np.zeros((npix, 5), dtype=np.float32)
     job = splat.key_job(pose, camera, qcut_all)
     if job is not None:
+        if callable(table):
+            table = table(job.cols.index)
         bands = _row_bands(job, h, threads)
         if len(bands) == 1:
             _composite_chunks(job, table, sums, h, w)

@@ -45,6 +45,7 @@ from .composite import (
     composite,
     gaussian_table,
     normalise_range,
+    ranked_table,
 )
 from .gaussians import Gaussians
 from .scene_resolution import reduced_pinhole, render_scale, resize_pinhole
@@ -79,10 +80,13 @@ def _check_gaussians(gaussians: Gaussians) -> None:
 
 def _premultiplied(gaussians: Gaussians, camera: Camera, threads: int = 1):
     """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) of one camera, front to back."""
-    colours = sh_to_rgb(gaussians.sh, gaussians.means, camera.centre)
     pose = splat.shared_pose(gaussians, camera)
     qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
-    table = gaussian_table(gaussians.opacities, colours, pose.ranges, pose.order)
+
+    def table(index):  # colours and rows of the Gaussians the camera keeps only
+        colours = sh_to_rgb(gaussians.sh[index], gaussians.means[index], camera.centre)
+        return ranked_table(gaussians.opacities[index], colours, pose.ranges[index], pose.rank[index], len(gaussians))
+
     return front_to_back.premultiplied(pose, camera, qcut, table, threads=threads)
 
 
