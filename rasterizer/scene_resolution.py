@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from .camera import Camera
-from .splat.projection import LOW_PASS, SharedPose, project, project_columns
+from .splat.projection import LOW_PASS, Columns, project
 
 #: Footprint sigma (px) that the SIGMA_QUANTILE-th smallest visible Gaussian keeps on the coarser grid.
 SCENE_SIGMA_PX = 1.0
@@ -36,19 +36,17 @@ FULL_ABOVE = 0.8
 SAMPLE = 65536
 
 
-def footprint_sigmas(gaussians, camera: Camera, pose: SharedPose | None = None) -> np.ndarray:
+def footprint_sigmas(gaussians, camera: Camera, columns: Columns | None = None) -> np.ndarray:
     """(n,) geometric-mean screen sigma (px) of the visible Gaussians of a sample of at most SAMPLE.
 
-    ``pose``: optional :class:`~rasterizer.splat.SharedPose` of all ``gaussians`` at ``camera``'s
-    pose, for a Yin or Yang camera: the sample is then read from the projection of all of them
-    (the same values; the render that follows at that size reuses the projection).
+    ``columns``: optional :func:`~rasterizer.splat.projection.project_columns` of all ``gaussians``
+    into ``camera``; the sample is then read from them (the same values) instead of projected.
     """
     n = len(gaussians)
     step = -(-n // SAMPLE) if n > SAMPLE else 1
-    if pose is not None and camera.kind in ("yin", "yang"):
-        cols = project_columns(pose, camera)
-        sel = cols.index % step == 0
-        a, b, c = cols.cov_a[sel] - LOW_PASS, cols.cov_b[sel], cols.cov_c[sel] - LOW_PASS
+    if columns is not None:
+        sel = columns.index % step == 0
+        a, b, c = columns.cov_a[sel] - LOW_PASS, columns.cov_b[sel], columns.cov_c[sel] - LOW_PASS
     else:
         if step > 1:
             gaussians = gaussians.subset(np.arange(0, n, step))
@@ -57,10 +55,10 @@ def footprint_sigmas(gaussians, camera: Camera, pose: SharedPose | None = None) 
     return np.sqrt(np.sqrt(np.maximum(a * c - b * b, 0.0)))
 
 
-def render_scale(gaussians, camera: Camera, pose: SharedPose | None = None) -> float:
+def render_scale(gaussians, camera: Camera, columns: Columns | None = None) -> float:
     """Scale in [MIN_SCALE, 1] of the pixel grid to render ``camera``'s view on (module docstring);
-    ``pose`` as in :func:`footprint_sigmas`."""
-    sigma = footprint_sigmas(gaussians, camera, pose)
+    ``columns`` as in :func:`footprint_sigmas`."""
+    sigma = footprint_sigmas(gaussians, camera, columns)
     if sigma.size == 0:
         return 1.0
     q = float(np.quantile(sigma, SIGMA_QUANTILE))

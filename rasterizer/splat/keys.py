@@ -162,14 +162,15 @@ class KeyJob:
     n_all: int
 
 
-def key_job(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None) -> KeyJob | None:
+def key_job(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None,
+            columns: Columns | None = None) -> KeyJob | None:
     """The :class:`KeyJob` of ``camera`` (None when no Gaussian projects into it).
 
-    Raises :class:`RenderLimitError` when the image and the Gaussian count do not fit the
-    64-bit key.
+    ``columns``: the camera's :func:`~.projection.project_columns` when the caller has them.
+    Raises :class:`RenderLimitError` when the image and the Gaussian count do not fit the 64-bit key.
     """
     h, w = camera.height, camera.width
-    cols = project_columns(pose, camera)
+    cols = project_columns(pose, camera) if columns is None else columns
     n = cols.index.size
     if n == 0:
         return None

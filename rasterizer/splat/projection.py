@@ -126,8 +126,7 @@ class SharedPose:
     when none were given); order (N,) the Gaussian of each front-to-back rank and rank (N,) its
     inverse (by range, ties in input order; by camera-frame z when ``depth_order``, as every 3DGS
     viewer sorts for a pinhole camera); grid_keep: per Yin/Yang camera, the indices of the
-    Gaussians that pass the near and domain culls; grid_columns: per Yin/Yang camera, its
-    :func:`project_columns` (a render's scale estimate and its keys share one projection).
+    Gaussians that pass the near and domain culls.
     """
 
     x: np.ndarray
@@ -141,7 +140,6 @@ class SharedPose:
     rank_: np.ndarray | None = None
     p_cam_: np.ndarray | None = None
     grid_keep: dict = field(default_factory=dict, repr=False)
-    grid_columns: dict = field(default_factory=dict, repr=False)
     depth_order: bool = False
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -399,10 +397,7 @@ def _outside_frustum(camera: Camera, p_cam: np.ndarray, s_max: np.ndarray) -> np
 def project_columns(pose: SharedPose, camera: Camera) -> Columns:
     """EWA projection of the pose's Gaussians into ``camera`` as columns (see :func:`project`)."""
     if camera.kind in ("yin", "yang"):
-        key = (camera.kind, camera.width, camera.height, camera.near)
-        if key not in pose.grid_columns:
-            pose.grid_columns[key] = _project_grid(pose, camera)
-        return pose.grid_columns[key]
+        return _project_grid(pose, camera)
     ranges = pose.ranges
     keep = ranges >= camera.near  # the near cull on range (and z below for pinhole cameras)
     if camera.kind == "perspective":

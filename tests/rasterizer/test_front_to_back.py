@@ -112,7 +112,7 @@ def test_erp_renders_both_methods_match_the_single_sort(scene, normalize, tiny_c
     for method in ("yinyang", "direct"):
         new = render(g, c2w, projection="erp", width=64, method=method, normalize=normalize)
         with pytest.MonkeyPatch.context() as mp:  # the same render through the single global sort
-            mp.setattr(front_to_back, "premultiplied", lambda p, cam, q, t, threads=1: old_path(g, cam))
+            mp.setattr(front_to_back, "premultiplied", lambda p, cam, q, t, threads=1, columns=None: old_path(g, cam))
             old = render(g, c2w, projection="erp", width=64, method=method, normalize=normalize)
         # V/A divides by alpha >= 1/255: allow the division's amplification of rounding
         assert_same(new, old, atol=2e-5 if normalize is False or (normalize is None and method == "direct") else 1e-3)
