@@ -166,9 +166,9 @@ def gaussian_table(opacities: np.ndarray, colours: np.ndarray, ranges: np.ndarra
 
 def ranked_table(opacities: np.ndarray, colours: np.ndarray, ranges: np.ndarray, rank: np.ndarray,
                  n: int) -> np.ndarray:
-    """(n, 8) float32 :func:`gaussian_table` of all n Gaussians of a render in depth-rank order, filled
-    only at the rows ``rank`` (m,) of the m Gaussians given by their (m,) columns (the others stay 0):
-    a camera that keeps few Gaussians evaluates colours for those only."""
+    """(n, 8) float32 :func:`gaussian_table` in depth-rank order, filled only at the rows ``rank`` (m,)
+    of the m Gaussians given by their (m,) columns (the others stay 0): a camera that keeps few
+    Gaussians evaluates colours for those only."""
     table = np.zeros((n, 8), dtype=np.float32)
     rows = gaussian_table(opacities, colours, ranges)
     table.view(np.complex128).reshape(-1, 2)[rank] = rows.view(np.complex128).reshape(-1, 2)

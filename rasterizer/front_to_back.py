@@ -111,8 +111,9 @@ def premultiplied(pose: splat.SharedPose, camera, qcut_all: np.ndarray | None, t
     ``pose``: the :class:`~rasterizer.splat.SharedPose` of the camera's pose; ``qcut_all`` (N,)
     :func:`~rasterizer.splat.opacity_cuts` or None; ``table`` (N, 8) float32
     :func:`~rasterizer.composite.gaussian_table` rows in depth-rank order (row k = the Gaussian of
-    rank k), or a function of the (n,) indices of the Gaussians the camera keeps that returns it
-    (only their rows are read: :func:`~rasterizer.composite.ranked_table`). alpha is clipped to
+    rank k), or a function ``table(index, rank, n)`` of the (n,) indices of the Gaussians the
+    camera keeps and their ranks among themselves that returns the (n, 8) table of those ranks
+    (:func:`~rasterizer.composite.ranked_table`; no sort of all N Gaussians). alpha is clipped to
     [0, 1]. ``threads`` > 1 splits the rows into that many bands of about equal footprint area,
     composited side by side (numpy releases the GIL in its loops); the bands touch disjoint
     pixels, so the result is the same up to float rounding. ``columns``: the camera's
@@ -121,10 +122,10 @@ def premultiplied(pose: splat.SharedPose, camera, qcut_all: np.ndarray | None, t
     h, w = camera.height, camera.width
     npix = h * w
     sums = np.zeros((npix, 5), dtype=np.float32)
-    job = splat.key_job(pose, camera, qcut_all, columns)
+    job = splat.key_job(pose, camera, qcut_all, columns, own_ranks=callable(table))
     if job is not None:
         if callable(table):
-            table = table(job.cols.index)
+            table = table(job.cols.index, job.rank, job.n_all)
         bands = _row_bands(job, h, threads)
         if len(bands) == 1:
             _composite_chunks(job, table, sums, h, w)

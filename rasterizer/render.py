@@ -84,9 +84,9 @@ def _premultiplied(gaussians: Gaussians, camera: Camera, threads: int = 1):
     pose = splat.shared_pose(gaussians, camera)
     qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
 
-    def table(index):  # colours and rows of the Gaussians the camera keeps only
+    def table(index, rank, n):  # colours and rows of the Gaussians the camera keeps only
         colours = sh_to_rgb(gaussians.sh[index], gaussians.means[index], camera.centre)
-        return ranked_table(gaussians.opacities[index], colours, pose.ranges[index], pose.rank[index], len(gaussians))
+        return ranked_table(gaussians.opacities[index], colours, pose.ranges[index], rank, n)
 
     return front_to_back.premultiplied(pose, camera, qcut, table, threads=threads)
 

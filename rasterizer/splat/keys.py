@@ -143,7 +143,8 @@ class KeyJob:
     """What the keys of one camera are built from: projected columns, cuts, ranks, boxes, key layout.
 
     ``cols`` the kept Gaussians' :class:`~.projection.Columns` (n); ``qcut`` (n,) float64
-    Mahalanobis cut; ``rank`` (n,) int64 depth rank among all the pose's Gaussians; ``live``
+    Mahalanobis cut; ``rank`` (n,) int64 depth rank among all the pose's Gaussians, or among
+    these n only (``n_all``: how many are ranked); ``live``
     indices into ``cols`` of the non-empty pixel-space footprints and ``box`` (x0, kx, y0, ky)
     (n,) int64 their pixel boxes; ``polar`` indices into ``cols`` of the polar ERP footprints,
     ``sphere`` their tangent-plane ellipses and ``sphere_box`` their boxes (None without any).
@@ -163,10 +164,12 @@ class KeyJob:
 
 
 def key_job(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None,
-            columns: Columns | None = None) -> KeyJob | None:
+            columns: Columns | None = None, own_ranks: bool = False) -> KeyJob | None:
     """The :class:`KeyJob` of ``camera`` (None when no Gaussian projects into it).
 
     ``columns``: the camera's :func:`~.projection.project_columns` when the caller has them.
+    ``own_ranks``: rank the camera's Gaussians among themselves (the same order; one camera's
+    render need not sort all the pose's Gaussians) instead of among all of them.
     Raises :class:`RenderLimitError` when the image and the Gaussian count do not fit the 64-bit key.
     """
     h, w = camera.height, camera.width
@@ -175,8 +178,10 @@ def key_job(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None,
     if n == 0:
         return None
     qcut = np.full(n, Q_MAX) if qcut_all is None else qcut_all[cols.index]
-    n_all = pose.ranges.size
-    rank = pose.rank[cols.index]
+    if own_ranks:
+        n_all, rank = n, pose.ranks_among(cols.index)
+    else:
+        n_all, rank = pose.ranges.size, pose.rank[cols.index]
 
     flat_idx, polar_idx = polar_split(cols.my, cols.cov_c, camera)
     x0, kx, y0, ky = footprint_boxes(cols.mx, cols.my, cols.cov_a, cols.cov_c, camera, np.maximum(qcut, 0.0))

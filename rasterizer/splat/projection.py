@@ -155,15 +155,26 @@ class SharedPose:
             self.p_cam_ = np.stack([self.x, self.y, self.z], axis=1)
         return self.p_cam_
 
-    def _ranks(self) -> None:
+    def _depth_keys(self, index=slice(None)) -> np.ndarray:
         # keys >= 0: their float64 bit patterns sort like the values (and a stable sort of
         # integers is faster than of floats); ties keep the input order. z < 0 is culled anyway.
-        key = np.maximum(self.z, 0.0) if self.depth_order else self.ranges
-        order = np.argsort(key.view(np.int64), kind="stable")
+        key = np.maximum(self.z[index], 0.0) if self.depth_order else self.ranges[index]
+        return key.view(np.int64)
+
+    def _ranks(self) -> None:
+        order = np.argsort(self._depth_keys(), kind="stable")
         rank = np.empty_like(order)
         rank[order] = np.arange(order.size)
         self.rank_ = rank
         self.order_ = order
+
+    def ranks_among(self, index: np.ndarray) -> np.ndarray:
+        """(n,) depth ranks of the Gaussians ``index`` (ascending indices) among themselves: the order
+        of :attr:`rank` restricted to them (ties in input order), without sorting all N."""
+        order = np.argsort(self._depth_keys(index), kind="stable")
+        rank = np.empty_like(order)
+        rank[order] = np.arange(order.size)
+        return rank
 
     @property
     def order(self) -> np.ndarray:

@@ -245,3 +245,18 @@ def test_small_groups_in_coarser_classes_give_the_same_keys(kind, monkeypatch):
     assert got[0].size > 1000
     assert blocks[1] < blocks[0]
     assert np.array_equal(got[0], got[1])
+
+
+@pytest.mark.parametrize("kind", ["perspective", "yin"])
+def test_ranks_among_a_subset_keep_the_order_of_all_ranks(kind):
+    """A camera's own ranks (one render's sort of the Gaussians it keeps) order them as the ranks of all N,
+    ties (duplicated Gaussians) in input order."""
+    rng = np.random.default_rng(9)
+    g = random_scene(rng, 2000)
+    g = g.subset(np.concatenate([np.arange(len(g)), np.arange(0, len(g), 7)]))  # exact duplicates: ties
+    cam = Camera(kind, 96, 64 if kind == "perspective" else 32, pose(rng))
+    p = splat.shared_pose(g, cam)
+    index = np.sort(rng.choice(len(g), 900, replace=False))
+    own = p.ranks_among(index)
+    assert np.array_equal(np.sort(own), np.arange(index.size))
+    assert np.array_equal(np.argsort(own), np.argsort(p.rank[index]))
