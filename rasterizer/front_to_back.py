@@ -13,7 +13,10 @@ compositing rule's stop) takes no further contribution, so it drops out:
   "any live pixel in this box" in four lookups per box, wrapped columns in two
   pieces);
 * the contributions of the Gaussians that remain are dropped at dead pixels
-  before the sort.
+  before the sort when a sample shows that many are there
+  (:data:`rasterizer.splat.keys.MASK_MIN_DROP`); otherwise they are sorted and
+  composited with weight 0 (a dead pixel takes no contribution), which costs
+  less than the filter.
 
 Nothing a pixel would have composited is dropped, so the result is that of
 the single global sort up to float rounding of the carried log transmittance.
@@ -73,37 +76,56 @@ def _pieces(x0, kx, period, start, w):
     return out
 
 
-def _any_alive(sat: np.ndarray, rows0, rows1, a0, a1, b0, b1) -> np.ndarray:
-    """(n,) bool: some live pixel in rows rows0..rows1 and columns a0..a1 or b0..b1 (inclusive)."""
-    r0, r1 = rows0, rows1 + 1
-    count = sat[r1, a1 + 1] - sat[r0, a1 + 1] - sat[r1, a0] + sat[r0, a0]
-    count += sat[r1, b1 + 1] - sat[r0, b1 + 1] - sat[r1, b0] + sat[r0, b0]
+def _any_alive(sat: np.ndarray, top, bottom, a0, a1, b0, b1) -> np.ndarray:
+    """(n,) bool: some live pixel in a box, from the flat summed-area table ``sat`` ((H+1) (W+1),).
+
+    ``top``, ``bottom``: flat offsets of the box's first row and of the row after its last in
+    ``sat``; columns a0 .. a1 - 1 and b0 .. b1 - 1 (a1, b1 exclusive). Flat 1-D takes: a 2-D
+    fancy index of the table costs several times more.
+    """
+    count = np.take(sat, bottom + a1) - np.take(sat, top + a1) - np.take(sat, bottom + a0) + np.take(sat, top + a0)
+    count += np.take(sat, bottom + b1) - np.take(sat, top + b1) - np.take(sat, bottom + b0) + np.take(sat, top + b0)
     return count > 0
 
 
 def _summed_area(alive: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Flat ((H+1) (W+1),) int32 summed-area table of the (H*W,) bool mask (row 0 and column 0 zero)."""
     sat = np.zeros((h + 1, w + 1), dtype=np.int32)
     np.cumsum(alive.reshape(h, w), axis=0, dtype=np.int32, out=sat[1:, 1:])
     np.cumsum(sat[1:, 1:], axis=1, out=sat[1:, 1:])
-    return sat
+    return sat.reshape(-1)
 
 
-def premultiplied(pose: splat.SharedPose, camera, qcut_all: np.ndarray | None, table: np.ndarray,
-                  threads: int = 1):
+def _by_rank(rank: np.ndarray, n_all: int) -> np.ndarray:
+    """Positions of ``rank`` (distinct integers in [0, n_all)) in increasing rank: an argsort by one
+    scatter into n_all slots (linear time)."""
+    slot = np.full(n_all, -1, dtype=np.int64)
+    slot[rank] = np.arange(rank.size)
+    return slot[slot >= 0]
+
+
+def premultiplied(pose: splat.SharedPose, camera, qcut_all: np.ndarray | None, table,
+                  threads: int = 1, columns=None):
     """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) float32 of one camera, front to back.
 
     ``pose``: the :class:`~rasterizer.splat.SharedPose` of the camera's pose; ``qcut_all`` (N,)
     :func:`~rasterizer.splat.opacity_cuts` or None; ``table`` (N, 8) float32
     :func:`~rasterizer.composite.gaussian_table` rows in depth-rank order (row k = the Gaussian of
-    rank k). alpha is clipped to [0, 1]. ``threads`` > 1 splits the rows into that many bands of
-    about equal footprint area, composited side by side (numpy releases the GIL in its loops);
-    the bands touch disjoint pixels, so the result is the same up to float rounding.
+    rank k), or a function ``table(index, rank, n)`` of the (n,) indices of the Gaussians the
+    camera keeps and their ranks among themselves that returns the (n, 8) table of those ranks
+    (:func:`~rasterizer.composite.ranked_table`; no sort of all N Gaussians). alpha is clipped to
+    [0, 1]. ``threads`` > 1 splits the rows into that many bands of about equal footprint area,
+    composited side by side (numpy releases the GIL in its loops); the bands touch disjoint
+    pixels, so the result is the same up to float rounding. ``columns``: the camera's
+    :func:`~rasterizer.splat.projection.project_columns` when the caller has them.
     """
     h, w = camera.height, camera.width
     npix = h * w
     sums = np.zeros((npix, 5), dtype=np.float32)
-    job = splat.key_job(pose, camera, qcut_all)
+    job = splat.key_job(pose, camera, qcut_all, columns, own_ranks=callable(table))
     if job is not None:
+        if callable(table):
+            table = table(job.cols.index, job.rank, job.n_all)
         bands = _row_bands(job, h, threads)
         if len(bands) == 1:
             _composite_chunks(job, table, sums, h, w)
@@ -164,7 +186,7 @@ def _composite_chunks(job, table: np.ndarray, sums: np.ndarray, h: int, w: int) 
         rows0, rows1 = np.concatenate([rows0, sy0]), np.concatenate([rows1, sy0 + sky - 1])
         rank = np.concatenate([rank, job.rank[job.polar]])
         area = np.concatenate([area, skx.astype(np.float64) * sky])
-    order = np.argsort(rank)  # ranks are unique: front to back
+    order = _by_rank(rank, job.n_all)  # front to back
     order = order[area[order] > 0]  # a band's clipped boxes may be empty
     if order.size == 0:
         return
@@ -173,6 +195,8 @@ def _composite_chunks(job, table: np.ndarray, sums: np.ndarray, h: int, w: int) 
     chunk = (cum - area[order]) // budget  # a chunk starts where the one before filled its budget
     cuts = np.concatenate([[0], np.flatnonzero(np.diff(chunk)) + 1, [order.size]])
 
+    top, bottom = rows0 * (w + 1), (rows1 + 1) * (w + 1)  # flat row offsets in the summed-area table
+    a0, a1, b0, b1 = pieces[0], pieces[1] + 1, pieces[2], pieces[3] + 1
     log_t = np.zeros(h * w)
     log_tmin = np.log(T_MIN)
     alive = sat = None  # None: every pixel is alive
@@ -183,7 +207,7 @@ def _composite_chunks(job, table: np.ndarray, sums: np.ndarray, h: int, w: int) 
     for c0, c1 in zip(cuts[:-1], cuts[1:]):
         sel = order[c0:c1]
         if sat is not None:
-            sel = sel[_any_alive(sat, rows0[sel], rows1[sel], *(p[sel] for p in pieces))]
+            sel = sel[_any_alive(sat, top[sel], bottom[sel], a0[sel], a1[sel], b0[sel], b1[sel])]
             if sel.size == 0:
                 continue
         flat = sel < nflat
@@ -195,7 +219,8 @@ def _composite_chunks(job, table: np.ndarray, sums: np.ndarray, h: int, w: int) 
         pixels = pix[starts].astype(np.int64)
         lt = log_t[pixels]
         seg, _ = composite_segments(key.size, starts, fetch, table, log_t=lt)
-        sums[pixels] += seg
+        seg += np.take(sums, pixels, axis=0)  # a take, an add and a store: faster than sums[pixels] += seg
+        sums[pixels] = seg
         log_t[pixels] = lt
         dead = pixels[lt < log_tmin]
         if dead.size:

@@ -45,11 +45,13 @@ from .composite import (
     composite,
     gaussian_table,
     normalise_range,
+    ranked_table,
 )
 from .gaussians import Gaussians
 from .scene_resolution import reduced_pinhole, render_scale, resize_pinhole
 from .sh import sh_to_rgb
 from .splat import ALPHA_MIN, Footprints, footprints
+from .splat.projection import project_columns
 
 __all__ = ["RenderOutput", "render", "render_camera", "to_uint8", "Camera", "footprints", "composite",
            "Footprints"]
@@ -79,10 +81,13 @@ def _check_gaussians(gaussians: Gaussians) -> None:
 
 def _premultiplied(gaussians: Gaussians, camera: Camera, threads: int = 1):
     """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) of one camera, front to back."""
-    colours = sh_to_rgb(gaussians.sh, gaussians.means, camera.centre)
     pose = splat.shared_pose(gaussians, camera)
     qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
-    table = gaussian_table(gaussians.opacities, colours, pose.ranges)[pose.order]
+
+    def table(index, rank, n):  # colours and rows of the Gaussians the camera keeps only
+        colours = sh_to_rgb(gaussians.sh[index], gaussians.means[index], camera.centre)
+        return ranked_table(gaussians.opacities[index], colours, pose.ranges[index], rank, n)
+
     return front_to_back.premultiplied(pose, camera, qcut, table, threads=threads)
 
 
@@ -106,21 +111,30 @@ def _render_resized(gaussians: Gaussians, camera: Camera, scale: float, threads:
 def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: int, near: float,
                     threads: int, divide: bool = True, scene_resolution: bool = False) -> RenderOutput:
     h = max(1, int(round(height / 2)))
+    full = Camera("yin", 3 * h, h, c2w, near=near)
+    pose = splat.shared_pose(gaussians, full)  # Yin and Yang, at any size, share the pose
+    yin_columns = []  # the full-size Yin projection of the scale estimate, reused when the size stays
     if scene_resolution:  # the grids on the scene's own pitch; the merge resamples them bilinearly
-        h = max(1, int(round(h * render_scale(gaussians, Camera("yin", 3 * h, h, c2w, near=near)))))
+        columns = project_columns(pose, full)
+        scaled = max(1, int(round(h * render_scale(gaussians, full, columns))))
+        if scaled == h:
+            yin_columns.append(columns)
+        h = scaled
+        del columns
     w = 3 * h
     cams = [Camera(kind, w, h, c2w, near=near) for kind in ("yin", "yang")]
     colours = sh_to_rgb(gaussians.sh, gaussians.means, cams[0].centre)
-    pose = splat.shared_pose(gaussians, cams[0])  # Yin and Yang share the pose
     qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
 
     def rank_tables():
-        order = pose.order  # depth ranks (a sort of all N)
-        return gaussian_table(gaussians.opacities, colours, pose.ranges)[order]
+        return gaussian_table(gaussians.opacities, colours, pose.ranges, pose.order)  # order: a sort of all N
 
-    def one(cam, tables):
-        c, a, r = front_to_back.premultiplied(pose, cam, qcut, tables())
+    def one(cam, tables, columns=None):
+        c, a, r = front_to_back.premultiplied(pose, cam, qcut, tables(), columns=columns)
         return np.concatenate([c, a[:, :, None], r[:, :, None]], axis=2)
+
+    def yin_cols():  # handed over, not kept: Yang's render does not hold Yin's projection
+        return yin_columns.pop() if yin_columns else None
 
     if threads > 1 and len(gaussians) >= _THREAD_MIN_GAUSSIANS:
         # numpy releases the GIL in sorts, gathers and ufunc loops: the depth sort of all Gaussians
@@ -128,11 +142,11 @@ def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: i
         with ThreadPoolExecutor(max_workers=2) as pool:
             tables = pool.submit(rank_tables)
             yang = pool.submit(one, cams[1], tables.result)
-            stacks = [one(cams[0], tables.result), yang.result()]
+            stacks = [one(cams[0], tables.result, yin_cols()), yang.result()]
             merged = yin_yang.yin_yang_to_erp(stacks[0], stacks[1], height, width, pool=pool)
     else:
         tables = rank_tables()
-        stacks = [one(cam, lambda: tables) for cam in cams]
+        stacks = [one(cams[0], lambda: tables, yin_cols()), one(cams[1], lambda: tables)]
         merged = yin_yang.yin_yang_to_erp(stacks[0], stacks[1], height, width)
     alpha = np.clip(merged[:, :, 3], 0.0, 1.0)
     inv = _alpha_inverse(merged[:, :, 3])

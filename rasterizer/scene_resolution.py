@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from .camera import Camera
-from .splat.projection import LOW_PASS, project
+from .splat.projection import LOW_PASS, Columns, project
 
 #: Footprint sigma (px) that the SIGMA_QUANTILE-th smallest visible Gaussian keeps on the coarser grid.
 SCENE_SIGMA_PX = 1.0
@@ -36,21 +36,29 @@ FULL_ABOVE = 0.8
 SAMPLE = 65536
 
 
-def footprint_sigmas(gaussians, camera: Camera) -> np.ndarray:
-    """(n,) geometric-mean screen sigma (px) of the visible Gaussians of a sample of at most SAMPLE."""
+def footprint_sigmas(gaussians, camera: Camera, columns: Columns | None = None) -> np.ndarray:
+    """(n,) geometric-mean screen sigma (px) of the visible Gaussians of a sample of at most SAMPLE.
+
+    ``columns``: optional :func:`~rasterizer.splat.projection.project_columns` of all ``gaussians``
+    into ``camera``; the sample is then read from them (the same values) instead of projected.
+    """
     n = len(gaussians)
-    if n > SAMPLE:
-        gaussians = gaussians.subset(np.arange(0, n, -(-n // SAMPLE)))
-    proj = project(gaussians, camera)
-    a = proj.cov[:, 0] - LOW_PASS
-    b = proj.cov[:, 1]
-    c = proj.cov[:, 2] - LOW_PASS
+    step = -(-n // SAMPLE) if n > SAMPLE else 1
+    if columns is not None:
+        sel = columns.index % step == 0
+        a, b, c = columns.cov_a[sel] - LOW_PASS, columns.cov_b[sel], columns.cov_c[sel] - LOW_PASS
+    else:
+        if step > 1:
+            gaussians = gaussians.subset(np.arange(0, n, step))
+        proj = project(gaussians, camera)
+        a, b, c = proj.cov[:, 0] - LOW_PASS, proj.cov[:, 1], proj.cov[:, 2] - LOW_PASS
     return np.sqrt(np.sqrt(np.maximum(a * c - b * b, 0.0)))
 
 
-def render_scale(gaussians, camera: Camera) -> float:
-    """Scale in [MIN_SCALE, 1] of the pixel grid to render ``camera``'s view on (module docstring)."""
-    sigma = footprint_sigmas(gaussians, camera)
+def render_scale(gaussians, camera: Camera, columns: Columns | None = None) -> float:
+    """Scale in [MIN_SCALE, 1] of the pixel grid to render ``camera``'s view on (module docstring);
+    ``columns`` as in :func:`footprint_sigmas`."""
+    sigma = footprint_sigmas(gaussians, camera, columns)
     if sigma.size == 0:
         return 1.0
     q = float(np.quantile(sigma, SIGMA_QUANTILE))
@@ -84,6 +92,15 @@ def resize_pinhole(image: np.ndarray, width: int, height: int) -> np.ndarray:
 
     r0, r1, fr = taps(height, h, (height - 1) / 2.0)
     c0, c1, fc = taps(width, w, (width - 1) / 2.0)
-    rows = image[r0] * (1.0 - fr)[:, None, None] + image[r1] * fr[:, None, None]
-    out = rows[:, c0] * (1.0 - fc)[None, :, None] + rows[:, c1] * fc[None, :, None]
-    return np.ascontiguousarray(out, dtype=np.float32)
+    image = np.asarray(image, dtype=np.float32)
+    rows = np.take(image, r0, axis=0)  # takes and in-place products: a third less time than fancy indexing
+    rows *= (1.0 - fr)[:, None, None]
+    tap = np.take(image, r1, axis=0)
+    tap *= fr[:, None, None]
+    rows += tap
+    out = np.take(rows, c0, axis=1)
+    out *= (1.0 - fc)[None, :, None]
+    tap = np.take(rows, c1, axis=1)
+    tap *= fc[None, :, None]
+    out += tap
+    return out

@@ -106,6 +106,8 @@ def class_keys(kxc, kyc, x0, kx, y0, ky, mx, my, ca, cb, cc, qc, rkey, h, w, per
     dense += qi
     if out is None:
         return dense[hit]
-    nh = int(np.count_nonzero(hit))
-    np.compress(hit.reshape(-1), dense.reshape(-1), out=out[pos:pos + nh])
-    return pos + nh
+    # the hits' positions, then a take straight into ``out``: np.compress (and a take in its default
+    # "raise" mode) with ``out`` first copies into a temporary; every position is in range
+    where = np.flatnonzero(hit)
+    np.take(dense.reshape(-1), where, out=out[pos:pos + where.size], mode="wrap")
+    return pos + where.size

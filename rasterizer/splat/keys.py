@@ -48,6 +48,16 @@ _SIZE_CLASSES = np.unique(np.concatenate([
 #: Dense elements per block before a class is split into chunks (cache-sized: more, shorter
 #: sorted runs cost the final merge sort little, streaming big blocks through memory costs more).
 _CHUNK_ELEMENTS = 1 << 17
+#: ``job_keys`` drops the keys of masked-out pixels only when a sample of every MASK_PROBE_STEP-th
+#: key finds more than MASK_MIN_DROP of them there: the filter (a gather and a compress per key)
+#: costs about a tenth of what a kept key costs in the sort and the compositing after it.
+MASK_PROBE_STEP = 16
+MASK_MIN_DROP = 0.125
+#: A size-class group whose dense block would hold fewer elements than this moves to a coarser
+#: class (a few at most): every block costs about 40 numpy calls (~50 us) whatever its size, the
+#: time of some thousands of dense elements, and most blocks of the large classes hold a handful
+#: of Gaussians.
+SMALL_BLOCK = 1 << 12
 
 class RenderLimitError(ValueError):
     """The footprints would need more memory than the caller allowed."""
@@ -133,7 +143,8 @@ class KeyJob:
     """What the keys of one camera are built from: projected columns, cuts, ranks, boxes, key layout.
 
     ``cols`` the kept Gaussians' :class:`~.projection.Columns` (n); ``qcut`` (n,) float64
-    Mahalanobis cut; ``rank`` (n,) int64 depth rank among all the pose's Gaussians; ``live``
+    Mahalanobis cut; ``rank`` (n,) int64 depth rank among all the pose's Gaussians, or among
+    these n only (``n_all``: how many are ranked); ``live``
     indices into ``cols`` of the non-empty pixel-space footprints and ``box`` (x0, kx, y0, ky)
     (n,) int64 their pixel boxes; ``polar`` indices into ``cols`` of the polar ERP footprints,
     ``sphere`` their tangent-plane ellipses and ``sphere_box`` their boxes (None without any).
@@ -152,20 +163,25 @@ class KeyJob:
     n_all: int
 
 
-def key_job(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None) -> KeyJob | None:
+def key_job(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None,
+            columns: Columns | None = None, own_ranks: bool = False) -> KeyJob | None:
     """The :class:`KeyJob` of ``camera`` (None when no Gaussian projects into it).
 
-    Raises :class:`RenderLimitError` when the image and the Gaussian count do not fit the
-    64-bit key.
+    ``columns``: the camera's :func:`~.projection.project_columns` when the caller has them.
+    ``own_ranks``: rank the camera's Gaussians among themselves (the same order; one camera's
+    render need not sort all the pose's Gaussians) instead of among all of them.
+    Raises :class:`RenderLimitError` when the image and the Gaussian count do not fit the 64-bit key.
     """
     h, w = camera.height, camera.width
-    cols = project_columns(pose, camera)
+    cols = project_columns(pose, camera) if columns is None else columns
     n = cols.index.size
     if n == 0:
         return None
     qcut = np.full(n, Q_MAX) if qcut_all is None else qcut_all[cols.index]
-    n_all = pose.ranges.size
-    rank = pose.rank[cols.index]
+    if own_ranks:
+        n_all, rank = n, pose.ranks_among(cols.index)
+    else:
+        n_all, rank = pose.ranges.size, pose.rank[cols.index]
 
     flat_idx, polar_idx = polar_split(cols.my, cols.cov_c, camera)
     x0, kx, y0, ky = footprint_boxes(cols.mx, cols.my, cols.cov_a, cols.cov_c, camera, np.maximum(qcut, 0.0))
@@ -191,8 +207,9 @@ def job_keys(job: KeyJob, live: np.ndarray, polar: np.ndarray, pixel_mask: np.nd
     """(keys, job_ranks) of a subset of ``job``'s footprints, keys sorted (None when there are none).
 
     ``live``: a subset of ``job.live`` (indices into ``job.cols``); ``polar``: positions in
-    ``job.polar``. ``pixel_mask`` (H*W,) bool, optional: only keys of the pixels it marks are kept
-    (dropped before the sort). job_ranks: see :func:`sorted_keys` (None when polar keys are included).
+    ``job.polar``. ``pixel_mask`` (H*W,) bool, optional: the keys of pixels it does not mark are
+    dropped before the sort when they are many (:data:`MASK_MIN_DROP`), else kept (the caller gives
+    them no weight). job_ranks: see :func:`sorted_keys` (None when polar keys are included).
     """
     camera, layout, cols, qcut, rank = job.camera, job.layout, job.cols, job.qcut, job.rank
     h, w = camera.height, camera.width
@@ -225,12 +242,19 @@ def job_keys(job: KeyJob, live: np.ndarray, polar: np.ndarray, pixel_mask: np.nd
         return None, None
     key = np.concatenate(keys) if len(keys) > 1 else keys[0]
     del keys
-    if pixel_mask is not None:
+    if pixel_mask is not None and _mask_drops_many(key, pixel_mask, layout):
         key = key[pixel_mask[layout.pixels(key)]]
         if key.size == 0:
             return None, None
     key.sort(kind="stable")  # timsort: merges the pre-sorted runs (keys are unique: order is the same)
     return key, job_ranks
+
+
+def _mask_drops_many(key: np.ndarray, pixel_mask: np.ndarray, layout: KeyLayout) -> bool:
+    """Whether more than MASK_MIN_DROP of the keys (estimated on every MASK_PROBE_STEP-th) fall outside ``pixel_mask``."""
+    probe = np.ascontiguousarray(key[::MASK_PROBE_STEP])
+    kept = np.count_nonzero(pixel_mask[layout.pixels(probe)])
+    return kept < (1.0 - MASK_MIN_DROP) * probe.size
 
 
 def sorted_keys(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None, max_contributions: int):
@@ -280,6 +304,8 @@ def _flat_keys(live, cols: Columns, qcut, rank, x0, kx, y0, ky, h, w, period, s0
         wraps = (lx0 < s0) | (lx0 + lkx - 1 >= s0 + period)
     else:
         wraps = None
+    if in_table:
+        px, py = _merge_small_groups(px, py, wraps, nc)
     origin = ly0 * (w + 2 * (period or 0) + 2) + lx0
     origin -= origin.min()
     obits = max(1, int(origin.max()).bit_length())
@@ -328,6 +354,26 @@ def _flat_keys(live, cols: Columns, qcut, rank, x0, kx, y0, ky, h, w, period, s0
                               qc[s], rkey[s], h, w, period, s0, layout, wrap=jw is not None and bool(jw[g0]),
                               out=buf, pos=pos)
     return buf[:pos], lrank[perm]
+
+
+def _merge_small_groups(px, py, wraps, nc: int):
+    """Size-class indices (px, py) with the Gaussians of small groups (:data:`SMALL_BLOCK`) in coarser classes.
+
+    Twice: the indices of a small group's Gaussians are rounded up to odd (then to 3 mod 4), at most
+    ``nc - 1``, so neighbouring classes share a block. A coarser class only pads the block with
+    misses: the keys are the same.
+    """
+    for bits in (1, 3):
+        grp = px * nc + py
+        if wraps is not None:
+            grp += wraps * (nc * nc)
+        dense = np.bincount(grp, weights=_SIZE_CLASSES[px] * _SIZE_CLASSES[py])[grp]
+        small = dense < SMALL_BLOCK
+        if not small.any():
+            break
+        px = np.where(small, np.minimum(px | bits, nc - 1), px)
+        py = np.where(small, np.minimum(py | bits, nc - 1), py)
+    return px, py
 
 
 def _estimated_hits(cols: Columns, qcut: np.ndarray, live, kx, ky, sph_box, limit: int) -> int:

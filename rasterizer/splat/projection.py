@@ -81,6 +81,17 @@ def gaussian_factors(gaussians) -> np.ndarray:
     return out
 
 
+def _factors_of(gaussians, idx: np.ndarray) -> np.ndarray:
+    """:func:`gaussian_factors` of the Gaussians ``idx`` only, (9, n) float64 (the same values)."""
+    quats, scales = np.asarray(gaussians.quats), np.asarray(gaussians.scales)
+    out = np.empty((9, idx.size))
+    for c0 in range(0, idx.size, _PROJECT_CHUNK):
+        ii = idx[c0:c0 + _PROJECT_CHUNK]
+        for k, row in enumerate(_factor_rows(quats[ii], scales[ii])):
+            out[k, c0:c0 + ii.size] = row
+    return out
+
+
 def _factor_rows(quats: np.ndarray, scales: np.ndarray) -> list:
     """The nine rows of :func:`gaussian_factors` for quaternions (n, 4) and scales (n, 3)."""
     q = np.asarray(quats, dtype=np.float64)
@@ -144,15 +155,26 @@ class SharedPose:
             self.p_cam_ = np.stack([self.x, self.y, self.z], axis=1)
         return self.p_cam_
 
-    def _ranks(self) -> None:
+    def _depth_keys(self, index=slice(None)) -> np.ndarray:
         # keys >= 0: their float64 bit patterns sort like the values (and a stable sort of
         # integers is faster than of floats); ties keep the input order. z < 0 is culled anyway.
-        key = np.maximum(self.z, 0.0) if self.depth_order else self.ranges
-        order = np.argsort(key.view(np.int64), kind="stable")
+        key = np.maximum(self.z[index], 0.0) if self.depth_order else self.ranges[index]
+        return key.view(np.int64)
+
+    def _ranks(self) -> None:
+        order = np.argsort(self._depth_keys(), kind="stable")
         rank = np.empty_like(order)
         rank[order] = np.arange(order.size)
         self.rank_ = rank
         self.order_ = order
+
+    def ranks_among(self, index: np.ndarray) -> np.ndarray:
+        """(n,) depth ranks of the Gaussians ``index`` (ascending indices) among themselves: the order
+        of :attr:`rank` restricted to them (ties in input order), without sorting all N."""
+        order = np.argsort(self._depth_keys(index), kind="stable")
+        rank = np.empty_like(order)
+        rank[order] = np.arange(order.size)
+        return rank
 
     @property
     def order(self) -> np.ndarray:
@@ -392,14 +414,19 @@ def project_columns(pose: SharedPose, camera: Camera) -> Columns:
     if camera.kind == "perspective":
         keep &= pose.z >= camera.near
     idx = np.flatnonzero(keep)
-    p_cam = pose.p_cam
-    if camera.kind == "perspective" and idx.size:
-        idx = idx[~_outside_frustum(camera, p_cam[idx], pose.s_max[idx])]
-    p_cam = p_cam[idx]
+    if camera.kind == "perspective":  # the camera-frame centres and factors of the Gaussians in view only
+        p_cam = np.stack([pose.x[idx], pose.y[idx], pose.z[idx]], axis=1)
+        if idx.size:
+            inside = ~_outside_frustum(camera, p_cam, pose.s_max[idx])
+            idx, p_cam = idx[inside], p_cam[inside]
+        factors = pose.factors_[:, idx] if pose.factors_ is not None else _factors_of(pose.gaussians, idx)
+    else:
+        p_cam = pose.p_cam[idx]
+        factors = pose.factors[:, idx]
     col, row = camera.project(p_cam)
     jac = camera.jacobian(p_cam)
     with np.errstate(over="ignore", invalid="ignore"):
-        a, b, c, det = covariance_2d(jac, pose.factors[:, idx])
+        a, b, c, det = covariance_2d(jac, factors)
     return _finish(idx, col, row, a, b, c, det, ranges[idx], pose, p_cam)
 
 

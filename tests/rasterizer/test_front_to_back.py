@@ -112,7 +112,7 @@ def test_erp_renders_both_methods_match_the_single_sort(scene, normalize, tiny_c
     for method in ("yinyang", "direct"):
         new = render(g, c2w, projection="erp", width=64, method=method, normalize=normalize)
         with pytest.MonkeyPatch.context() as mp:  # the same render through the single global sort
-            mp.setattr(front_to_back, "premultiplied", lambda p, cam, q, t, threads=1: old_path(g, cam))
+            mp.setattr(front_to_back, "premultiplied", lambda p, cam, q, t, threads=1, columns=None: old_path(g, cam))
             old = render(g, c2w, projection="erp", width=64, method=method, normalize=normalize)
         # V/A divides by alpha >= 1/255: allow the division's amplification of rounding
         assert_same(new, old, atol=2e-5 if normalize is False or (normalize is None and method == "direct") else 1e-3)
@@ -203,3 +203,60 @@ def test_row_bands_in_threads_match_one_thread(kind, monkeypatch):
         many = render(g, c2w, threads=threads, **kw)
         assert_same(many, one, atol=1e-5)
     assert one.alpha.max() > 0.5
+
+
+@pytest.mark.parametrize("min_drop", [0.0, 1.0])
+def test_keys_at_dead_pixels_dropped_or_kept_give_the_same_image(min_drop, monkeypatch):
+    """Dead pixels' keys filtered before the sort (MASK_MIN_DROP 0) or composited with weight 0 (1): the same images."""
+    from rasterizer.splat import keys
+
+    monkeypatch.setattr(front_to_back, "MIN_CHUNK", 1)
+    monkeypatch.setattr(front_to_back, "CHUNK_LAYERS", 0.5)
+    monkeypatch.setattr(keys, "MASK_MIN_DROP", min_drop)
+    g, _ = _wall_and_hidden()
+    for kind, (w, h) in (("perspective", (64, 48)), ("yin", (48, 16))):
+        cam = Camera(kind, w, h, np.eye(4))
+        assert_same(new_path(g, cam), old_path(g, cam))
+
+
+@pytest.mark.parametrize("kind", ["perspective", "yang", "erp"])
+def test_small_groups_in_coarser_classes_give_the_same_keys(kind, monkeypatch):
+    """Merging small size-class groups into coarser blocks pads them with misses only: the sorted keys are equal."""
+    from rasterizer.splat import keys
+
+    rng = np.random.default_rng(12)
+    g = random_scene(rng, 3000)
+    w = {"perspective": 96, "yang": 96, "erp": 128}[kind]
+    cam = Camera(kind, w, w // 2 if kind == "erp" else w // 3 if kind == "yang" else 64, pose(rng))
+    p = splat.shared_pose(g, cam)
+    cuts = splat.opacity_cuts(g.opacities, len(g))
+    got, blocks = [], []
+    class_keys = keys.class_keys
+
+    def counting(*a, **kw):
+        blocks[-1] += 1
+        return class_keys(*a, **kw)
+
+    monkeypatch.setattr(keys, "class_keys", counting)
+    for small in (0, 1 << 30):  # no group merged; every group merged as far as it goes
+        monkeypatch.setattr(keys, "SMALL_BLOCK", small)
+        blocks.append(0)
+        got.append(splat.sorted_keys(p, cam, cuts, splat.MAX_CONTRIBUTIONS)[0])
+    assert got[0].size > 1000
+    assert blocks[1] < blocks[0]
+    assert np.array_equal(got[0], got[1])
+
+
+@pytest.mark.parametrize("kind", ["perspective", "yin"])
+def test_ranks_among_a_subset_keep_the_order_of_all_ranks(kind):
+    """A camera's own ranks (one render's sort of the Gaussians it keeps) order them as the ranks of all N,
+    ties (duplicated Gaussians) in input order."""
+    rng = np.random.default_rng(9)
+    g = random_scene(rng, 2000)
+    g = g.subset(np.concatenate([np.arange(len(g)), np.arange(0, len(g), 7)]))  # exact duplicates: ties
+    cam = Camera(kind, 96, 64 if kind == "perspective" else 32, pose(rng))
+    p = splat.shared_pose(g, cam)
+    index = np.sort(rng.choice(len(g), 900, replace=False))
+    own = p.ranks_among(index)
+    assert np.array_equal(np.sort(own), np.arange(index.size))
+    assert np.array_equal(np.argsort(own), np.argsort(p.rank[index]))

@@ -89,3 +89,21 @@ def test_any_size_resizes_to_the_requested_size(width, height, fov, scale):
     out = resize_pinhole(np.dstack([img.colour, img.alpha]), width, height)
     assert out.shape == (height, width, 4) and np.all(np.isfinite(out))
     assert out.min() >= 0.0 and out[:, :, 3].max() <= 1.0
+
+
+@pytest.mark.parametrize("kind", ["yin", "yang"])
+def test_sample_read_from_the_full_projection_equals_the_projected_sample(kind, monkeypatch):
+    """A grid camera's sample of footprints read from the projection of all Gaussians (what a Yin-Yang
+    render reuses) equals the sample projected on its own."""
+    from rasterizer import scene_resolution, splat
+    from rasterizer.splat.projection import project_columns
+    from tests.rasterizer._support import pose, random_scene
+
+    monkeypatch.setattr(scene_resolution, "SAMPLE", 700)
+    rng = np.random.default_rng(4)
+    g = random_scene(rng, 5000)
+    cam = Camera(kind, 192, 64, pose(rng))
+    alone = scene_resolution.footprint_sigmas(g, cam)
+    shared = scene_resolution.footprint_sigmas(g, cam, project_columns(splat.shared_pose(g, cam), cam))
+    assert 100 < alone.size < 700
+    np.testing.assert_array_equal(np.sort(shared), np.sort(alone))
