@@ -7,6 +7,8 @@ chunks and must decide the same blocks and build the same Gaussians.
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from rasterizer import compaction as cp
 from rasterizer import geometry as geo
@@ -261,6 +263,28 @@ def test_quaternion_helpers_match_gaussians_module():
     np.testing.assert_allclose(np.einsum("nji,njk->nik", vecs, vecs), np.broadcast_to(np.eye(3), full.shape), atol=1e-14)
     rot = quat_to_rotmat(rng.standard_normal((500, 4)))
     np.testing.assert_array_equal(maths.rotmat_to_quat(rot), rotmat_to_quat(rot))
+
+
+@settings(max_examples=60, deadline=None)
+@given(log_s=st.lists(st.floats(-8, 4), min_size=3, max_size=3), seed=st.integers(0, 10_000),
+       flat=st.integers(0, 3))
+def test_closed_form_eigh_round_trips_extreme_and_degenerate_covariances(log_s, seed, flat):
+    """The merged blocks' scale_rotation6 on covariances of scales from 1e-8 to 1e4 (anisotropy up to 1e12),
+    ``flat`` of them zero (rank-deficient): finite, unit quaternions, the covariance back to eps * |cov|, and the
+    scales as accurate as LAPACK's (to sqrt(eps) * s_max for the small ones)."""
+    rng = np.random.default_rng(seed)
+    s = 10.0 ** np.array([log_s])
+    s[0, :flat] = 0.0
+    q = rng.standard_normal((1, 4))
+    q /= np.linalg.norm(q)
+    cov = covariance_from_scale_rotation(s, q)
+    cov6 = np.stack([cov[:, i, j] for i, j in maths.SYM], axis=1)
+    s2, q2 = maths.scale_rotation6(cov6, 0.0)
+    assert np.isfinite(s2).all() and np.isfinite(q2).all()
+    np.testing.assert_allclose(np.linalg.norm(q2, axis=1), 1.0, rtol=1e-12)
+    cov2 = covariance_from_scale_rotation(s2, q2)
+    np.testing.assert_allclose(cov2, cov, rtol=0, atol=1e-12 * s.max() ** 2 + 1e-30)
+    np.testing.assert_allclose(np.sort(s2[0]), np.sort(s[0]), rtol=1e-4, atol=1e-7 * s.max())
 
 
 @pytest.mark.parametrize("shape", [(3, 4, 32, 96), (3, 2, 7, 13), (1, 1, 2, 2)])
