@@ -164,9 +164,22 @@ def _alpha_inverse(alpha: np.ndarray) -> np.ndarray:
     return inv
 
 
+def _under_backdrop(front: RenderOutput, back: RenderOutput) -> RenderOutput:
+    """Plain composites of some Gaussians and of a backdrop behind all of them, the backdrop put under the
+    rest: colour C_f + (1 - A_f) C_b, alpha A_f + (1 - A_f) A_b (front-to-back compositing split at the
+    backdrop, whose transmittance in front is 1 - A_f), range the alpha-weighted mean of the two."""
+    keep = 1.0 - front.alpha
+    colour = front.colour + keep[:, :, None] * back.colour
+    alpha = np.clip(front.alpha + keep * back.alpha, 0.0, 1.0)
+    range_sum = front.range * front.alpha + keep * (back.range * back.alpha)
+    return RenderOutput(colour.astype(np.float32), alpha.astype(np.float32),
+                        normalise_range(range_sum.astype(np.float32), alpha.astype(np.float32)))
+
+
 def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, height: int | None = None,
            fov_deg: float = 90.0, method: str = "yinyang", near: float = DEFAULT_NEAR,
-           threads: int = 2, normalize: bool | None = None, resolution: Resolution = "exact") -> RenderOutput:
+           threads: int = 2, normalize: bool | None = None, resolution: Resolution = "exact",
+           backdrop: int = 0) -> RenderOutput:
     """Render Gaussians seen from pose ``c2w``.
 
     Parameters
@@ -196,6 +209,12 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
         view, or the Yin and Yang grids of a "yinyang" ERP, on a coarser pixel grid where the
         requested one is finer than the scene's Gaussians, and resizes it bilinearly
         (:mod:`rasterizer.scene_resolution`); other projections render exactly.
+    backdrop : with ``resolution="scene"``, for a perspective view or a "yinyang" ERP: the last
+        ``backdrop`` Gaussians are a backdrop behind all the others (the environment shell of a
+        reconstruction, :mod:`rasterizer.shell`). They are then rendered apart, each part at its own
+        scene resolution, and composited under the rest (the front's transmittance is 1 - its
+        alpha): the shell's wide discs cost about a third of a render at the surfels' resolution.
+        0 (default), or a count outside 1..N-1, renders everything in one pass.
 
     Returns
     -------
@@ -217,7 +236,18 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
     if height <= 0:
         raise ValueError(f"height must be positive, got {height}")
     _check_gaussians(gaussians)
-    if projection == "erp" and method == "yinyang":
+    yinyang = projection == "erp" and method == "yinyang"
+    if resolution == "scene" and 0 < int(backdrop) < len(gaussians) and (yinyang or projection == "perspective"):
+        n = len(gaussians) - int(backdrop)
+        kwargs = dict(projection=projection, width=width, height=height, fov_deg=fov_deg, method=method, near=near,
+                      threads=threads, normalize=False, resolution=resolution)
+        out = _under_backdrop(render(gaussians.subset(slice(0, n)), c2w, **kwargs),
+                              render(gaussians.subset(slice(n, len(gaussians))), c2w, **kwargs))
+        if not (yinyang if normalize is None else normalize):
+            return out
+        colour = out.colour * _alpha_inverse(out.alpha)[:, :, None]
+        return RenderOutput(np.ascontiguousarray(colour, dtype=np.float32), out.alpha, out.range)
+    if yinyang:
         cam = Camera("erp", width, height, c2w, near=near)  # validates pose and sizes
         return _render_yinyang(gaussians, cam.c2w, width, height, near, int(threads),
                                divide=True if normalize is None else bool(normalize),

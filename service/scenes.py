@@ -167,7 +167,8 @@ def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     gaussians = store.gaussians(scene_id)
-    sweep_near = (store.meta(scene_id).get("info") or {}).get("near")
+    meta = store.meta(scene_id)
+    sweep_near = (meta.get("info") or {}).get("near")
     layer = None
     if query.rig:  # before the render: a scene without a rig fails fast
         images, _ = load_references(store, scene_id)
@@ -181,6 +182,9 @@ def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[
     kwargs = query.render_kwargs(normalize=query.compositing == "va")
     if isinstance(sweep_near, (int, float)) and sweep_near > 0:  # cull scaled to the scene (mm baselines)
         kwargs["near"] = min(DEFAULT_NEAR, NEAR_CULL_PER_SWEEP_NEAR * float(sweep_near))
+    shell = meta.get("shell")
+    if isinstance(shell, int) and not isinstance(shell, bool):  # the shell, last, is rendered at its own resolution
+        kwargs["backdrop"] = shell
     out = render(gaussians, query.c2w, **kwargs)
     h, w = query.output_size()
     colour = out.colour

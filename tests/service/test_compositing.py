@@ -27,7 +27,9 @@ def served(tmp_path_factory):
         scene_id = r.json()["id"]
         ply = tmp_path_factory.mktemp("ply") / "scene.ply"
         ply.write_bytes(client.get(f"/v1/scenes/{scene_id}/gaussians.ply").content)
-        yield client, scene_id, read_ply(ply)
+        shell = client.get(f"/v1/scenes/{scene_id}").json()["shell"]
+        assert shell > 0
+        yield client, scene_id, read_ply(ply), shell
 
 
 def _close(a: np.ndarray, b: np.ndarray) -> bool:
@@ -51,15 +53,15 @@ CASES = [
 @pytest.mark.parametrize("params, kwargs", CASES, ids=[c[0]["projection"] for c in CASES])
 @pytest.mark.parametrize("pose", [IDENTITY, YAW], ids=["identity", "yawed"])
 def test_api_default_is_plain_and_va_is_explicit(served, params, kwargs, pose):
-    client, scene_id, gaussians = served
+    client, scene_id, gaussians, shell = served
     c2w = np.array([float(v) for v in pose.split(",")]).reshape(4, 4)
     default = client.get(f"/v1/scenes/{scene_id}/render", params={"c2w": pose, **params})
     plain = client.get(f"/v1/scenes/{scene_id}/render", params={"c2w": pose, **params, "compositing": "plain"})
     va = client.get(f"/v1/scenes/{scene_id}/render", params={"c2w": pose, **params, "compositing": "va"})
     assert default.status_code == plain.status_code == va.status_code == 200
-    # the API renders at the scene's own resolution (rasterizer.scene_resolution)
-    expect_plain = to_uint8(render(gaussians, c2w, normalize=False, resolution="scene", **kwargs).colour)
-    expect_va = to_uint8(render(gaussians, c2w, normalize=True, resolution="scene", **kwargs).colour)
+    # the API renders at the scene's own resolution (rasterizer.scene_resolution), the shell apart
+    expect_plain = to_uint8(render(gaussians, c2w, normalize=False, resolution="scene", backdrop=shell, **kwargs).colour)
+    expect_va = to_uint8(render(gaussians, c2w, normalize=True, resolution="scene", backdrop=shell, **kwargs).colour)
     # the PLY round trip (logit/log/quaternion in float32) may move a pixel by one level
     assert _close(_png(default.content), expect_plain)
     assert _close(_png(plain.content), expect_plain)
@@ -71,7 +73,7 @@ def test_api_default_is_plain_and_va_is_explicit(served, params, kwargs, pose):
 
 
 def test_plain_erp_is_the_premultiplied_yin_yang_merge(served):
-    _, _, g = served
+    _, _, g, _ = served
     plain = render(g, np.eye(4), projection="erp", width=256, normalize=False)
     va = render(g, np.eye(4), projection="erp", width=256, normalize=True)
     legacy = render(g, np.eye(4), projection="erp", width=256)  # the rasterizer's own default is unchanged
@@ -82,13 +84,13 @@ def test_plain_erp_is_the_premultiplied_yin_yang_merge(served):
 
 
 def test_bad_compositing_is_422(served):
-    client, scene_id, _ = served
+    client, scene_id, _, _ = served
     r = client.get(f"/v1/scenes/{scene_id}/render", params={"c2w": IDENTITY, "width": 64, "compositing": "over"})
     assert r.status_code == 422 and r.json()["error"]["code"] in ("invalid_request", "invalid_render_query")
 
 
 def test_openapi_documents_compositing(served):
-    client, _, _ = served
+    client, _, _, _ = served
     params = client.get("/openapi.json").json()["paths"]["/v1/scenes/{scene_id}/render"]["get"]["parameters"]
     comp = next(p for p in params if p["name"] == "compositing")
     assert comp["schema"]["default"] == "plain" and "V/A" in comp["description"]
@@ -96,7 +98,7 @@ def test_openapi_documents_compositing(served):
 
 
 def test_cli_render_default_plain_and_flag_va(served, tmp_path):
-    client, scene_id, g = served
+    client, scene_id, g, _ = served
     ply = tmp_path / "s.ply"
     ply.write_bytes(client.get(f"/v1/scenes/{scene_id}/gaussians.ply").content)
     base = ["render", str(ply), "--c2w", YAW, "--projection", "perspective", "--width", "96", "--height", "64"]
