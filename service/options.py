@@ -15,6 +15,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from rasterizer.compaction import CompactionOptions
+from rasterizer.compaction.options import ply_count_for_bytes
 from rasterizer.rig import MAX_RIG_CAP_DEG
 from rasterizer.view_colour import DEFAULT_SH_DEGREE, SH_DEGREES
 
@@ -54,7 +55,7 @@ class CompactionSettings(BaseModel):
                                     description="largest rms distance of a block from its plane, relative to range")
     smooth_max_incidence_deg: float = Field(_COMPACTION.smooth_max_incidence_deg, ge=0.0, le=90.0,
                                             description="largest angle between a block's plane normal and the ray")
-    max_count: int | None = Field(_COMPACTION.max_count, ge=0, description="keep at most this many Gaussians, "
+    max_count: int | None = Field(_COMPACTION.max_count, ge=1, description="keep at most this many Gaussians, "
                                   "the least visible dropped first (null: no cap)")
     max_bytes: int | None = Field(_COMPACTION.max_bytes, ge=0, description="keep the PLY within this many bytes "
                                   "(null: no cap)")
@@ -105,6 +106,17 @@ class PipelineSettings(BaseModel):
     def _near_below_far(self) -> "PipelineSettings":
         if self.near is not None and self.far is not None and not self.near < self.far:
             raise ValueError("near must be smaller than far")
+        return self
+
+    @model_validator(mode="after")
+    def _cap_holds_a_gaussian(self) -> "PipelineSettings":
+        """A byte cap too small for the PLY of one Gaussian would only end as an empty scene after the work."""
+        cap = None if self.compaction is False else self.compaction.max_bytes
+        degree = DEFAULT_SH_DEGREE if self.sh_degree is None else self.sh_degree
+        if cap is not None and ply_count_for_bytes(cap, (degree + 1) ** 2) < 1:
+            smallest = next(b for b in range(cap, cap + 4096) if ply_count_for_bytes(b, (degree + 1) ** 2) >= 1)
+            raise ValueError(f"compaction.max_bytes={cap} cannot hold the PLY of one Gaussian at sh_degree {degree} "
+                             f"(at least {smallest} bytes)")
         return self
 
     def compaction_options(self) -> CompactionOptions:

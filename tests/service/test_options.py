@@ -37,6 +37,29 @@ def test_wrong_types_are_422_naming_the_field(options, field):
     assert f"options.{field}" in info.value.message, info.value.message
 
 
+@pytest.mark.parametrize("options, words", [
+    ('{"compaction": {"max_count": 0}}', "options.compaction.max_count"),
+    ('{"compaction": {"max_bytes": 100}}', "compaction.max_bytes=100 cannot hold the PLY of one Gaussian"),
+    ('{"sh_degree": 0, "compaction": {"max_bytes": 0}}', "at sh_degree 0"),
+])
+def test_caps_that_leave_no_gaussian_are_refused_before_the_work(options, words):
+    with pytest.raises(BadInput) as info:
+        parse_options(options, None)
+    assert info.value.status == 422 and info.value.code == "invalid_options"
+    assert words in info.value.message, info.value.message
+
+
+def test_smallest_byte_cap_keeps_one_gaussian():
+    from rasterizer.compaction.options import ply_count_for_bytes
+
+    for degree in (0, 1):
+        with pytest.raises(BadInput) as info:
+            parse_options(json.dumps({"sh_degree": degree, "compaction": {"max_bytes": 1}}), None)
+        smallest = int(info.value.message.split("at least ")[1].split(" bytes")[0])
+        assert ply_count_for_bytes(smallest, (degree + 1) ** 2) == 1 > ply_count_for_bytes(smallest - 1, (degree + 1) ** 2)
+        parse_options(json.dumps({"sh_degree": degree, "compaction": {"max_bytes": smallest}}), None)
+
+
 def test_typed_values_build_the_rasterizer_dataclasses_by_keyword():
     raw, pipeline, poses = parse_options(json.dumps({
         "near": 1, "far": 20.5, "min_opacity": 0.02, "sh_degree": 0, "baseline": 0.5,
