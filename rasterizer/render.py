@@ -241,8 +241,9 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
         n = len(gaussians) - int(backdrop)
         kwargs = dict(projection=projection, width=width, height=height, fov_deg=fov_deg, method=method, near=near,
                       threads=threads, normalize=False, resolution=resolution)
-        out = _under_backdrop(render(gaussians.subset(slice(0, n)), c2w, **kwargs),
-                              render(gaussians.subset(slice(n, len(gaussians))), c2w, **kwargs))
+        with ThreadPoolExecutor(max_workers=1) as pool:  # the backdrop beside the rest (numpy releases the GIL)
+            back = pool.submit(render, gaussians.subset(slice(n, len(gaussians))), c2w, **kwargs)
+            out = _under_backdrop(render(gaussians.subset(slice(0, n)), c2w, **kwargs), back.result())
         if not (yinyang if normalize is None else normalize):
             return out
         colour = out.colour * _alpha_inverse(out.alpha)[:, :, None]
