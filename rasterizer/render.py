@@ -198,7 +198,8 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
         "direct" (splatted straight into the ERP grid). Other projections ignore it.
     near : Gaussians closer than this range (world units) are culled.
     threads : when > 1, ERP "yinyang" renders Yin and Yang in two threads; other projections
-        composite that many row bands side by side (the same result up to float rounding).
+        composite that many row bands side by side (the same result up to float rounding); a
+        ``backdrop`` is rendered in a thread of its own beside the rest.
     normalize : divide colour by alpha where alpha >= 1/255 (OmniSplat's V/A
         normalisation; thin coverage then shows the surface colour instead of a
         darkened or black hole) or, when False, return the plain front-to-back
@@ -241,9 +242,13 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
         n = len(gaussians) - int(backdrop)
         kwargs = dict(projection=projection, width=width, height=height, fov_deg=fov_deg, method=method, near=near,
                       threads=threads, normalize=False, resolution=resolution)
-        with ThreadPoolExecutor(max_workers=1) as pool:  # the backdrop beside the rest (numpy releases the GIL)
-            back = pool.submit(render, gaussians.subset(slice(n, len(gaussians))), c2w, **kwargs)
-            out = _under_backdrop(render(gaussians.subset(slice(0, n)), c2w, **kwargs), back.result())
+        front, back = gaussians.subset(slice(0, n)), gaussians.subset(slice(n, len(gaussians)))
+        if int(threads) > 1:  # the backdrop beside the rest (numpy releases the GIL)
+            with ThreadPoolExecutor(max_workers=1) as pool:
+                behind = pool.submit(render, back, c2w, **kwargs)
+                out = _under_backdrop(render(front, c2w, **kwargs), behind.result())
+        else:
+            out = _under_backdrop(render(front, c2w, **kwargs), render(back, c2w, **kwargs))
         if not (yinyang if normalize is None else normalize):
             return out
         colour = out.colour * _alpha_inverse(out.alpha)[:, :, None]

@@ -163,6 +163,9 @@ def test_backdrop_at_its_own_resolution_is_close_to_one_pass(kw):
         assert np.abs(two.alpha - one.alpha).max() < 0.01
         rel = np.abs(two.range - one.range) / np.maximum(one.range, 1e-6)
         assert np.median(rel) < 0.01  # the mean of a 3 m room and a 30 m backdrop moves with the 1% the stop rule leaves
+    one_thread = render(g, c2w, resolution="scene", backdrop=k, threads=1, **kw)
+    np.testing.assert_allclose(one_thread.colour, render(g, c2w, resolution="scene", backdrop=k, **kw).colour,
+                               atol=1e-6)  # the backdrop in its own thread or in turn: the same image
     exact = render(g, c2w, **kw)
     np.testing.assert_array_equal(render(g, c2w, backdrop=k, **kw).colour, exact.colour)
     scene = render(g, c2w, resolution="scene", **kw)
