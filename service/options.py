@@ -14,8 +14,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from rasterizer.compaction import CompactionOptions
-from rasterizer.compaction.options import ply_count_for_bytes
+from rasterizer.compaction import CompactionOptions, ply_bytes_for_count
 from rasterizer.rig import MAX_RIG_CAP_DEG
 from rasterizer.view_colour import DEFAULT_SH_DEGREE, SH_DEGREES
 
@@ -112,9 +111,11 @@ class PipelineSettings(BaseModel):
     def _cap_holds_a_gaussian(self) -> "PipelineSettings":
         """A byte cap too small for the PLY of one Gaussian would only end as an empty scene after the work."""
         cap = None if self.compaction is False else self.compaction.max_bytes
+        if cap is None:
+            return self
         degree = DEFAULT_SH_DEGREE if self.sh_degree is None else self.sh_degree
-        if cap is not None and ply_count_for_bytes(cap, (degree + 1) ** 2) < 1:
-            smallest = next(b for b in range(cap, cap + 4096) if ply_count_for_bytes(b, (degree + 1) ** 2) >= 1)
+        smallest = ply_bytes_for_count(1, (degree + 1) ** 2)
+        if cap < smallest:
             raise ValueError(f"compaction.max_bytes={cap} cannot hold the PLY of one Gaussian at sh_degree {degree} "
                              f"(at least {smallest} bytes)")
         return self

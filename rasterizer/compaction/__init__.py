@@ -38,11 +38,11 @@ The layout (which view, grid, row, column each Gaussian came from) is a
 """
 
 from .merge import MIN_OVERLAP, opacity_depth, opacity_for_depth, smooth_merge_blocks
-from .options import CompactionError, CompactionOptions, ply_count_for_bytes
+from .options import CompactionError, CompactionOptions, ply_bytes_for_count, ply_count_for_bytes
 from .provenance import Provenance
 from .result import compact, compact_index, compact_result
 from .steps import footprint, overlap_keep_mask, owner_grid
 
 __all__ = ["MIN_OVERLAP", "CompactionError", "CompactionOptions", "Provenance", "compact", "compact_index",
            "compact_result", "footprint", "opacity_depth", "opacity_for_depth", "overlap_keep_mask", "owner_grid",
-           "ply_count_for_bytes", "smooth_merge_blocks"]
+           "ply_bytes_for_count", "ply_count_for_bytes", "smooth_merge_blocks"]

@@ -106,12 +106,23 @@ class CompactionOptions:
         return asdict(self)
 
 
+def _ply_sizes(sh_coeffs: int) -> tuple[int, int]:
+    """(bytes of a PLY's header, bytes per Gaussian) for ``sh_coeffs`` SH coefficients per channel."""
+    header = len(ply_bytes(Gaussians.empty(int(round(np.sqrt(sh_coeffs))) - 1)))
+    # the header's vertex count has more digits for larger counts; allow 12
+    return header + 12, 4 * (17 + 3 * (sh_coeffs - 1))
+
+
 def ply_count_for_bytes(max_bytes: int, sh_coeffs: int) -> int:
     """Largest Gaussian count whose PLY (header included) fits in ``max_bytes``."""
-    header = len(ply_bytes(Gaussians.empty(int(round(np.sqrt(sh_coeffs))) - 1)))
-    per = 4 * (17 + 3 * (sh_coeffs - 1))
-    # the header's vertex count has more digits for larger counts; allow 12
-    return max(0, (int(max_bytes) - header - 12) // per)
+    header, per = _ply_sizes(sh_coeffs)
+    return max(0, (int(max_bytes) - header) // per)
+
+
+def ply_bytes_for_count(count: int, sh_coeffs: int) -> int:
+    """Fewest bytes in which :func:`ply_count_for_bytes` fits ``count`` Gaussians (its inverse)."""
+    header, per = _ply_sizes(sh_coeffs)
+    return header + int(count) * per
 
 
 def count_limit(opts: CompactionOptions, sh_coeffs: int) -> int | None:

@@ -33,8 +33,12 @@ def test_streamed_ply_is_the_same_bytes_in_chunks(sh_degree, rows):
 
 
 def test_compaction_byte_cap_counts_the_header_of_an_sh_degree_1_ply():
-    from rasterizer.compaction import ply_count_for_bytes
+    from rasterizer.compaction import ply_bytes_for_count, ply_count_for_bytes
 
     per = 4 * len(property_names(4))
     header = len(ply_bytes(Gaussians.empty(1)))
     assert ply_count_for_bytes(header + 12 + 10 * per, 4) == 10
+    for coeffs in (1, 4):  # the inverse: the fewest bytes that hold a count
+        for count in (1, 10):
+            need = ply_bytes_for_count(count, coeffs)
+            assert ply_count_for_bytes(need, coeffs) == count > ply_count_for_bytes(need - 1, coeffs)
