@@ -14,6 +14,14 @@ from service.pipeline import PipelineOptions
 from service.scene_adaptive import AdaptiveRangeOptions
 
 
+def refusal(options: str) -> str:
+    """The message of the 422 ``invalid_options`` that the options JSON ``options`` gets."""
+    with pytest.raises(BadInput) as info:
+        parse_options(options, None)
+    assert info.value.status == 422 and info.value.code == "invalid_options"
+    return info.value.message
+
+
 @pytest.mark.parametrize("options, field", [
     ('{"compaction": {"merge_duplicates": "no"}}', "compaction.merge_duplicates"),
     ('{"adaptive_range": {"enabled": "no"}}', "adaptive_range.enabled"),
@@ -31,10 +39,8 @@ from service.scene_adaptive import AdaptiveRangeOptions
     ('{"adaptive_range": "on"}', "adaptive_range"),
 ])
 def test_wrong_types_are_422_naming_the_field(options, field):
-    with pytest.raises(BadInput) as info:
-        parse_options(options, None)
-    assert info.value.status == 422 and info.value.code == "invalid_options"
-    assert f"options.{field}" in info.value.message, info.value.message
+    message = refusal(options)
+    assert f"options.{field}" in message, message
 
 
 @pytest.mark.parametrize("options, words", [
@@ -43,19 +49,16 @@ def test_wrong_types_are_422_naming_the_field(options, field):
     ('{"sh_degree": 0, "compaction": {"max_bytes": 0}}', "at sh_degree 0"),
 ])
 def test_caps_that_leave_no_gaussian_are_refused_before_the_work(options, words):
-    with pytest.raises(BadInput) as info:
-        parse_options(options, None)
-    assert info.value.status == 422 and info.value.code == "invalid_options"
-    assert words in info.value.message, info.value.message
+    message = refusal(options)
+    assert words in message, message
 
 
 def test_smallest_byte_cap_keeps_one_gaussian():
     from rasterizer.compaction.options import ply_count_for_bytes
 
     for degree in (0, 1):
-        with pytest.raises(BadInput) as info:
-            parse_options(json.dumps({"sh_degree": degree, "compaction": {"max_bytes": 1}}), None)
-        smallest = int(info.value.message.split("at least ")[1].split(" bytes")[0])
+        message = refusal(json.dumps({"sh_degree": degree, "compaction": {"max_bytes": 1}}))
+        smallest = int(message.split("at least ")[1].split(" bytes")[0])
         assert ply_count_for_bytes(smallest, (degree + 1) ** 2) == 1 > ply_count_for_bytes(smallest - 1, (degree + 1) ** 2)
         parse_options(json.dumps({"sh_degree": degree, "compaction": {"max_bytes": smallest}}), None)
 
