@@ -239,35 +239,39 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
     _check_gaussians(gaussians)
     yinyang = projection == "erp" and method == "yinyang"
     if resolution == "scene" and 0 < int(backdrop) < len(gaussians) and (yinyang or projection == "perspective"):
-        n = len(gaussians) - int(backdrop)
-        kwargs = dict(projection=projection, width=width, height=height, fov_deg=fov_deg, method=method, near=near,
-                      threads=threads, normalize=False, resolution=resolution)
-        front, back = gaussians.subset(slice(0, n)), gaussians.subset(slice(n, len(gaussians)))
-        if int(threads) > 1:  # the backdrop beside the rest (numpy releases the GIL)
-            with ThreadPoolExecutor(max_workers=1) as pool:
-                behind = pool.submit(render, back, c2w, **kwargs)
-                out = _under_backdrop(render(front, c2w, **kwargs), behind.result())
-        else:
-            out = _under_backdrop(render(front, c2w, **kwargs), render(back, c2w, **kwargs))
-        if not (yinyang if normalize is None else normalize):
-            return out
-        colour = out.colour * _alpha_inverse(out.alpha)[:, :, None]
-        return RenderOutput(np.ascontiguousarray(colour, dtype=np.float32), out.alpha, out.range)
-    if yinyang:
+        out = _render_over_backdrop(gaussians, c2w, len(gaussians) - int(backdrop), projection=projection,
+                                    width=width, height=height, fov_deg=fov_deg, method=method, near=near,
+                                    threads=threads, resolution=resolution)
+        normalize = yinyang if normalize is None else normalize  # each method's default, as below
+    elif yinyang:
         cam = Camera("erp", width, height, c2w, near=near)  # validates pose and sizes
         return _render_yinyang(gaussians, cam.c2w, width, height, near, int(threads),
                                divide=True if normalize is None else bool(normalize),
                                scene_resolution=resolution == "scene")
-    camera = Camera(projection, width, height, c2w, fov_deg=fov_deg, near=near)
-    scale = render_scale(gaussians, camera) if resolution == "scene" and projection == "perspective" else 1.0
-    if scale < 1.0:
-        out = _render_resized(gaussians, camera, scale, int(threads))
     else:
-        out = render_camera(gaussians, camera, int(threads))
+        camera = Camera(projection, width, height, c2w, fov_deg=fov_deg, near=near)
+        scale = render_scale(gaussians, camera) if resolution == "scene" and projection == "perspective" else 1.0
+        if scale < 1.0:
+            out = _render_resized(gaussians, camera, scale, int(threads))
+        else:
+            out = render_camera(gaussians, camera, int(threads))
     if not normalize:
         return out
     colour = out.colour * _alpha_inverse(out.alpha)[:, :, None]
     return RenderOutput(np.ascontiguousarray(colour, dtype=np.float32), out.alpha, out.range)
+
+
+def _render_over_backdrop(gaussians: Gaussians, c2w, n: int, *, threads: int, **kwargs) -> RenderOutput:
+    """Plain :func:`render` of the first ``n`` Gaussians and, apart, of the backdrop after them, each at its
+    own resolution (``kwargs``), the backdrop put under the rest (:func:`_under_backdrop`); with ``threads`` > 1
+    the backdrop renders in a thread of its own (numpy releases the GIL)."""
+    kwargs = dict(kwargs, threads=threads, normalize=False)
+    front, back = gaussians.subset(slice(0, n)), gaussians.subset(slice(n, len(gaussians)))
+    if int(threads) > 1:
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            behind = pool.submit(render, back, c2w, **kwargs)
+            return _under_backdrop(render(front, c2w, **kwargs), behind.result())
+    return _under_backdrop(render(front, c2w, **kwargs), render(back, c2w, **kwargs))
 
 
 def to_uint8(colour: np.ndarray) -> np.ndarray:
