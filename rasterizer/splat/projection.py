@@ -161,20 +161,22 @@ class SharedPose:
         key = np.maximum(self.z[index], 0.0) if self.depth_order else self.ranges[index]
         return key.view(np.int64)
 
-    def _ranks(self) -> None:
-        order = np.argsort(self._depth_keys(), kind="stable")
+    def _order_and_ranks(self, index=slice(None)) -> tuple[np.ndarray, np.ndarray]:
+        """(order, rank) of the Gaussians ``index`` by depth, ties in input order: rank[order] = 0, 1, ..."""
+        order = np.argsort(self._depth_keys(index), kind="stable")
         rank = np.empty_like(order)
         rank[order] = np.arange(order.size)
-        self.rank_ = rank
+        return order, rank
+
+    def _ranks(self) -> None:
+        order, rank = self._order_and_ranks()
+        self.rank_ = rank  # before order_: :attr:`rank` reads rank_ once order_ is set, without the lock
         self.order_ = order
 
     def ranks_among(self, index: np.ndarray) -> np.ndarray:
         """(n,) depth ranks of the Gaussians ``index`` (ascending indices) among themselves: the order
         of :attr:`rank` restricted to them (ties in input order), without sorting all N."""
-        order = np.argsort(self._depth_keys(index), kind="stable")
-        rank = np.empty_like(order)
-        rank[order] = np.arange(order.size)
-        return rank
+        return self._order_and_ranks(index)[1]
 
     @property
     def order(self) -> np.ndarray:
