@@ -63,8 +63,9 @@ class Projected:
     p_cam: np.ndarray | None = None
 
 
-def gaussian_factors(gaussians) -> np.ndarray:
-    """Camera-independent factor F = R(q) diag(s) of every covariance (Sigma = F F^T), (9, N) float64.
+def gaussian_factors(gaussians, index: np.ndarray | None = None) -> np.ndarray:
+    """Camera-independent factor F = R(q) diag(s) of every covariance (Sigma = F F^T), (9, N) float64,
+    or of the Gaussians ``index`` (n,) only, (9, n).
 
     Row ``3 * i + k`` holds F[i, k]. Elementwise from the (normalised)
     quaternions; a zero quaternion means the identity rotation. Computed in
@@ -72,23 +73,13 @@ def gaussian_factors(gaussians) -> np.ndarray:
     """
     quats = np.asarray(gaussians.quats)
     scales = np.asarray(gaussians.scales)
-    n = quats.shape[0]
+    n = quats.shape[0] if index is None else index.size
     out = np.empty((9, n))
     for c0 in range(0, n, _PROJECT_CHUNK):
         c = slice(c0, c0 + _PROJECT_CHUNK)
-        for k, row in enumerate(_factor_rows(quats[c], scales[c])):
+        rows = c if index is None else index[c]
+        for k, row in enumerate(_factor_rows(quats[rows], scales[rows])):
             out[k, c] = row
-    return out
-
-
-def _factors_of(gaussians, idx: np.ndarray) -> np.ndarray:
-    """:func:`gaussian_factors` of the Gaussians ``idx`` only, (9, n) float64 (the same values)."""
-    quats, scales = np.asarray(gaussians.quats), np.asarray(gaussians.scales)
-    out = np.empty((9, idx.size))
-    for c0 in range(0, idx.size, _PROJECT_CHUNK):
-        ii = idx[c0:c0 + _PROJECT_CHUNK]
-        for k, row in enumerate(_factor_rows(quats[ii], scales[ii])):
-            out[k, c0:c0 + ii.size] = row
     return out
 
 
@@ -421,7 +412,7 @@ def project_columns(pose: SharedPose, camera: Camera) -> Columns:
         if idx.size:
             inside = ~_outside_frustum(camera, p_cam, pose.s_max[idx])
             idx, p_cam = idx[inside], p_cam[inside]
-        factors = pose.factors_[:, idx] if pose.factors_ is not None else _factors_of(pose.gaussians, idx)
+        factors = pose.factors_[:, idx] if pose.factors_ is not None else gaussian_factors(pose.gaussians, idx)
     else:
         p_cam = pose.p_cam[idx]
         factors = pose.factors[:, idx]
