@@ -30,6 +30,7 @@ from rasterizer.geometry import YIN_LAT_MAX, YIN_LON_MAX
 from rasterizer.sweep import ERP_PAD
 
 from .cost_volume import sample_maps, stacked_source
+from .select import select, select_many
 
 
 def _lon(x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
@@ -40,9 +41,8 @@ def _lon(x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
     s = torch.asin((x / rho).clamp(-1.0, 1.0))
     c = torch.acos((z / rho).clamp(-1.0, 1.0))
     pos = x >= 0
-    side = torch.where(pos, c, -c)
-    back = torch.where(pos, math.pi - s, -math.pi - s)
-    return torch.where(x.abs() <= z, s, torch.where(x.abs() <= -z, back, side))
+    side, back = select_many(pos, (c, math.pi - s), (-c, -math.pi - s))
+    return select(x.abs() <= z, s, select(x.abs() <= -z, back, side))
 
 
 def project_normalised(p: torch.Tensor, kind: str, width: int = 0) -> torch.Tensor:
@@ -95,8 +95,8 @@ def sample_other_view(maps: torch.Tensor, pts, grids, erp_width: int = 0):
     norm = torch.sqrt(x * x + y * y + z * z)
     in_yin = (y.abs() <= math.sin(YIN_LAT_MAX) * norm) & (z >= -x.abs())
     # Yang points in the Yang frame (y, x, -z), where its layout is Yin's
-    gx, gy = project_xyz(torch.where(in_yin, x, y), torch.where(in_yin, y, x), torch.where(in_yin, z, -z), "yin")
-    gs = ((gy + 1.0) * h + torch.where(in_yin, 0.0, float(2 * h + 4))) / (2 * h + 2) - 1.0  # rows + h + 2
+    gx, gy = project_xyz(*select_many(in_yin, (x, y, z), (y, x, -z)), "yin")
+    gs = ((gy + 1.0) * h + (~in_yin).to(gy.dtype) * float(2 * h + 4)) / (2 * h + 2) - 1.0  # rows + h + 2
     grid = torch.stack([gx, gs], dim=-1).reshape(2, g_count * j_count * h, w, 2)
     return sample_maps(stacked_source(source, False), grid, False), in_yin, gx, gy
 

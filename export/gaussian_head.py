@@ -33,58 +33,65 @@ from rasterizer.depth_gaussians import SURFEL_BORDER_STEP2, pixel_steps
 from rasterizer.gaussians import SH_C0
 
 from .config import EncoderConfig
+from .select import select, select_many
 
 #: Head defaults = the encoder's (export/config.py).
 _CFG = EncoderConfig()
 
 
-def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return (a * b).sum(-1, keepdim=True)
+#: A 3-vector field as three component planes (x, y, z), each (2, G, H, W). onnxruntime's elementwise
+#: kernels run fastest on contiguous planes; on (..., 3) tensors the last-axis reductions, broadcasts and
+#: concatenations cost several times the arithmetic itself (docs/design.md, "The encoder").
+Vec = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
 
-def _where(cond: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``torch.where`` of a (..., 1) condition over (..., k) values, the condition repeated k times first:
-    onnxruntime's Where broadcasting over a last axis of 3 or 4 costs about twice the Concat and the plain Where."""
-    return torch.where(torch.cat([cond] * a.shape[-1], dim=-1), a, b)
+def _dot(a: Vec, b: Vec) -> torch.Tensor:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    a0, a1, a2 = a.unbind(-1)
-    b0, b1, b2 = b.unbind(-1)
-    return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], dim=-1)
+def _cross(a: Vec, b: Vec) -> Vec:
+    return a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
 
 
-def _steps(p: torch.Tensor, facing: torch.Tensor, dim: int, max_stretch: float) -> torch.Tensor:
-    """Surface step (..., 3) along grid axis ``dim`` of points p (..., H, W, 3): see the module docstring."""
-    n = p.shape[dim]
-    fwd = p.narrow(dim, 1, n - 1) - p.narrow(dim, 0, n - 1)
+def _scaled(v: Vec, k: torch.Tensor) -> Vec:
+    return v[0] * k, v[1] * k, v[2] * k
+
+
+def _divided(v: Vec, k: torch.Tensor) -> Vec:
+    return v[0] / k, v[1] / k, v[2] / k
+
+
+def _steps(p: Vec, facing: Vec, dim: int, max_stretch: float) -> Vec:
+    """Surface step along grid axis ``dim`` (3 = columns, 2 = rows) of points p: see the module docstring."""
+    n = p[0].shape[dim]
+    fwd = tuple(x.narrow(dim, 1, n - 1) - x.narrow(dim, 0, n - 1) for x in p)
     lf = _dot(fwd, fwd)
-    pad = torch.zeros_like(fwd.narrow(dim, 0, 1))
-    far = pad[..., :1] + SURFEL_BORDER_STEP2
-    fwd_p, lf_p = torch.cat([fwd, pad], dim), torch.cat([lf, far], dim)  # step to the next pixel
-    bwd_p, lb_p = torch.cat([pad, fwd], dim), torch.cat([far, lf], dim)  # step from the previous one
+    pad = torch.zeros_like(lf.narrow(dim, 0, 1))
+    far = pad + SURFEL_BORDER_STEP2
+    fwd_p = tuple(torch.cat([x, pad], dim) for x in fwd)  # step to the next pixel
+    bwd_p = tuple(torch.cat([pad, x], dim) for x in fwd)  # step from the previous one
+    lf_p, lb_p = torch.cat([lf, far], dim), torch.cat([far, lf], dim)
     limit = _dot(facing, facing) * (max_stretch * max_stretch)
     ok_f, ok_b = lf_p <= limit, lb_p <= limit
-    one = _where(lf_p <= lb_p, fwd_p, bwd_p)
-    step = _where(ok_f & ok_b, 0.5 * (fwd_p + bwd_p), one)
-    return _where(ok_f | ok_b, step, facing)
+    one = select_many(lf_p <= lb_p, fwd_p, bwd_p)
+    step = select_many(ok_f & ok_b, tuple(0.5 * (f + b) for f, b in zip(fwd_p, bwd_p)), one)
+    return select_many(ok_f | ok_b, step, facing)
 
 
-def surfel_frames(a: torch.Tensor, b: torch.Tensor, facing_a: torch.Tensor, facing_b: torch.Tensor,
-                  scale_factor: float, ray_scale_ratio: float):
-    """Steps a, b (..., 3) -> principal axes (..., 3, 3) (columns u1, u2, n) and scales (..., 3).
+def surfel_frames(a: Vec, b: Vec, facing_a: Vec, facing_b: Vec, scale_factor: float, ray_scale_ratio: float):
+    """Steps a, b -> principal axes (u1, u2, n), each a :data:`Vec`, and scales (s1, s2, s3) planes.
 
     Covariance = scale_factor^2 (a a^T + b b^T) + (ray_scale_ratio * smaller sigma)^2 n n^T;
     nearly parallel steps (sin < 0.05) fall back to the facing steps.
     """
     n = _cross(a, b)
-    la, lb, ln = _dot(a, a), _dot(b, b), _dot(n, n)
-    flat = ln <= 0.0025 * la * lb
-    a, b = _where(flat, facing_a, a), _where(flat, facing_b, b)
+    flat = _dot(n, n) <= 0.0025 * _dot(a, a) * _dot(b, b)
+    ab = select_many(flat, facing_a + facing_b, a + b)
+    a, b = ab[:3], ab[3:]
     n = _cross(a, b)
-    n = n / torch.sqrt(_dot(n, n)).clamp(min=1e-30)
+    n = _divided(n, torch.sqrt(_dot(n, n)).clamp(min=1e-30))
     la = torch.sqrt(_dot(a, a)).clamp(min=1e-30)
-    e1 = a / la
+    e1 = _divided(a, la)
     e2 = _cross(n, e1)
     b1, b2 = _dot(b, e1), _dot(b, e2)
     # in-plane covariance [[p, q], [q, s]] in (e1, e2), closed-form eigen-decomposition
@@ -92,33 +99,34 @@ def surfel_frames(a: torch.Tensor, b: torch.Tensor, facing_a: torch.Tensor, faci
     half = 0.5 * (p - s)
     d = torch.sqrt(half * half + q * q)
     mean = 0.5 * (p + s)
-    cos2 = torch.where(d > 1e-12 * mean, half / d.clamp(min=1e-30), torch.ones_like(d))
+    cos2 = select(d > 1e-12 * mean, half / d.clamp(min=1e-30), 1.0)
     cos = torch.sqrt((0.5 * (1.0 + cos2)).clamp(min=0.0))
-    sin = torch.sqrt((0.5 * (1.0 - cos2)).clamp(min=0.0)) * torch.where(q < 0, -torch.ones_like(q), torch.ones_like(q))
-    u1 = cos * e1 + sin * e2
+    sin = torch.sqrt((0.5 * (1.0 - cos2)).clamp(min=0.0)) * (1.0 - 2.0 * (q < 0).to(q.dtype))
+    u1 = tuple(cos * x + sin * y for x, y in zip(e1, e2))
     u2 = _cross(n, u1)
     s1 = scale_factor * torch.sqrt(mean + d)
     s2 = scale_factor * torch.sqrt((mean - d).clamp(min=0.0))
-    scales = torch.cat([s1, s2, ray_scale_ratio * torch.minimum(s1, s2)], dim=-1)
-    return torch.stack([u1, u2, n], dim=-1), scales
+    return (u1, u2, n), (s1, s2, ray_scale_ratio * torch.minimum(s1, s2))
 
 
-def rotmat_to_quat(r: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) rotations -> (..., 4) unit (w, x, y, z), w >= 0 (the branch of the largest diagonal term,
-    as :func:`rasterizer.gaussians.rotmat_to_quat`)."""
-    m00, m11, m22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
+def rotmat_to_quat(axes) -> tuple[torch.Tensor, ...]:
+    """Rotations given by their columns (three :data:`Vec`) -> unit (w, x, y, z) planes, w >= 0 (the branch of
+    the largest diagonal term, as :func:`rasterizer.gaussians.rotmat_to_quat`)."""
+    def m(i, j):
+        return axes[j][i]
+    m00, m11, m22 = m(0, 0), m(1, 1), m(2, 2)
     trace = m00 + m11 + m22
-    d21, d02, d10 = r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]
-    s01, s02, s12 = r[..., 0, 1] + r[..., 1, 0], r[..., 0, 2] + r[..., 2, 0], r[..., 1, 2] + r[..., 2, 1]
-    cand = [torch.stack(c, -1) for c in ((1 + trace, d21, d02, d10), (d21, 1 + m00 - m11 - m22, s01, s02),
-                                         (d02, s01, 1 - m00 + m11 - m22, s12), (d10, s02, s12, 1 - m00 - m11 + m22))]
+    d21, d02, d10 = m(2, 1) - m(1, 2), m(0, 2) - m(2, 0), m(1, 0) - m(0, 1)
+    s01, s02, s12 = m(0, 1) + m(1, 0), m(0, 2) + m(2, 0), m(1, 2) + m(2, 1)
+    cand = [(1 + trace, d21, d02, d10), (d21, 1 + m00 - m11 - m22, s01, s02),
+            (d02, s01, 1 - m00 + m11 - m22, s12), (d10, s02, s12, 1 - m00 - m11 + m22)]
     q, best = cand[0], trace
     for c, v in zip(cand[1:], (m00, m11, m22)):
-        gt = (v > best).unsqueeze(-1)
-        q = _where(gt, c, q)
+        q = select_many(v > best, c, q)
         best = torch.maximum(best, v)
-    q = q / torch.sqrt((q * q).sum(-1, keepdim=True)).clamp(min=1e-30)
-    return _where(q[..., :1] < 0, -q, q)
+    norm = torch.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).clamp(min=1e-30)
+    q = tuple(x / norm for x in q)
+    return select_many(q[0] < 0, tuple(-x for x in q), q)
 
 
 def quat_left_matrix(q: torch.Tensor) -> torch.Tensor:
@@ -143,8 +151,11 @@ class GaussianHead(nn.Module):
         super().__init__()
         steps = [pixel_steps(k, height, width) for k in grids]
         for i, name in enumerate(("rays", "east", "south")):
-            self.register_buffer(name, torch.from_numpy(np.stack([s[i] for s in steps]).astype(np.float32)),
-                                 persistent=False)
+            field = np.stack([s[i] for s in steps]).astype(np.float32)  # (G, H, W, 3)
+            self.register_buffer(name, torch.from_numpy(field), persistent=False)
+            for c in range(3):  # component planes (G, H, W) for the planar maths
+                self.register_buffer(f"{name}_{c}", torch.from_numpy(np.ascontiguousarray(field[..., c])),
+                                     persistent=False)
         self.scale_factor = float(scale_factor)
         # footprint fraction dropped at confidence 1 (linear in confidence; None: one footprint for all)
         narrow = self.scale_factor if scale_factor_confident is None else float(scale_factor_confident)
@@ -159,20 +170,21 @@ class GaussianHead(nn.Module):
         """``opaque`` (2, G, H, W) in [0, 1], optional: moves each opacity that far to ``opacity_max``."""
         rot = c2w[:, :3, :3]  # (2, 3, 3)
         centre = c2w[:, :3, 3]  # (2, 3)
-        r = rng.unsqueeze(-1)  # (2, G, H, W, 1)
-        pts = r * self.rays  # camera frame
-        fa, fb = r * self.east, r * self.south  # camera-facing pixel steps
+        plane = lambda name: tuple(getattr(self, f"{name}_{c}") for c in range(3))  # noqa: E731
+        pts = _scaled(plane("rays"), rng)  # camera frame
+        fa, fb = _scaled(plane("east"), rng), _scaled(plane("south"), rng)  # camera-facing pixel steps
         a = _steps(pts, fa, 3, self.max_stretch)
         b = _steps(pts, fb, 2, self.max_stretch)
         axes, scales = surfel_frames(a, b, fa, fb, self.scale_factor, self.ray_scale_ratio)
         c = conf.clamp(0.0, 1.0)
         if self.confident_shrink:  # opaque layout surfels get the confident footprint: sharp, the shell behind
             fp = c if opaque is None else torch.maximum(c, opaque)
-            scales = scales * (1.0 - self.confident_shrink * fp).unsqueeze(-1)
-        means = centre.reshape(2, 1, 1, 1, 3) + torch.matmul(pts.reshape(2, -1, 3), rot.transpose(1, 2)).reshape(pts.shape)
+            scales = _scaled(scales, 1.0 - self.confident_shrink * fp)
+        # camera frame -> world: one flat (N, 3) x (3, 3) GEMM per view
+        means = centre.reshape(2, 1, 3) + torch.matmul(torch.stack(pts, -1).reshape(2, -1, 3), rot.transpose(1, 2))
         # camera-frame surfel rotation, turned to the world by the camera quaternion (one MatMul)
-        local = rotmat_to_quat(axes)
-        quats = torch.matmul(local.reshape(2, -1, 4), quat_left_matrix(cam_quats).transpose(1, 2)).reshape(local.shape)
+        local = torch.stack(rotmat_to_quat(axes), -1)
+        quats = torch.matmul(local.reshape(2, -1, 4), quat_left_matrix(cam_quats).transpose(1, 2))
         if self.opacity_gamma == 2.0:
             c = c * c
         elif self.opacity_gamma != 1.0:
@@ -181,5 +193,5 @@ class GaussianHead(nn.Module):
         if opaque is not None:
             opac = opac + opaque * (self.opacity_max - opac)
         sh_dc = (colour.permute(0, 1, 3, 4, 2) - 0.5) / SH_C0
-        return (means.reshape(-1, 3), scales.reshape(-1, 3), quats.reshape(-1, 4),
+        return (means.reshape(-1, 3), torch.stack(scales, -1).reshape(-1, 3), quats.reshape(-1, 4),
                 opac.reshape(-1), sh_dc.reshape(-1, 3))

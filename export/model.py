@@ -63,6 +63,7 @@ from .gaussian_head import GaussianHead
 from .layout import clamp_below_floor, fit_planes, layout_inverse, plane_prior, with_plane_prior
 from .matches import Matches
 from .readout import DepthReadout, baseline_of, index_to_inverse, plane_step
+from .select import select
 from .yin_yang_sampling import YinYangSampler
 
 
@@ -173,7 +174,7 @@ class OmniSplatEncoder(nn.Module):
             sin = torch.sqrt((cross * cross).sum(-1)) / (
                 torch.sqrt((near * near).sum(-1) * (far * far).sum(-1)).clamp(min=1e-12))
             dots = (near * far).sum(-1)
-            travel = torch.where(dots < 0, torch.full_like(sin, 2.0), sin) / pitch  # >90 deg: plenty
+            travel = select(dots < 0, 2.0, sin) / pitch  # >90 deg: plenty
             out.append(((travel - 2.0) / 6.0).clamp(0.0, 1.0).reshape(g_count, 1, h, w))
         return torch.stack(out)
 

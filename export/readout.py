@@ -22,6 +22,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from .select import select
+
 
 class DepthReadout(nn.Module):
     """cost (N, D, h, w) -> (plane index (N,1,h,w) float, peak confidences (N,1,h,w) in [0,1]).
@@ -47,15 +49,15 @@ class DepthReadout(nn.Module):
         if self.mode == "wta":
             curv = lo - 2.0 * best + hi
             inner = (idx > 0) & (idx < d_count - 1) & (curv < -1e-6)
-            offset = 0.5 * (lo - hi) / torch.where(inner, curv, -1.0)
-            offset = torch.where(inner, offset.clamp(-0.5, 0.5), 0.0)
+            offset = 0.5 * (lo - hi) / select(inner, curv, -1.0)
+            offset = select(inner, offset.clamp(-0.5, 0.5), 0.0)
             k = idx.to(cost.dtype) + offset
         else:
             p = torch.softmax(self.beta * cost, dim=1)
             k = (p * planes).sum(dim=1, keepdim=True)
         far_from_peak = (planes - idx.to(cost.dtype)).abs() > 1.5
-        second = torch.where(far_from_peak, cost, -2.0).amax(dim=1, keepdim=True)  # scalar: no (N, D, h, w) constant
-        margin = torch.where(idx == d_count - 1, 0.0, (best - second).clamp(min=0.0))
+        second = select(far_from_peak, cost, -2.0).amax(dim=1, keepdim=True)
+        margin = select(idx == d_count - 1, 0.0, (best - second).clamp(min=0.0))
         return (k,) + tuple(1.0 - torch.exp(margin * (-1.0 / m)) for m in self.margin_scales)
 
 
