@@ -29,7 +29,7 @@ from torch import nn
 from rasterizer.geometry import YIN_LAT_MAX, YIN_LON_MAX
 from rasterizer.sweep import ERP_PAD
 
-from .cost_volume import sample_maps, stacked_source
+from .cost_volume import sample_maps, slab_size, stacked_source
 from .select import select, select_many
 
 
@@ -163,9 +163,10 @@ class FineSweep(nn.Module):
         step = torch.as_tensor(step, dtype=inv.dtype)
         step_h = step.unsqueeze(2) if step.dim() == 4 else step
         inv_h = (inv.unsqueeze(2) + self.offsets * step_h).clamp(min=inv_min, max=inv_max)  # (2G, 1, J, h, w)
-        warped = self.sample(grey, self.points(inv_h, rays, rel_rt))
-        cost = self.matcher(grey, warped)  # (2G, J, h, w)
-        cost = self.aggregation(cost, grey)
+        # hypotheses in slabs that fit the cache (export.cost_volume.slab_size); each scores on its own
+        n, _, _, h, w = inv_h.shape
+        cost = torch.cat([self.aggregation(self.matcher(grey, self.sample(grey, self.points(part, rays, rel_rt))), grey)
+                          for part in torch.split(inv_h, slab_size(self.num, n * h * w * 4), dim=2)], 1)  # (2G, J, h, w)
         k, *confs = self.readout(cost)
         inner = ((k > 0.5) & (k < self.num - 1.5)).to(k.dtype)
         refined = inv + (k - self.num // 2) * step

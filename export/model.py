@@ -86,8 +86,8 @@ class OmniSplatEncoder(nn.Module):
         else:
             self.features = TrainingFreeFeatures(*match_args, wrap=wrap)
             matcher = CorrelationMatcher()
-        self.cost_volume = SweepCostVolume(self.num_grids, erp_source=wrap, matcher=matcher)
-        self.aggregation = CostAggregation(cfg.agg_radii, cfg.agg_eps, wrap=wrap)
+        self.cost_volume = SweepCostVolume(self.num_grids, erp_source=wrap, matcher=matcher,
+                                           aggregation=CostAggregation(cfg.agg_radii, cfg.agg_eps, wrap=wrap))
         fill_scale = cfg.peak_margin_scale if cfg.fill_margin_scale is None else cfg.fill_margin_scale
         self.readout = DepthReadout(cfg.readout, cfg.softargmin_beta, (cfg.peak_margin_scale, fill_scale))
         self.head = GaussianHead(cfg.grids, self.full_h, self.full_w, cfg.scale_factor,
@@ -241,10 +241,9 @@ class OmniSplatEncoder(nn.Module):
         grey_full = (full_flat * self.luma).sum(1, keepdim=True)
 
         feats = self.features(low).reshape(2, g_count, -1, h, w)
-        cost = self.cost_volume(feats, warp_grids)  # (2, G, D, h, w)
+        cost = self.cost_volume(feats, warp_grids, grey_low)  # (2, G, D, h, w), aggregated
         d_count = cost.shape[2]
-        cost = self.aggregation(cost.reshape(2 * g_count, d_count, h, w), grey_low)
-        k, conf, conf_fill = self.readout(cost)  # (2G, 1, h, w)
+        k, conf, conf_fill = self.readout(cost.reshape(2 * g_count, d_count, h, w))  # (2G, 1, h, w)
         b = baseline_of(c2w)
         inv = index_to_inverse(k, inv_depths, b)
 

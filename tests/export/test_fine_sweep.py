@@ -8,6 +8,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from export import cost_volume
 from export.aggregation import CostAggregation
 from export.config import make_config
 from export.cost_volume import WindowMatcher, sample_maps
@@ -152,6 +153,29 @@ def test_fine_sweep_refines_a_perturbed_depth():
         err_after = (refined - inv_true)[view].abs()[seen[view]].median()
         assert err_after < 0.25 * err_before
     assert torch.all(torch.isfinite(refined)) and conf.min() >= 0 and conf.max() <= 1
+
+
+@pytest.mark.parametrize("slab_bytes", [1, 5 * 48 * 144 * 4 * 4])
+def test_fine_sweep_slabs_give_the_one_pass_values(monkeypatch, slab_bytes):
+    """Hypotheses scored in slabs (one plane each, or uneven slabs of 5 and 4) equal the whole volume at once."""
+    h, w, j = 48, 144, 9
+    rays = _rays(h, w)
+    gen = torch.Generator().manual_seed(0)
+    grey = torch.rand(4, 1, h, w, generator=gen)
+    inv = 0.3 + 0.1 * torch.rand(4, 1, h, w, generator=gen)
+    rel = torch.zeros(2, 3, 4)
+    rel[:, :, :3] = torch.eye(3)
+    rel[:, 2, 3] = torch.tensor([-1.0, 1.0])
+    fs = FineSweep(("yin", "yang"), j, WindowMatcher(2, (1, 3), 0.015, 0.002, 0.5),
+                   CostAggregation((2, 4), 1e-2), DepthReadout("wta", margin_scales=(0.2,)))
+    args = (inv, grey, rays, rel, torch.tensor(0.02), torch.tensor(0.05), torch.tensor(3.0))
+    monkeypatch.setattr(cost_volume, "SLAB_BYTES", 1 << 40)
+    assert cost_volume.slab_size(j, 4 * h * w * 4) == j
+    whole = fs(*args)
+    monkeypatch.setattr(cost_volume, "SLAB_BYTES", slab_bytes)
+    assert cost_volume.slab_size(j, 4 * h * w * 4) == (1 if slab_bytes == 1 else 5)
+    for got, want in zip(fs(*args), whole):
+        assert torch.equal(got, want)
 
 
 def test_config_checks_the_fine_stage():
