@@ -20,8 +20,6 @@ same fit at the cost of a few image-sized array passes:
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 
 from .camera import DEFAULT_NEAR, Camera
@@ -29,6 +27,7 @@ from .composite import ALPHA_MAX, ALPHA_MIN
 from .gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
 from .splat import shared_pose
 from .splat.projection import project_columns
+from .threads import map_threads
 
 #: Step size of the fit (x the Gaussian's confidence): 1 would be a plain Jacobi step, more
 #: over-relaxes it; chosen on the dev scenes (docs/design.md).
@@ -39,8 +38,6 @@ COLOUR_FIT_TAPS = 3
 #: encoder's sweep starts at 0.3 baselines). A near plane at the scene's own scale gives a scene scaled
 #: by any factor the same colours; a fixed one would cull a millimetre-scale scene.
 NEAR_PER_BASELINE = 1e-3
-#: Worker threads of :func:`fit_reference_colours` (the machine's two cores).
-_THREADS = 2
 
 
 def check_colour_fit(value) -> float:
@@ -241,9 +238,7 @@ def fit_reference_colours(layout: Gaussians, confidence: np.ndarray, c2w: np.nda
         residual = cover[:, None] * rgb[part] - render  # c - (render + (1 - cover) c)
         return part, np.clip(rgb[part] + weight[part] * residual, 0.0, 1.0)
 
-    # numpy releases the GIL in its array passes: the four grids run two at a time
-    with ThreadPoolExecutor(max_workers=_THREADS) as pool:
-        done = list(pool.map(one, jobs))
+    done = map_threads(one, jobs)  # the four grids, two at a time
     new = rgb.copy()
     for part, colours in done:
         new[part] = colours

@@ -20,6 +20,7 @@ import numpy as np
 
 from .gaussians import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
 from .sh import SH_C1
+from .threads import map_threads
 from .yin_yang import grid_pixel
 
 #: Colour models a reconstruction offers: 0 = one colour per Gaussian, 1 = this module's fit.
@@ -101,12 +102,15 @@ def fit_view_colour(layout: Gaussians, range_maps: np.ndarray, c2w: np.ndarray, 
     means = layout.means.reshape(2, n, 3)
     poses = np.asarray(c2w, dtype=np.float64)
     sh = np.empty((2, n, 4, 3), dtype=np.float32)
-    for v in range(2):  # the two views, each against the other
+
+    def one(job):
+        v, c = job  # a chunk of view v's Gaussians against the other view u
         u = 1 - v
-        for c0 in range(0, n, CHUNK):  # each Gaussian's maths is its own: chunks give the values of one pass
-            c = slice(c0, min(n, c0 + CHUNK))
-            _fit_chunk(sh[v, c], means[v, c], rgb[:, v, c], rgb[:, u], poses[v], poses[u], rng[u], shows[u], grids,
-                       h, w, ridge, tol)
+        _fit_chunk(sh[v, c], means[v, c], rgb[:, v, c], rgb[:, u], poses[v], poses[u], rng[u], shows[u], grids,
+                   h, w, ridge, tol)
+
+    # each Gaussian's maths is its own: the chunks, two at a time, give the values of one pass
+    map_threads(one, [(v, slice(c0, min(n, c0 + CHUNK))) for v in range(2) for c0 in range(0, n, CHUNK)])
     return layout.with_(sh=sh.reshape(2 * n, 4, 3))
 
 

@@ -11,6 +11,7 @@ import numpy as np
 from .. import geometry as geo
 from ..depth_gaussians import SURFEL_SCALE_FACTOR
 from ..gaussians import SH_C0, Gaussians
+from ..threads import map_threads
 from .maths import SYM, max3, min3, outer6, plane_ok_c, rows4, scale_rotation6, smallest_eigenpair, sum3, sym3_eigvals
 from .options import CompactionOptions
 from .provenance import Provenance
@@ -183,8 +184,8 @@ def _level1_merge(gaussians: Gaussians, prov: Provenance, alive: np.ndarray, col
     if slot is not None:
         mem = slot[mem]
     cams = np.repeat(prov.c2w[:, :3, 3], len(prov.grids), axis=0)
-    parts = [_level1_chunk(gaussians, mem[:, i:i + _CHUNK], cams[plane[i:i + _CHUNK]], plane_tol, cos_incidence, pitch)
-             for i in range(0, blk.size, _CHUNK)]
+    parts = map_threads(lambda i: _level1_chunk(gaussians, mem[:, i:i + _CHUNK], cams[plane[i:i + _CHUNK]], plane_tol,
+                                                cos_incidence, pitch), range(0, blk.size, _CHUNK))
     sel = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, bool)
     b = blk[sel]
     k = gaussians.sh.shape[1]
