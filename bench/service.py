@@ -218,9 +218,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         args.json.write_text(text + "\n")
     name = f"service-{args.height}x{2 * args.height}"
-    start, end = readme_markers(name, f"service --height {args.height}")
+    start, end = readme_markers(name, f"service --model MODEL.onnx --height {args.height}")
     for readme in args.readme:
-        if not update_readme(readme, f"{start}\n{table}\n{end}", name, f"service --height {args.height}"):
+        if not update_readme(readme, f"{start}\n{table}\n{end}", name, f"service --model MODEL.onnx --height {args.height}"):
             print(f"{readme}: no {start.split(' (')[0]} marker; not written", file=sys.stderr)
     return 0
 
