@@ -46,10 +46,20 @@ def sample_maps(src: torch.Tensor, grid: torch.Tensor, erp_source: bool) -> torc
 
 
 class CorrelationMatcher(nn.Module):
-    """target (N, C, h, w), warped (N, C, D, h, w) -> (N, D, h, w) channel dot product."""
+    """target (N, C, h, w), warped (N, C, D, h, w) -> (N, D, h, w) channel dot product.
+
+    ``forward`` = ``score(target_terms(target), warped)``: a sweep scoring its candidates in slabs
+    computes the target's terms once.
+    """
+
+    def target_terms(self, target: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        return (target.unsqueeze(2),)
+
+    def score(self, terms: tuple[torch.Tensor, ...], warped: torch.Tensor) -> torch.Tensor:
+        return (warped * terms[0]).sum(dim=1)
 
     def forward(self, target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
-        return (warped * target.unsqueeze(2)).sum(dim=1)
+        return self.score(self.target_terms(target), warped)
 
 
 class WindowMatcher(nn.Module):
@@ -83,23 +93,33 @@ class WindowMatcher(nn.Module):
         padded = pad2d(img, p, self.wrap)
         return [torch.tanh(padded[..., p + dy : p + dy + h, p + dx : p + dx + w] - img) for dy, dx in self.offsets]
 
-    def forward(self, target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
+    def target_terms(self, target: torch.Tensor) -> tuple:
+        """What the score needs of the target alone (N, 1, h, w): centred grey, its window mean and
+        variance, its census bits. A sweep scoring its candidates in slabs computes them once."""
         # centred on mid-grey: the same ZNCC, but the E[xy] - E[x]E[y] moments cancel less (with the
         # small eps floor, rounding there shows as ORT-vs-torch differences in flat windows)
         t = target - 0.5  # (N, 1, h, w), broadcasts over the planes
+        mean_t = box_filter(t, self.radius, self.wrap)
+        var_t = box_filter(t * t, self.radius, self.wrap) - mean_t * mean_t
+        return t, mean_t, var_t, self.census_bits(t)
+
+    def score(self, terms: tuple, warped: torch.Tensor) -> torch.Tensor:
+        """The similarity of the target given by :meth:`target_terms` and the warped stack."""
+        t, mean_t, var_t, bits_t = terms
         wv = warped[:, 0] - 0.5  # (N, D, h, w)
         r = self.radius
-        mean_t = box_filter(t, r, self.wrap)
-        var_t = box_filter(t * t, r, self.wrap) - mean_t * mean_t
         mean_w = box_filter(wv, r, self.wrap)
         var_w = box_filter(wv * wv, r, self.wrap) - mean_w * mean_w
         cov = box_filter(wv * t, r, self.wrap) - mean_w * mean_t
         zncc = cov / torch.sqrt((var_t.clamp(min=0) + self.eps2) * (var_w.clamp(min=0) + self.eps2))
         census = None
-        for bt, bw in zip(self.census_bits(t), self.census_bits(wv)):
+        for bt, bw in zip(bits_t, self.census_bits(wv)):
             census = bt * bw if census is None else census + bt * bw
         census = census / len(self.offsets)
         return self.weight * zncc + (1.0 - self.weight) * census
+
+    def forward(self, target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
+        return self.score(self.target_terms(target), warped)
 
 
 #: Bytes of one slab of a cost volume: the matcher's and the aggregation's dozens of elementwise passes run about a
@@ -147,10 +167,10 @@ class SweepCostVolume(nn.Module):
     def forward(self, feats: torch.Tensor, warp_grids: torch.Tensor, guide: torch.Tensor | None = None) -> torch.Tensor:
         _, g_count, c, h, w = feats.shape
         d_count = warp_grids.shape[2]
-        target = feats.reshape(2 * g_count, c, h, w)
+        terms = self.matcher.target_terms(feats.reshape(2 * g_count, c, h, w))  # once for every slab
         cost = []
         for slab in torch.split(warp_grids, slab_size(d_count, 2 * g_count * c * h * w * 4), dim=2):
             n = slab.shape[2]
-            part = self.matcher(target, self.warp(feats, slab).reshape(2 * g_count, c, n, h, w))
+            part = self.matcher.score(terms, self.warp(feats, slab).reshape(2 * g_count, c, n, h, w))
             cost.append(part if self.aggregation is None else self.aggregation(part, guide))
         return torch.cat(cost, 1).reshape(2, g_count, d_count, h, w)

@@ -165,8 +165,12 @@ class FineSweep(nn.Module):
         inv_h = (inv.unsqueeze(2) + self.offsets * step_h).clamp(min=inv_min, max=inv_max)  # (2G, 1, J, h, w)
         # hypotheses in slabs that fit the cache (export.cost_volume.slab_size); each scores on its own
         n, _, _, h, w = inv_h.shape
-        cost = torch.cat([self.aggregation(self.matcher(grey, self.sample(grey, self.points(part, rays, rel_rt))), grey)
-                          for part in torch.split(inv_h, slab_size(self.num, n * h * w * 4), dim=2)], 1)  # (2G, J, h, w)
+        terms = self.matcher.target_terms(grey)  # once for every slab
+        cost = []
+        for part in torch.split(inv_h, slab_size(self.num, n * h * w * 4), dim=2):
+            warped = self.sample(grey, self.points(part, rays, rel_rt))
+            cost.append(self.aggregation(self.matcher.score(terms, warped), grey))
+        cost = torch.cat(cost, 1)  # (2G, J, h, w)
         k, *confs = self.readout(cost)
         inner = ((k > 0.5) & (k < self.num - 1.5)).to(k.dtype)
         refined = inv + (k - self.num // 2) * step
