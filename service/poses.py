@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from rasterizer.floor_sweep import floor_ratio
-from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction, pinhole_directions
+from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction
 from rasterizer.gravity import level_rotation
 from rasterizer.relative_pose import (
     INLIER_DEG,
@@ -47,9 +47,10 @@ from rasterizer.relative_pose import (
     upright_ransac,
     yaw_rotation,
 )
+from rasterizer.threads import map_threads
 
 from .errors import BadInput
-from .gravity import panorama_gravity, perspective_crop
+from .gravity import crop_rotations, panorama_gravity, perspective_crops
 
 #: Options keys this module reads (not encoder options).
 POSE_OPTION_KEYS = ("camera_height", "baseline", "refine_poses")
@@ -104,18 +105,10 @@ class PoseOptions:
         return cls(out["camera_height"], out["baseline"], refine)
 
 
-def _crop_rotations() -> np.ndarray:
-    """(16, 3, 3) crop-camera -> panorama-camera rotations."""
-    rots = []
-    for pitch, yaws in ((0.0, np.arange(8) * 45.0), (50.0, 22.5 + np.arange(4) * 90.0),
-                        (-50.0, 67.5 + np.arange(4) * 90.0)):
-        p = np.radians(pitch)
-        rx = np.array([[1, 0, 0], [0, np.cos(p), np.sin(p)], [0, -np.sin(p), np.cos(p)]])
-        rots += [yaw_rotation(np.radians(y)) @ rx for y in yaws]
-    return np.stack(rots)
-
-
-CROP_ROTATIONS = _crop_rotations()
+#: SIFT crops as (pitch, yaws) in degrees: 8 on the horizon, 4 at +50 and 4 at -50 deg pitch.
+CROPS = ((0.0, tuple(45.0 * k for k in range(8))), (50.0, tuple(22.5 + 90.0 * k for k in range(4))),
+         (-50.0, tuple(67.5 + 90.0 * k for k in range(4))))
+CROP_ROTATIONS = crop_rotations(CROPS)
 
 
 def _gray(erp: np.ndarray) -> np.ndarray:
@@ -143,11 +136,11 @@ def features(erp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     gray = _gray(erp)
     sift = cv2.SIFT_create(nfeatures=800, contrastThreshold=0.02)
-    local = pinhole_directions(CROP_SIZE, CROP_SIZE, CROP_FOV_DEG)
     axes = CROP_ROTATIONS[:, :, 2]
     bearings, descs = [], []
-    for k, rot in enumerate(CROP_ROTATIONS):
-        kps, desc = sift.detectAndCompute(perspective_crop(gray, rot, local), None)
+    for k, crop in enumerate(perspective_crops(gray, CROPS, CROP_SIZE, CROP_FOV_DEG)):
+        rot = CROP_ROTATIONS[k]
+        kps, desc = sift.detectAndCompute(crop, None)
         if desc is None or not len(kps):
             continue
         pts = np.array([kp.pt for kp in kps])
@@ -165,27 +158,63 @@ def features(erp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(bearings), np.concatenate(descs)
 
 
-def _mutual_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, allowed=None) -> np.ndarray:
-    """(M, 2) index pairs: nearest neighbours both ways passing Lowe's ratio test, among the pairs that
-    ``allowed(rows)`` ((len(rows), len(desc_b)) bool; None: all) admits. Rows in chunks of 1024."""
+#: Rows of descriptor distances computed at a time.
+_DIST_ROWS = 1024
+
+
+def _distances(desc_a: np.ndarray, desc_b: np.ndarray):
+    """Yield (rows slice, squared RootSIFT distances (rows, len(desc_b)) float32) in chunks of A's rows."""
+    for s in range(0, len(desc_a), _DIST_ROWS):
+        sl = slice(s, min(s + _DIST_ROWS, len(desc_a)))
+        yield sl, np.maximum(2.0 - 2.0 * (desc_a[sl] @ desc_b.T), 0.0)
+
+
+def _mutual_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> np.ndarray:
+    """(M, 2) index pairs: nearest neighbours both ways passing Lowe's ratio test."""
     na, nb = len(desc_a), len(desc_b)
     best_d, second = np.full(na, np.inf), np.full(na, np.inf)
     best_j = np.zeros(na, int)
     col_best, col_arg = np.full(nb, np.inf), np.zeros(nb, int)
-    for s in range(0, na, 1024):
-        sl = slice(s, min(s + 1024, na))
-        d2 = np.maximum(2.0 - 2.0 * (desc_a[sl] @ desc_b.T), 0.0)
-        if allowed is not None:
-            d2 = np.where(allowed(sl), d2, np.inf)
+    for sl, d2 in _distances(desc_a, desc_b):
         part = np.partition(d2, 1, axis=1)[:, :2] if nb > 1 else np.concatenate([d2, d2 + np.inf], 1)
         best_d[sl], second[sl] = part[:, 0], part[:, 1]
         best_j[sl] = np.argmin(d2, axis=1)
         cm = np.argmin(d2, axis=0)
         cv = d2[cm, np.arange(nb)]
         upd = cv < col_best
-        col_best[upd], col_arg[upd] = cv[upd], cm[upd] + s
+        col_best[upd], col_arg[upd] = cv[upd], cm[upd] + sl.start
     keep = np.isfinite(best_d) & (best_d < ratio * ratio * second) & (col_arg[best_j] == np.arange(na))
     return np.stack([np.nonzero(keep)[0], best_j[keep]], 1)
+
+
+def _mutual_among(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, candidates) -> np.ndarray:
+    """:func:`_mutual_matches` restricted to the pairs ``candidates(rows)`` ((r, c) index arrays, r local to
+    the rows slice) admits: nearest neighbours both ways among them, ratio-tested against the second
+    nearest candidate of the row (none: passes). Ties go to the lower index, as ``argmin``'s do; the
+    candidates are a few percent of all pairs, so they are sorted instead of scanning dense rows."""
+    rows, cols, vals = [], [], []
+    for sl, d2 in _distances(desc_a, desc_b):
+        r, c = candidates(sl)
+        rows.append(r + sl.start)
+        cols.append(c)
+        vals.append(d2[r, c].astype(np.float64))
+    r, c, v = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+    if r.size == 0:
+        return np.zeros((0, 2), int)
+    o = np.lexsort((c, v, r))  # by row, then distance, then column
+    r1, c1, v1 = r[o], c[o], v[o]
+    first = np.flatnonzero(np.r_[True, r1[1:] != r1[:-1]])
+    second = np.full(first.size, np.inf)
+    has_two = np.diff(np.r_[first, r1.size]) > 1
+    second[has_two] = v1[first[has_two] + 1]
+    o = np.lexsort((r, v, c))  # by column, then distance, then row
+    c2 = c[o]
+    col_first = np.flatnonzero(np.r_[True, c2[1:] != c2[:-1]])
+    col_arg = np.full(len(desc_b), -1)
+    col_arg[c2[col_first]] = r[o][col_first]
+    best_row, best_j = r1[first], c1[first]
+    keep = (v1[first] < ratio * ratio * second) & (col_arg[best_j] == best_row)
+    return np.stack([best_row[keep], best_j[keep]], 1)
 
 
 def putative_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8) -> np.ndarray:
@@ -205,15 +234,17 @@ def guided_matches(fa, fb, desc_a, desc_b, R, t, *, max_deg: float, ratio: float
     cross_a = np.linalg.norm(np.cross(t, fa), axis=-1)
     at, gt = fa @ t, g @ t
 
-    def fits_pose(sl):
-        sin_a = np.abs(fa[sl] @ n_hat.T)
-        sin_b = np.abs(fa[sl] @ n.T) / np.maximum(cross_a[sl, None], 1e-12)
-        k = fa[sl] @ g.T
+    def fits_pose(sl):  # (r, c) of the rows' pairs that fit
+        # the first test leaves a few percent of the pairs: the others are evaluated at those only
+        r, c = np.nonzero(np.abs(fa[sl] @ n_hat.T) < sin_thr)
+        sin_b = np.abs((fa[sl] @ n.T)[r, c]) / np.maximum(cross_a[sl][r], 1e-12)
+        k = (fa[sl] @ g.T)[r, c]
         den = np.maximum(1 - k * k, 1e-9)
-        return (np.maximum(sin_a, sin_b) < sin_thr) & ((at[sl, None] - k * gt) / den > 0) & \
-            ((k * at[sl, None] - gt) / den > 0)
+        a_t, g_t = at[sl][r], gt[c]
+        ok = (sin_b < sin_thr) & ((a_t - k * g_t) / den > 0) & ((k * a_t - g_t) / den > 0)
+        return r[ok], c[ok]
 
-    return _mutual_matches(desc_a, desc_b, ratio, fits_pose)
+    return _mutual_among(desc_a, desc_b, ratio, fits_pose)
 
 
 def _guided_refine(fa, fb, da, db, yaw, t, R0=None):
@@ -287,7 +318,7 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
     ``data``: the two files' bytes when known (for the cameras' own tilt readings); ``prepared``:
     both panoramas already through :func:`prepare` (the images are then not read again)."""
     t0 = time.perf_counter()
-    pa, pb = prepared if prepared is not None else (prepare(erp_a, data[0]), prepare(erp_b, data[1]))
+    pa, pb = prepared if prepared is not None else map_threads(prepare, (erp_a, erp_b), data)
     fa, da, fb, db = pa.bearings, pa.descriptors, pb.bearings, pb.descriptors
     t_feat = time.perf_counter() - t0
     pairs = putative_matches(da, db)
@@ -324,7 +355,7 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
                  "yaw_gap_deg": float(np.degrees(abs(np.angle(np.exp(1j * (ryaw - yaw)))))),
                  "t_gap_deg": float(np.degrees(np.arccos(np.clip(rt @ t, -1, 1))))}
         if rival["yaw_gap_deg"] > 15 or rival["t_gap_deg"] > 25:
-            best_score, rival_score = score(yaw, t), score(ryaw, rt)
+            best_score, rival_score = map_threads(score, (yaw, ryaw), (t, rt))
             rival["photometric"], info["photometric"] = rival_score, best_score
             info["rival"] = rival
             decisive = max(best_score, rival_score) >= PHOTOMETRIC_MARGIN * min(best_score, rival_score)
@@ -387,8 +418,7 @@ def _scale(pa: Panorama, pb: Panorama, inl: np.ndarray, R: np.ndarray, t: np.nda
 
 def refine_poses(erp_a: np.ndarray, erp_b: np.ndarray, c2w_a: np.ndarray, c2w_b: np.ndarray) -> tuple[np.ndarray, dict]:
     """Refine B's given pose against A (yaw about B's y axis and the travel direction; baseline kept)."""
-    fa, da = features(erp_a)
-    fb, db = features(erp_b)
+    (fa, da), (fb, db) = map_threads(features, (erp_a, erp_b))
     rel = np.linalg.inv(c2w_a) @ c2w_b
     R0, t_rel = rel[:3, :3], rel[:3, 3]
     length = float(np.linalg.norm(t_rel))

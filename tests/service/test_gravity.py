@@ -4,9 +4,9 @@ import cv2
 import numpy as np
 import pytest
 
-from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction
+from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction, pinhole_directions
 from rasterizer.gravity import down_from_pitch_roll, level_rotation
-from service.gravity import panorama_gravity, xmp_pitch_roll
+from service.gravity import crop_rotations, panorama_gravity, perspective_crops, xmp_pitch_roll
 
 
 def _room_erp(down, height=1024):
@@ -78,3 +78,18 @@ def test_reading_used_when_the_image_has_too_few_lines_but_they_agree():
     assert info["lines"].get("error") and info["source"] == "xmp" and np.allclose(est, [0, 1, 0])
     est, info = panorama_gravity(flat, _jpeg_with_xmp(8.0, 6.0))  # the edges disagree with this reading
     assert info["source"] == "none" and np.allclose(est, [0, 1, 0])
+
+
+def test_crops_shifted_per_yaw_equal_the_crops_of_their_own_rotation():
+    """The lookup maps computed once per pitch and shifted per yaw give the pixels a per-crop evaluation gives."""
+    erp = _room_erp(down_from_pitch_roll(3.0, -2.0), height=256)
+    crops = ((0.0, (0.0, 45.0, 180.0, 337.5)), (-50.0, (67.5, 247.5)))
+    size, fov = 96, 100.0
+    local = pinhole_directions(size, size, fov)
+    h, w = erp.shape
+    for rot, crop in zip(crop_rotations(crops), perspective_crops(erp, crops, size, fov), strict=True):
+        lat, lon = lat_lon_from_direction(local @ rot.T)
+        mx = ((lon + np.pi) / (2 * np.pi) * w - 0.5).astype(np.float32)
+        my = ((np.pi / 2 - lat) / np.pi * h - 0.5).astype(np.float32)
+        direct = cv2.remap(erp, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        assert np.array_equal(crop, direct)
