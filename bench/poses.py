@@ -97,7 +97,7 @@ def pair_rows(root: Path, max_m: float, height: float | None = None) -> list[dic
             row = {"scene": scene.name, "references": [a, b], "baseline_m": dist, "camera_height_m": h}
             t0 = time.perf_counter()
             try:
-                c2w_a, c2w_b, info = estimate_poses(pa.image, pb.image, PoseOptions(camera_height=h), prepared=(pa, pb))
+                c2w_a, c2w_b, info = estimate_poses(pa.gray, pb.gray, PoseOptions(camera_height=h), prepared=(pa, pb))
             except ServiceError as exc:
                 row["estimate"] = {"seconds": time.perf_counter() - t0, "error": exc.code, "message": exc.message}
             else:

@@ -112,6 +112,8 @@ CROP_ROTATIONS = crop_rotations(CROPS)
 
 
 def _gray(erp: np.ndarray) -> np.ndarray:
+    """Grey uint8 ERP (h, w) of an RGB or grey, uint8 or [0, 1] float ERP, area-downsampled to at most
+    :data:`MAX_ERP_WIDTH` wide; a grey uint8 ERP within that width comes back as it is."""
     import cv2
 
     img = np.asarray(erp)
@@ -131,7 +133,8 @@ def small_gray(erp: np.ndarray, height: int) -> np.ndarray:
 
 
 def features(erp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit bearings (N, 3) in the panorama's camera frame and RootSIFT descriptors (N, 128) float32."""
+    """Unit bearings (N, 3) in the panorama's camera frame and RootSIFT descriptors (N, 128) float32 of an
+    ERP (RGB, or the grey of :func:`_gray`)."""
     import cv2
 
     gray = _gray(erp)
@@ -276,10 +279,11 @@ def _pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Panorama:
-    """One panorama ready for matching: its image, its bearings (N, 3) and RootSIFT descriptors (N, 128)
+    """One panorama ready for matching: its grey ERP (uint8, at most :data:`MAX_ERP_WIDTH` wide, what the
+    feature, line, floor and photometric steps read), its bearings (N, 3) and RootSIFT descriptors (N, 128)
     in its levelled frame, its levelled-from-camera rotation ``level`` (3, 3) and the gravity ``info``."""
 
-    image: np.ndarray
+    gray: np.ndarray
     bearings: np.ndarray
     descriptors: np.ndarray
     level: np.ndarray
@@ -291,11 +295,12 @@ def prepare(erp: np.ndarray, data: bytes | None = None) -> Panorama:
 
     The panorama is levelled only when its tilt exceeds :data:`LEVEL_MIN_TILT_DEG`; ``gravity["applied"]``
     says whether it was."""
-    f, d = features(erp)
-    down, ginfo = panorama_gravity(_gray(erp), data)
+    gray = _gray(erp)
+    f, d = features(gray)
+    down, ginfo = panorama_gravity(gray, data)
     applied = ginfo["tilt_deg"] > LEVEL_MIN_TILT_DEG
     level = level_rotation(down) if applied else np.eye(3)
-    return Panorama(erp, f @ level.T, d, level, {**ginfo, "down": [float(v) for v in down], "applied": bool(applied)})
+    return Panorama(gray, f @ level.T, d, level, {**ginfo, "down": [float(v) for v in down], "applied": bool(applied)})
 
 
 def _guided_refine_general(fa, fb, da, db, R, t):
@@ -347,7 +352,7 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
                                    f"relative pose (need {MIN_RANSAC_INLIERS}): the views share too little; give poses")
 
     def score(yaw_, t_):  # photometric agreement of the two images under a levelled-frame pose
-        return photometric_score(pa.image, pb.image, pa.level.T @ yaw_rotation(yaw_) @ pb.level, pa.level.T @ t_)
+        return photometric_score(pa.gray, pb.gray, pa.level.T @ yaw_rotation(yaw_) @ pb.level, pa.level.T @ t_)
 
     if ransac.rival is not None and ransac.rival.num_inliers >= 0.5 * ransac.best.num_inliers:
         ryaw, rt, rinl, rerr = _guided_refine(fa, fb, da, db, ransac.rival.yaw, ransac.rival.t)
@@ -399,7 +404,7 @@ def _scale(pa: Panorama, pb: Panorama, inl: np.ndarray, R: np.ndarray, t: np.nda
                      "note": "no camera_height or baseline given: the scene's scale is arbitrary (baseline 1)"}
     t0 = time.perf_counter()
     try:
-        d, extra = floor_ratio(small_gray(pa.image, FLOOR_SWEEP_HEIGHT), small_gray(pb.image, FLOOR_SWEEP_HEIGHT),
+        d, extra = floor_ratio(small_gray(pa.gray, FLOOR_SWEEP_HEIGHT), small_gray(pb.gray, FLOOR_SWEEP_HEIGHT),
                                pa.level, pb.level, R, t)
         s, floor = opts.camera_height / d, "dense"
     except ValueError as dense_exc:

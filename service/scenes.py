@@ -19,6 +19,7 @@ import numpy as np
 from rasterizer.camera import DEFAULT_NEAR, camera_directions
 from rasterizer.render import to_uint8
 from rasterizer.rig import NoRigError, overlay_rig, require_rig_layer
+from rasterizer.threads import map_threads
 
 from .edits import edit_artifacts
 from .encoder import unit_image_at_size
@@ -101,8 +102,10 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     """Decode, reconstruct and store; returns (scene metadata, this run's stage timings)."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    erp_a, head_a = decode_rgb(image_a, "image_a", max_pixels=limits.max_pixels, min_height=limits.min_height)
-    erp_b, head_b = decode_rgb(image_b, "image_b", max_pixels=limits.max_pixels, min_height=limits.min_height)
+    # side by side (Pillow's decoders release the GIL); image_a's error is raised first, as in turn
+    (erp_a, head_a), (erp_b, head_b) = map_threads(
+        lambda data, field: decode_rgb(data, field, max_pixels=limits.max_pixels, min_height=limits.min_height),
+        (image_a, image_b), ("image_a", "image_b"))
     timings["decode"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     c2w_a, c2w_b, poses_json = poses_for_scene(erp_a, erp_b, poses, pose_options,

@@ -359,6 +359,14 @@ def test_truncated_png_upload_is_400_not_a_black_scene(slots):
     assert "truncated" in r.json()["error"]["message"]
 
 
+def test_two_bad_uploads_name_image_a_first(slots):
+    """The two uploads decode side by side; the answer names the first bad one, as when they decoded in turn."""
+    with slots.client() as c:
+        r = post_scene(c, _png(8192, 4096, rows=3), _png(8192, 4096, rows=5))
+    assert r.status_code == 400, r.text
+    assert "image_a" in r.json()["error"]["message"] and "image_b" not in r.json()["error"]["message"]
+
+
 # -- multipart framing ----------------------------------------------------------------------------------
 
 def _multipart(parts: list[tuple[str, bytes]], boundary: str = "b0undary", close: bool = True) -> bytes:
