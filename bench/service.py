@@ -5,7 +5,8 @@
 Starts ``omnisplat serve`` as a subprocess on 127.0.0.1 (fresh temporary store), posts two
 ``height`` x 2 ``height`` panoramas (512 by default; ``--height 2880 --repeats 1`` gives a 5760x2880 pair's peak
 memory; the dev scene when present, else synthetic ones) ``repeats`` times with
-distinct options so each POST really reconstructs, then GETs ``repeats`` renders of each view
+distinct options so each POST really reconstructs, then as often without poses (estimated from the
+images, as for a hand-held capture), then GETs ``repeats`` renders of each view
 (a 1024-wide ERP and a 1280x720 90-degree perspective, from the dev scene's target pose when
 present) and reads the server's peak RSS (VmHWM) from /proc. Prints a table of the medians with
 the machine, date and load (before and after). Timings on a shared CPU are noisy.
@@ -123,7 +124,10 @@ def _server_timing(header: str, name: str) -> float:
 def _table(result: dict, machine: str) -> str:
     """The medians as a markdown table, with the machine line and the load at the end."""
     rows = ["| request | median |", "|---|---|",
-            f"| POST {result['inputs']} | {result['post_scene_seconds']['median']:.2f} s |"]
+            f"| POST {result['inputs']} | {result['post_scene_seconds']['median']:.2f} s |",
+            f"| POST the same without poses (estimated from the images) | "
+            f"{result['post_without_poses_seconds']['median']:.2f} s (poses stage "
+            f"{result['post_without_poses_seconds']['median_poses_stage']:.2f} s) |"]
     for label, r in result["renders"].items():
         rows.append(f"| {label} | {r['median_seconds']:.2f} s (render stage {r['median_render_stage_seconds']:.2f} s) |")
     rss = result["peak_rss_mb"]
@@ -179,6 +183,15 @@ def main(argv: list[str] | None = None) -> int:
                     for k, v in body["timings"].items():
                         stage_sums.setdefault(k, []).append(v)
                     print(f"POST {i + 1}/{args.repeats}: {post_s[-1]:.2f} s", file=sys.stderr)
+                unposed_s, pose_stage = [], []
+                for i in range(args.repeats):  # what a user without poses waits for: the same, poses estimated
+                    t = time.perf_counter()
+                    r = c.post("/v1/scenes", files={"image_a": ("a.png", a), "image_b": ("b.png", b)},
+                               data={"options": json.dumps({"far": 30.0 + 0.01 * i})})
+                    unposed_s.append(time.perf_counter() - t)
+                    r.raise_for_status()
+                    pose_stage.append(r.json()["timings"]["poses"])
+                    print(f"POST without poses {i + 1}/{args.repeats}: {unposed_s[-1]:.2f} s", file=sys.stderr)
                 c2w = ",".join(str(v) for v in np.asarray(_target_pose(ca), dtype=float).ravel())
                 for label, params in VIEWS:
                     for i in range(args.repeats):
@@ -197,6 +210,8 @@ def main(argv: list[str] | None = None) -> int:
                 "ready_seconds": round(ready_s, 2),
                 "post_scene_seconds": {"median": statistics.median(post_s), "all": post_s},
                 "post_stage_median_seconds": {k: statistics.median(v) for k, v in stage_sums.items()},
+                "post_without_poses_seconds": {"median": statistics.median(unposed_s), "all": unposed_s,
+                                               "median_poses_stage": statistics.median(pose_stage)},
                 "renders": {label: {"params": params, "median_seconds": statistics.median(render_s[label]),
                                     "all_seconds": render_s[label],
                                     "median_render_stage_seconds": statistics.median(render_stage[label])}
