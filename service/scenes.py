@@ -115,7 +115,7 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
         check_sweep_range(c2w_a, c2w_b, options)
     t0 = time.perf_counter()
     height = runtime.encoder.height
-    erp_a, erp_b = _at_model_size(erp_a, height), _at_model_size(erp_b, height)  # resampled once, here
+    erp_a, erp_b = map_threads(_at_model_size, (erp_a, erp_b), (height, height))  # resampled once, here
     timings["resample"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     build = build_scene(runtime.encoder, erp_a, erp_b, c2w_a, c2w_b, pipeline_options)
