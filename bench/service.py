@@ -170,28 +170,27 @@ def main(argv: list[str] | None = None) -> int:
             render_s = {label: [] for label, _ in VIEWS}
             render_stage = {label: [] for label, _ in VIEWS}
             with httpx.Client(base_url=url, timeout=600) as c:
-                for i in range(args.repeats):
-                    # distinct far plane -> distinct scene id -> a real reconstruction each time
-                    opts = json.dumps({"far": 20.0 + 0.01 * i})
+                def post(fields: dict, far: float, label: str) -> dict:
+                    """One POST of the pair; a distinct far plane -> a distinct scene id -> a real reconstruction."""
                     t = time.perf_counter()
                     r = c.post("/v1/scenes", files={"image_a": ("a.png", a), "image_b": ("b.png", b)},
-                               data={"poses": poses, "options": opts})
-                    post_s.append(time.perf_counter() - t)
+                               data={**fields, "options": json.dumps({"far": far})})
+                    seconds = time.perf_counter() - t
                     r.raise_for_status()
-                    body = r.json()
+                    print(f"{label}: {seconds:.2f} s", file=sys.stderr)
+                    return {**r.json(), "seconds": seconds}
+
+                for i in range(args.repeats):
+                    body = post({"poses": poses}, 20.0 + 0.01 * i, f"POST {i + 1}/{args.repeats}")
+                    post_s.append(body["seconds"])
                     sid, n = body["id"], body["num_gaussians"]
                     for k, v in body["timings"].items():
                         stage_sums.setdefault(k, []).append(v)
-                    print(f"POST {i + 1}/{args.repeats}: {post_s[-1]:.2f} s", file=sys.stderr)
                 unposed_s, pose_stage = [], []
                 for i in range(args.repeats):  # what a user without poses waits for: the same, poses estimated
-                    t = time.perf_counter()
-                    r = c.post("/v1/scenes", files={"image_a": ("a.png", a), "image_b": ("b.png", b)},
-                               data={"options": json.dumps({"far": 30.0 + 0.01 * i})})
-                    unposed_s.append(time.perf_counter() - t)
-                    r.raise_for_status()
-                    pose_stage.append(r.json()["timings"]["poses"])
-                    print(f"POST without poses {i + 1}/{args.repeats}: {unposed_s[-1]:.2f} s", file=sys.stderr)
+                    body = post({}, 30.0 + 0.01 * i, f"POST without poses {i + 1}/{args.repeats}")
+                    unposed_s.append(body["seconds"])
+                    pose_stage.append(body["timings"]["poses"])
                 c2w = ",".join(str(v) for v in np.asarray(_target_pose(ca), dtype=float).ravel())
                 for label, params in VIEWS:
                     for i in range(args.repeats):
