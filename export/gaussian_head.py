@@ -152,7 +152,8 @@ class GaussianHead(nn.Module):
         steps = [pixel_steps(k, height, width) for k in grids]
         for i, name in enumerate(("rays", "east", "south")):
             field = np.stack([s[i] for s in steps]).astype(np.float32)  # (G, H, W, 3)
-            self.register_buffer(name, torch.from_numpy(field), persistent=False)
+            if name == "rays":  # the (G, H, W, 3) rays, for the encoder's floor clamp and matches
+                self.register_buffer(name, torch.from_numpy(field), persistent=False)
             for c in range(3):  # component planes (G, H, W) for the planar maths
                 self.register_buffer(f"{name}_{c}", torch.from_numpy(np.ascontiguousarray(field[..., c])),
                                      persistent=False)
