@@ -203,7 +203,14 @@ def pinhole_intrinsics(width: int, height: int, fov_deg: float) -> tuple[float, 
 
 def pinhole_directions(width: int, height: int, fov_deg: float) -> np.ndarray:
     """Unit camera-frame rays of a pinhole camera's pixel centres, (H, W, 3)."""
-    fx, fy, cx, cy = pinhole_intrinsics(width, height, fov_deg)
+    return pinhole_rays(width, height, pinhole_intrinsics(width, height, fov_deg)[0])
+
+
+def pinhole_rays(width: int, height: int, focal: float) -> np.ndarray:
+    """Unit camera-frame rays (H, W, 3) of the pixel centres of a pinhole camera of ``focal`` pixels
+    (square pixels, the principal point at the image centre)."""
+    fx = fy = focal
+    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
     cols = np.arange(width, dtype=np.float64)[None, :]
     rows = np.arange(height, dtype=np.float64)[:, None]
     d = np.stack(np.broadcast_arrays((cols - cx) / fx, (rows - cy) / fy, np.ones((height, width))), axis=-1)

@@ -16,13 +16,15 @@ from typing import Any
 
 import numpy as np
 
-from rasterizer.geometry import lat_lon_from_direction, pinhole_directions, pinhole_intrinsics
+from rasterizer.geometry import lat_lon_from_direction, pinhole_intrinsics, pinhole_rays
 from rasterizer.gravity import down_from_pitch_roll, line_support, tilt_deg, vertical_from_lines
 from rasterizer.relative_pose import yaw_rotation
 
 #: Line crops (:data:`LINE_CROPS`): 100-deg FOV, this many pixels a side.
 LINE_CROP_SIZE = 800
 LINE_CROP_FOV_DEG = 100.0
+#: Their focal length in pixels.
+LINE_CROP_FOCAL = pinhole_intrinsics(LINE_CROP_SIZE, LINE_CROP_SIZE, LINE_CROP_FOV_DEG)[0]
 #: Segments shorter than this share of the crop side are too imprecise to vote.
 MIN_SEGMENT_SHARE = 0.04
 #: Segments below this latitude (deg) are dropped: a tripod, a selfie stick, the photographer.
@@ -56,8 +58,9 @@ def xmp_pitch_roll(data: bytes | None) -> tuple[float, float] | None:
     return out[0], out[1]
 
 
-#: Line crops as (pitch, yaws) in degrees: 8 on the horizon and 4 at +45 deg pitch.
-LINE_CROPS = ((0.0, tuple(45.0 * k for k in range(8))), (45.0, tuple(22.5 + 90.0 * k for k in range(4))))
+#: Line crops as (pitch, yaws, (width, height)) in degrees and pixels: 8 on the horizon and 4 at +45 deg pitch.
+LINE_CROPS = ((0.0, tuple(45.0 * k for k in range(8)), (LINE_CROP_SIZE, LINE_CROP_SIZE)),
+              (45.0, tuple(22.5 + 90.0 * k for k in range(4)), (LINE_CROP_SIZE, LINE_CROP_SIZE)))
 
 
 def _pitch_rotation(pitch_deg: float) -> np.ndarray:
@@ -66,17 +69,18 @@ def _pitch_rotation(pitch_deg: float) -> np.ndarray:
 
 
 def crop_rotations(crops) -> np.ndarray:
-    """(n, 3, 3) crop-camera -> panorama-camera rotations of ``crops``: (pitch, yaws) pairs in degrees, a
+    """(n, 3, 3) crop-camera -> panorama-camera rotations of ``crops``: (pitch, yaws, ...) rings in degrees, a
     crop turned up by its pitch (about x), then about the panorama's y axis by each yaw, in that order."""
-    return np.stack([yaw_rotation(np.radians(y)) @ _pitch_rotation(pitch) for pitch, yaws in crops for y in yaws])
+    return np.stack([yaw_rotation(np.radians(y)) @ _pitch_rotation(ring[0]) for ring in crops for y in ring[1]])
 
 
 LINE_CROP_ROTATIONS = crop_rotations(LINE_CROPS)
 
 
-def perspective_crops(gray: np.ndarray, crops, size: int, fov_deg: float):
-    """Yield the pinhole views (size, size) uint8 of an ERP image ``gray`` (H, 2H) uint8 along ``crops``
-    ((pitch, yaws) pairs in degrees, in :func:`crop_rotations` order), bilinear, wrapping across the seam.
+def perspective_crops(gray: np.ndarray, crops, focal: float):
+    """Yield the pinhole views (height, width) uint8 of an ERP image ``gray`` (H, 2H) uint8 along ``crops``
+    ((pitch, yaws, (width, height)) rings in degrees and pixels, in :func:`crop_rotations` order), of
+    ``focal`` pixels with the principal point at the centre, bilinear, wrapping across the seam.
 
     A turn about the panorama's y axis keeps latitude and adds the yaw to longitude, so the lookup
     maps are computed once per pitch (a latitude and longitude of every crop pixel costs more than the
@@ -85,9 +89,8 @@ def perspective_crops(gray: np.ndarray, crops, size: int, fov_deg: float):
     import cv2
 
     h, w = gray.shape
-    local = pinhole_directions(size, size, fov_deg)
-    for pitch, yaws in crops:
-        lat, lon0 = lat_lon_from_direction(local @ _pitch_rotation(pitch).T)
+    for pitch, yaws, (width, height) in crops:
+        lat, lon0 = lat_lon_from_direction(pinhole_rays(width, height, focal) @ _pitch_rotation(pitch).T)
         my = ((np.pi / 2 - lat) / np.pi * h - 0.5).astype(np.float32)
         for yaw in yaws:
             lon = lon0 + np.radians(yaw)
@@ -106,7 +109,7 @@ def line_normals(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     fx, fy, cx, cy = pinhole_intrinsics(size, size, LINE_CROP_FOV_DEG)
     axes = LINE_CROP_ROTATIONS[:, :, 2]
     normals, lengths = [], []
-    for k, crop in enumerate(perspective_crops(gray, LINE_CROPS, size, LINE_CROP_FOV_DEG)):
+    for k, crop in enumerate(perspective_crops(gray, LINE_CROPS, LINE_CROP_FOCAL)):
         rot = LINE_CROP_ROTATIONS[k]
         segs = lsd.detect(crop)[0]
         if segs is None:

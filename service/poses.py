@@ -55,8 +55,15 @@ from .gravity import crop_rotations, panorama_gravity, perspective_crops
 #: Options keys this module reads (not encoder options).
 POSE_OPTION_KEYS = ("camera_height", "baseline", "refine_poses")
 
-CROP_FOV_DEG = 100.0
-CROP_SIZE = 640
+#: SIFT crops' focal length in pixels: 4.7 px per degree at a crop's centre, a little under the 2048-wide
+#: grey ERP's 5.7, so a crop hardly magnifies it.
+CROP_FOCAL = 268.5
+#: A crop spans the directions nearest its axis (the only keypoints it keeps) and this much around them (deg):
+#: about the descriptor window of a keypoint at SIFT's finer scales, so keypoints at the edge of a crop's
+#: share keep theirs whole.
+CROP_MARGIN_DEG = 5.0
+#: SIFT keeps a crop's strongest keypoints, at most one per this many of its pixels.
+CROP_PIXELS_PER_KEYPOINT = 360
 MAX_ERP_WIDTH = 2048
 TRIPOD_LAT_DEG = -65.0
 MIN_INLIERS = 20
@@ -105,9 +112,21 @@ class PoseOptions:
         return cls(out["camera_height"], out["baseline"], refine)
 
 
-#: SIFT crops as (pitch, yaws) in degrees: 8 on the horizon, 4 at +50 and 4 at -50 deg pitch.
-CROPS = ((0.0, tuple(45.0 * k for k in range(8))), (50.0, tuple(22.5 + 90.0 * k for k in range(4))),
-         (-50.0, tuple(67.5 + 90.0 * k for k in range(4))))
+
+
+def _crop_size(half_x_deg: float, half_y_deg: float) -> tuple[int, int]:
+    """(width, height) in pixels of a crop reaching ``half_*_deg`` + :data:`CROP_MARGIN_DEG` from its axis."""
+    w, h = (int(round(2 * CROP_FOCAL * np.tan(np.radians(a + CROP_MARGIN_DEG)))) for a in (half_x_deg, half_y_deg))
+    return w, h
+
+
+#: SIFT crops as (pitch, yaws, (width, height)) in degrees and pixels: 8 on the horizon, 4 at +50 and 4 at -50
+#: deg pitch. A crop keeps only the keypoints nearer its axis than any other's (above :data:`TRIPOD_LAT_DEG`),
+#: so each ring's size reaches the farthest such direction along its x and y (degrees from the axis, as the
+#: tests measure) and the margin beyond: a third of the pixels of 100-deg square crops, for the same keypoints.
+CROPS = ((0.0, tuple(45.0 * k for k in range(8)), _crop_size(22.5, 33.4)),
+         (50.0, tuple(22.5 + 90.0 * k for k in range(4)), _crop_size(37.3, 29.6)),
+         (-50.0, tuple(67.5 + 90.0 * k for k in range(4)), _crop_size(37.3, 39.8)))
 CROP_ROTATIONS = crop_rotations(CROPS)
 
 
@@ -138,18 +157,17 @@ def features(erp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     import cv2
 
     gray = _gray(erp)
-    sift = cv2.SIFT_create(nfeatures=800, contrastThreshold=0.02)
+    sizes = [size for _, yaws, size in CROPS for _ in yaws]
     axes = CROP_ROTATIONS[:, :, 2]
     bearings, descs = [], []
-    for k, crop in enumerate(perspective_crops(gray, CROPS, CROP_SIZE, CROP_FOV_DEG)):
-        rot = CROP_ROTATIONS[k]
+    for k, crop in enumerate(perspective_crops(gray, CROPS, CROP_FOCAL)):
+        rot, (w, h) = CROP_ROTATIONS[k], sizes[k]
+        sift = cv2.SIFT_create(nfeatures=round(w * h / CROP_PIXELS_PER_KEYPOINT), contrastThreshold=0.02)
         kps, desc = sift.detectAndCompute(crop, None)
         if desc is None or not len(kps):
             continue
         pts = np.array([kp.pt for kp in kps])
-        fx = 0.5 * CROP_SIZE / np.tan(np.radians(CROP_FOV_DEG) / 2)
-        c = (CROP_SIZE - 1) / 2.0
-        d = np.stack([(pts[:, 0] - c) / fx, (pts[:, 1] - c) / fx, np.ones(len(pts))], -1)
+        d = np.stack([(pts[:, 0] - (w - 1) / 2) / CROP_FOCAL, (pts[:, 1] - (h - 1) / 2) / CROP_FOCAL, np.ones(len(pts))], -1)
         d = (d / np.linalg.norm(d, axis=-1, keepdims=True)) @ rot.T
         own = np.argmax(d @ axes.T, axis=1) == k
         own &= lat_lon_from_direction(d)[0] > np.radians(TRIPOD_LAT_DEG)

@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction, pinhole_directions
+from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction, pinhole_rays
 from rasterizer.gravity import down_from_pitch_roll, level_rotation
 from service.gravity import crop_rotations, panorama_gravity, perspective_crops, xmp_pitch_roll
 
@@ -83,12 +83,11 @@ def test_reading_used_when_the_image_has_too_few_lines_but_they_agree():
 def test_crops_shifted_per_yaw_equal_the_crops_of_their_own_rotation():
     """The lookup maps computed once per pitch and shifted per yaw give the pixels a per-crop evaluation gives."""
     erp = _room_erp(down_from_pitch_roll(3.0, -2.0), height=256)
-    crops = ((0.0, (0.0, 45.0, 180.0, 337.5)), (-50.0, (67.5, 247.5)))
-    size, fov = 96, 100.0
-    local = pinhole_directions(size, size, fov)
+    crops = ((0.0, (0.0, 45.0, 180.0, 337.5), (96, 64)), (-50.0, (67.5, 247.5), (80, 96)))
+    focal = 40.0
     h, w = erp.shape
-    for rot, crop in zip(crop_rotations(crops), perspective_crops(erp, crops, size, fov), strict=True):
-        lat, lon = lat_lon_from_direction(local @ rot.T)
+    for rot, crop in zip(crop_rotations(crops), perspective_crops(erp, crops, focal), strict=True):
+        lat, lon = lat_lon_from_direction(pinhole_rays(crop.shape[1], crop.shape[0], focal) @ rot.T)
         mx = ((lon + np.pi) / (2 * np.pi) * w - 0.5).astype(np.float32)
         my = ((np.pi / 2 - lat) / np.pi * h - 0.5).astype(np.float32)
         direct = cv2.remap(erp, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)

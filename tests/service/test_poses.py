@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rasterizer.geometry import direction_from_lat_lon, erp_lat_lon
+from rasterizer.geometry import direction_from_lat_lon, erp_lat_lon, lat_lon_from_direction
 from rasterizer.relative_pose import yaw_rotation
 from rasterizer.scene_folder import load_scene
 from service.poses import PoseEstimationFailed, PoseOptions, estimate_poses, poses_for_scene
@@ -275,3 +275,26 @@ def test_sparse_mutual_matches_equal_the_masked_dense_ones(na, nb, density, leve
     got = poses._mutual_among(desc_a, desc_b, 0.9, lambda sl: np.nonzero(mask[sl]))
     want = _masked_dense_matches(desc_a, desc_b, 0.9, mask)
     assert np.array_equal(got.reshape(-1, 2), want)
+
+
+def test_sift_crops_cover_their_share_of_the_sphere_with_the_margin():
+    """A crop keeps the keypoints nearer its axis than any other's (above the tripod latitude): every such
+    direction lies inside its crop, CROP_MARGIN_DEG from the edge, and each ring's size reaches no farther
+    than its farthest share needs."""
+    from service import poses
+
+    n = 200_000
+    i = np.arange(n) + 0.5
+    z = 1 - 2 * i / n
+    phi = np.pi * (1 + 5**0.5) * i
+    d = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], -1)
+    d = d[lat_lon_from_direction(d)[0] > np.radians(poses.TRIPOD_LAT_DEG)]
+    own = np.argmax(d @ poses.CROP_ROTATIONS[:, :, 2].T, axis=1)
+    sizes = [size for _, yaws, size in poses.CROPS for _ in yaws]
+    for k, (w, h) in enumerate(sizes):
+        local = d[own == k] @ poses.CROP_ROTATIONS[k]
+        assert local.size and np.all(local[:, 2] > 0)
+        for axis, side in ((0, w), (1, h)):
+            need = np.degrees(np.arctan(np.abs(local[:, axis] / local[:, 2]).max()))
+            half = np.degrees(np.arctan((side / 2) / poses.CROP_FOCAL))
+            assert poses.CROP_MARGIN_DEG - 0.2 < half - need < poses.CROP_MARGIN_DEG + 0.5, (k, axis, half, need)
