@@ -44,12 +44,17 @@ def _log(msg: str) -> None:
 def camera_height(scene: SceneFolder, frame: Frame) -> float:
     """Metres of ``frame``'s camera above the floor: from its depth map when it has one (the floor
     rule of :func:`rasterizer.relative_pose.floor_scale` on every 4th pixel), else its world z
-    (z-up scenes with the floor at z = 0, as zind)."""
+    (z-up scenes with the floor at z = 0, as zind). Exits with a message where neither gives a
+    height (a structure-from-motion frame without depth: pass ``--camera-height``)."""
     depth = frame.depth()
     if depth is not None:
         pts = (grid_directions("erp", *depth.shape) * depth[..., None])[::4, ::4].reshape(-1, 3)
         return 1.0 / floor_scale(pts[depth[::4, ::4].reshape(-1) > 0], 1.0)[0]
-    return float(frame.c2w[2, 3])
+    h = float(frame.c2w[2, 3])
+    if not h > 0:
+        raise SystemExit(f"{scene.name}: frame {frame.name} has no depth map and its world z is {h:g}, "
+                         "so the scene gives no camera height; pass --camera-height")
+    return h
 
 
 def pose_errors(rel_true: np.ndarray, rel_est: np.ndarray) -> dict:

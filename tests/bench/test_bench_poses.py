@@ -1,6 +1,9 @@
 """bench/poses.py helpers: pose errors, the similarity into the estimate's frame, camera height."""
 
+from types import SimpleNamespace
+
 import numpy as np
+import pytest
 
 from bench.poses import camera_height, into_estimate, pose_errors
 from rasterizer.relative_pose import yaw_rotation
@@ -30,6 +33,14 @@ def test_camera_height_from_depth_and_from_z(m3d_dir, zind_dir):
     assert 0.8 < camera_height(m3d, m3d.frames["00"]) < 2.0
     zind = load_scene(zind_dir)
     assert abs(camera_height(zind, zind.frames["pano_2"]) - 1.435) < 1e-3
+
+
+def test_camera_height_without_depth_or_height_asks_for_the_option():
+    """A structure-from-motion frame (no depth map, world origin at a camera) gives no height: the bench
+    says so instead of building a scene at zero baseline."""
+    frame = SimpleNamespace(name="1", depth=lambda: None, c2w=np.eye(4))
+    with pytest.raises(SystemExit, match="--camera-height"):
+        camera_height(SimpleNamespace(name="handheld"), frame)
 
 
 def test_pairs_markdown_counts_a_422_as_a_miss():
