@@ -7,7 +7,7 @@
 Everything stateful (store, work gates, job registry, model) is created in the lifespan;
 running refinement jobs are cancelled at shutdown. The onnxruntime session is created in a
 worker thread, so ``/healthz`` answers at once, and kept on ``app.state.runtime``; ``/readyz`` turns true after it has
-loaded and run one warm-up inference. Nothing heavy happens at import time.
+loaded and warmed up (one synthetic scene built and rendered). Nothing heavy happens at import time.
 """
 
 from __future__ import annotations

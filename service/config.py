@@ -61,7 +61,7 @@ class Settings(BaseSettings):
     )
     models_dir: Path = DEFAULT_HOME / "models"
     ort_threads: int = Field(2, ge=1, le=256, description="onnxruntime intra-op threads")
-    warmup: bool = Field(True, description="run one inference before /readyz turns true")
+    warmup: bool = Field(True, description="build and render one synthetic scene before /readyz turns true")
 
     # -- scene store ----------------------------------------------------------
     store_dir: Path = DEFAULT_HOME / "scenes"

@@ -188,14 +188,6 @@ class OnnxEncoder:
                 out[key] = json.loads(out[key])
         return out
 
-    def warmup(self) -> float:
-        """Run one reconstruction on synthetic input; returns its seconds."""
-        rng = np.random.default_rng(0)
-        img = rng.random((self.height, self.width, 3), dtype=np.float32)
-        c2w_b = np.eye(4)
-        c2w_b[2, 3] = 1.0
-        return self.reconstruct(img, img, np.eye(4), c2w_b).timings["total"]
-
     def reconstruct(self, erp_a, erp_b, c2w_a, c2w_b, *, near: float | None = None,
                     far: float | None = None, **options) -> Reconstruction:
         """Gaussians of two posed ERP panoramas (see the module docstring).

@@ -27,6 +27,8 @@ ImageFormat = Literal["png", "jpeg"]
 #: plain = front-to-back composite over black (what 3DGS viewers show); va = colour / alpha (the paper's V/A)
 Compositing = Literal["plain", "va"]
 COMPOSITINGS = ("plain", "va")
+#: Width in pixels of a render (and of a selection mask) when the request names none.
+DEFAULT_RENDER_WIDTH = 1024
 
 
 def _reject_constant(name: str) -> Any:

@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from .. import edits as work
 from ..deps import RenderGateDep, SceneId, SettingsDep, StoreDep
 from ..errors import BadInput, NotFound
-from ..inputs import Projection, check_render_query
+from ..inputs import DEFAULT_RENDER_WIDTH, Projection, check_render_query
 from ..scenes import storing
 from ..schemas import SceneCreated, error_responses
 from ..store import SCENE_ID_PATTERN
@@ -123,7 +123,8 @@ async def create_selection(scene_id: SceneId, store: StoreDep, gate: RenderGateD
 async def selection_mask(scene_id: SceneId, sel_id: Annotated[str, Path(pattern=SCENE_ID_PATTERN)],
                          store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
                          view: Literal["a", "b"] | None = None, c2w: str | None = None,
-                         width: Annotated[int, Query()] = 1024, projection: Annotated[Projection, Query()] = "erp",
+                         width: Annotated[int, Query()] = DEFAULT_RENDER_WIDTH,
+                         projection: Annotated[Projection, Query()] = "erp",
                          height: int | None = None, fov_deg: float = 90.0) -> Response:
     query = _view_or_query(store, settings, view, c2w, width, projection, height, fov_deg)
     _require(store, scene_id)
@@ -135,7 +136,8 @@ async def selection_mask(scene_id: SceneId, sel_id: Annotated[str, Path(pattern=
             responses={200: {"content": {"image/png": {}}}, **error_responses(404, 409, 422, 507)})
 async def segments(scene_id: SceneId, store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
                    view: Literal["a", "b"] | None = None, c2w: str | None = None,
-                   width: Annotated[int, Query()] = 1024, projection: Annotated[Projection, Query()] = "erp",
+                   width: Annotated[int, Query()] = DEFAULT_RENDER_WIDTH,
+                   projection: Annotated[Projection, Query()] = "erp",
                    height: int | None = None, fov_deg: float = 90.0) -> Response:
     query = _view_or_query(store, settings, view, c2w, width, projection, height, fov_deg)
     _require(store, scene_id)

@@ -23,7 +23,16 @@ from ..deps import (
 )
 from ..errors import NotFound
 from ..images import MEDIA_TYPES
-from ..inputs import Compositing, ImageFormat, Projection, check_render_query, check_sweep_range, parse_options, parse_poses
+from ..inputs import (
+    DEFAULT_RENDER_WIDTH,
+    Compositing,
+    ImageFormat,
+    Projection,
+    check_render_query,
+    check_sweep_range,
+    parse_options,
+    parse_poses,
+)
 from ..memory import trimmed
 from ..options import options_json_schema, options_markdown
 from ..schemas import SceneCreated, SceneMeta, error_responses
@@ -114,7 +123,8 @@ async def render_scene(
     c2w: Annotated[str, Query(description="camera-to-world, 16 (4x4) or 12 (3x4) comma-separated numbers, "
                                           "row-major, OpenCV (x right, y down, z forward)",
                               examples=[_IDENTITY])],
-    width: Annotated[int, Query(description="image width in pixels (ERP: height = width/2; yin/yang: width/3)")] = 1024,
+    width: Annotated[int, Query(description="image width in pixels (ERP: height = width/2; yin/yang: width/3)")
+                     ] = DEFAULT_RENDER_WIDTH,
     projection: Annotated[Projection, Query()] = "erp",
     height: Annotated[int | None, Query(description="perspective only; default = width")] = None,
     fov_deg: Annotated[float, Query(description="perspective only: horizontal field of view")] = 90.0,
