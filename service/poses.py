@@ -112,8 +112,6 @@ class PoseOptions:
         return cls(out["camera_height"], out["baseline"], refine)
 
 
-
-
 def _crop_size(half_x_deg: float, half_y_deg: float) -> tuple[int, int]:
     """(width, height) in pixels of a crop reaching ``half_*_deg`` + :data:`CROP_MARGIN_DEG` from its axis."""
     w, h = (int(round(2 * CROP_FOCAL * np.tan(np.radians(a + CROP_MARGIN_DEG)))) for a in (half_x_deg, half_y_deg))
@@ -122,8 +120,8 @@ def _crop_size(half_x_deg: float, half_y_deg: float) -> tuple[int, int]:
 
 #: SIFT crops as (pitch, yaws, (width, height)) in degrees and pixels: 8 on the horizon, 4 at +50 and 4 at -50
 #: deg pitch. A crop keeps only the keypoints nearer its axis than any other's (above :data:`TRIPOD_LAT_DEG`),
-#: so each ring's size reaches the farthest such direction along its x and y (degrees from the axis, as the
-#: tests measure) and the margin beyond: a third of the pixels of 100-deg square crops, for the same keypoints.
+#: so each ring's size reaches the farthest such direction along the crop's x and y (the degrees below; a test
+#: measures them) and the margin beyond: a third of the pixels of 100-deg square crops, for as many keypoints.
 CROPS = ((0.0, tuple(45.0 * k for k in range(8)), _crop_size(22.5, 33.4)),
          (50.0, tuple(22.5 + 90.0 * k for k in range(4)), _crop_size(37.3, 29.6)),
          (-50.0, tuple(67.5 + 90.0 * k for k in range(4)), _crop_size(37.3, 39.8)))
