@@ -11,14 +11,14 @@ from fastapi import APIRouter, Body, Path, Query, Response
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from .. import edits as work
-from ..deps import RenderGateDep, SceneId, SettingsDep, StoreDep
+from ..deps import RenderGateDep, SceneId, SettingsDep, SingleQueryValues, StoreDep
 from ..errors import BadInput, NotFound
 from ..inputs import Projection, check_render_query
 from ..scenes import storing
 from ..schemas import SceneCreated, error_responses
 from ..store import SCENE_ID_PATTERN
 
-router = APIRouter(prefix="/v1/scenes", tags=["edit"])
+router = APIRouter(prefix="/v1/scenes", tags=["edit"], dependencies=[SingleQueryValues])
 
 Point = tuple[float, float]
 
@@ -107,7 +107,7 @@ def _require(store, scene_id: str) -> None:
 
 @router.post("/{scene_id}/selections", status_code=201, response_model=SelectionCreated,
              summary="Select an object from points (or a segment) in both references",
-             responses=error_responses(404, 409, 422, 507))
+             responses=error_responses(400, 404, 409, 422, 507))
 async def create_selection(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, response: Response,
                            body: Annotated[SelectionRequest, Body()]) -> SelectionCreated:
     _check_points(body.points or [], "points")
@@ -119,7 +119,7 @@ async def create_selection(scene_id: SceneId, store: StoreDep, gate: RenderGateD
 
 
 @router.get("/{scene_id}/selections/{sel_id}/mask", response_class=Response, summary="Selection mask (PNG)",
-            responses={200: {"content": {"image/png": {}}}, **error_responses(404, 409, 422, 507)})
+            responses={200: {"content": {"image/png": {}}}, **error_responses(400, 404, 409, 422, 507)})
 async def selection_mask(scene_id: SceneId, sel_id: Annotated[str, Path(pattern=SCENE_ID_PATTERN)],
                          store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
                          view: Literal["a", "b"] | None = None, c2w: str | None = None,
@@ -132,7 +132,7 @@ async def selection_mask(scene_id: SceneId, sel_id: Annotated[str, Path(pattern=
 
 
 @router.get("/{scene_id}/segments", response_class=Response, summary="Automatic segments (PNG)",
-            responses={200: {"content": {"image/png": {}}}, **error_responses(404, 409, 422, 507)})
+            responses={200: {"content": {"image/png": {}}}, **error_responses(400, 404, 409, 422, 507)})
 async def segments(scene_id: SceneId, store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
                    view: Literal["a", "b"] | None = None, c2w: str | None = None,
                    width: Annotated[int, Query()] = 1024, projection: Annotated[Projection, Query()] = "erp",
@@ -145,7 +145,7 @@ async def segments(scene_id: SceneId, store: StoreDep, settings: SettingsDep, ga
 
 @router.post("/{scene_id}/edits", status_code=201, response_model=SceneCreated,
              summary="Edit the selected Gaussians; the result is a new scene (idempotent id)",
-             responses=error_responses(404, 409, 422, 507))
+             responses=error_responses(400, 404, 409, 422, 507))
 async def create_edit(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, response: Response,
                       body: Annotated[EditRequest, Body()]) -> SceneCreated:
     _require(store, scene_id)

@@ -7,7 +7,7 @@ import json
 from typing import Annotated
 
 import anyio.to_thread
-from fastapi import APIRouter, File, Form, Query, Response, UploadFile
+from fastapi import APIRouter, File, Form, Query, Request, Response, UploadFile
 from fastapi.responses import StreamingResponse
 
 from .. import scenes as work
@@ -19,16 +19,17 @@ from ..deps import (
     RenderGateDep,
     SceneId,
     SettingsDep,
+    SingleQueryValues,
     StoreDep,
 )
-from ..errors import NotFound
+from ..errors import BadInput, NotFound
 from ..images import MEDIA_TYPES
 from ..inputs import Compositing, ImageFormat, Projection, check_render_query, check_sweep_range, parse_options, parse_poses
 from ..memory import trimmed
 from ..options import options_json_schema, options_markdown
 from ..schemas import SceneCreated, SceneMeta, error_responses
 
-router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
+router = APIRouter(prefix="/v1/scenes", tags=["scenes"], dependencies=[SingleQueryValues])
 
 _IDENTITY = "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1"
 _POSES_EXAMPLE = json.dumps({"convention": "opencv", "c2w": [
@@ -49,6 +50,10 @@ _RIG_DOC = ("`true`: composite the capture rig (a tripod) that both references s
             "show one (otherwise 422). Default `false`: the scene alone, what 3DGS viewers show.")
 
 
+#: the form fields of POST /v1/scenes; any other is refused (a misspelt "options" would be dropped silently)
+FORM_FIELDS = ("image_a", "image_b", "poses", "options")
+
+
 def _require_scene(store, scene_id: str) -> None:
     if not store.exists(scene_id):
         raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
@@ -59,6 +64,7 @@ def _require_scene(store, scene_id: str) -> None:
     responses=error_responses(400, 408, 413, 422, 503, 507),
 )
 async def create_scene(
+    request: Request,
     response: Response,
     image_a: Annotated[UploadFile, File(description="first ERP panorama (PNG/JPEG/WebP/TIFF/BMP, width = 2 x height)")],
     image_b: Annotated[UploadFile, File(description="second ERP panorama (any 2:1 size)")],
@@ -73,6 +79,10 @@ async def create_scene(
                                                   "estimate them from the images (world = camera A, levelled)",
                                       examples=[_POSES_EXAMPLE])] = None,
 ) -> SceneCreated:
+    unknown = sorted(set((await request.form()).keys()) - set(FORM_FIELDS))  # the form FastAPI parsed, cached
+    if unknown:
+        raise BadInput(f"unknown form field(s) {[name[:40] for name in unknown[:5]]}; this request takes "
+                       f"{', '.join(FORM_FIELDS)}", code="unknown_form_field")
     parsed_poses = parse_poses(poses)
     parsed_options, pipeline_options, pose_options = parse_options(options)
     if parsed_poses is not None:  # estimated poses are checked once estimated
@@ -102,7 +112,7 @@ _IMAGE_CONTENT = {t: {"schema": {"type": "string", "format": "binary"}} for t in
 @router.get(
     "/{scene_id}/render", response_class=Response, summary="Render a novel view",
     responses={200: {"content": _IMAGE_CONTENT, "description": "the rendered image"},
-               **error_responses(404, 413, 422, 503)},
+               **error_responses(400, 404, 413, 422, 503)},
 )
 async def render_scene(
     scene_id: SceneId,
@@ -142,7 +152,7 @@ async def render_scene(
     "/{scene_id}/gaussians.ply", response_class=StreamingResponse, summary="The Gaussians as a 3DGS PLY",
     responses={200: {"content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
                      "description": "binary little-endian INRIA 3DGS PLY in the input world frame"},
-               **error_responses(404, 422, 503)},
+               **error_responses(400, 404, 422, 503)},
 )
 async def scene_ply(scene_id: SceneId, store: StoreDep, gate: RenderGateDep) -> StreamingResponse:
     _require_scene(store, scene_id)
@@ -159,7 +169,7 @@ async def scene_ply(scene_id: SceneId, store: StoreDep, gate: RenderGateDep) -> 
 
 
 @router.get("/{scene_id}", response_model=SceneMeta, summary="Scene metadata",
-            responses=error_responses(404, 422))
+            responses=error_responses(400, 404, 422))
 async def scene_meta(scene_id: SceneId, store: StoreDep) -> SceneMeta:
     _require_scene(store, scene_id)
     meta = await anyio.to_thread.run_sync(store.meta, scene_id)
@@ -167,7 +177,7 @@ async def scene_meta(scene_id: SceneId, store: StoreDep) -> SceneMeta:
 
 
 @router.delete("/{scene_id}", status_code=204, response_class=Response, summary="Delete a scene",
-               responses=error_responses(404, 422, 507))
+               responses=error_responses(400, 404, 422, 507))
 async def delete_scene(scene_id: SceneId, store: StoreDep) -> Response:
     if not await anyio.to_thread.run_sync(store.delete, scene_id):
         raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
