@@ -3,9 +3,14 @@ silently in another way than meant (extra or repeated fields, image files a view
 
 from __future__ import annotations
 
+import io
+
 import numpy as np
 import pytest
+from PIL import Image, ImageOps
 
+from service.errors import BadInput
+from service.images import check_header, decode_rgb
 from tests.service._support import IDENTITY, POSES, LiveServer, make_settings, new_scene, panorama, stored_scene_count
 
 MOVED = ",".join(str(v) for v in np.array([[1, 0, 0, 0.2], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]).ravel())
@@ -54,3 +59,67 @@ def test_a_query_parameter_given_twice_is_400_naming_it(client, scene, path, par
     err = r.json()["error"]
     assert err["code"] == "duplicate_query_parameter" and repr(again[0]) in err["message"]
 
+
+# -- uploads a viewer shows otherwise than they are stored ---------------------------------------
+
+LIMITS = {"max_pixels": 4096 * 2048, "min_height": 32}
+#: what Pillow's exif_transpose does for each EXIF orientation, and its inverse (to make the stored file)
+_TURN = {2: Image.Transpose.FLIP_LEFT_RIGHT, 3: Image.Transpose.ROTATE_180, 4: Image.Transpose.FLIP_TOP_BOTTOM,
+         5: Image.Transpose.TRANSPOSE, 6: Image.Transpose.ROTATE_270, 7: Image.Transpose.TRANSVERSE,
+         8: Image.Transpose.ROTATE_90}
+_UNDO = {**_TURN, 6: Image.Transpose.ROTATE_90, 8: Image.Transpose.ROTATE_270}
+
+
+def _with_orientation(shown: Image.Image, orientation: int, fmt: str = "PNG") -> bytes:
+    """The file a camera writes for ``shown``: the pixels turned back, and the tag that turns them."""
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    buf = io.BytesIO()
+    shown.transpose(_UNDO[orientation]).save(buf, format=fmt, exif=exif.tobytes())
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("orientation", range(2, 9))
+def test_exif_orientation_is_applied_as_every_viewer_does(orientation):
+    shown = Image.open(io.BytesIO(panorama(height=64, seed=64)))
+    data = _with_orientation(shown, orientation)
+    assert np.array_equal(np.asarray(ImageOps.exif_transpose(Image.open(io.BytesIO(data)))), np.asarray(shown))
+    rgb, header = decode_rgb(data, "image_a", **LIMITS)
+    assert np.array_equal(rgb, np.asarray(shown))  # before: the stored pixels, upside down or a 1:2 refusal
+    assert (header.width, header.height, header.describe()["exif_orientation"]) == (128, 64, orientation)
+
+
+def test_exif_orientation_that_shows_a_non_panorama_is_422_saying_so():
+    portrait = Image.open(io.BytesIO(panorama(height=64, seed=65))).transpose(Image.Transpose.ROTATE_90)  # 64x128
+    data = _with_orientation(portrait, 6)  # stored 128x64 (2:1), shown 64x128
+    with pytest.raises(BadInput) as info:
+        check_header(data, "image_b", **LIMITS)
+    assert info.value.code == "bad_aspect_ratio" and "64x128" in info.value.message and "orientation 6" in info.value.message
+
+
+def _frames(fmt: str) -> bytes:
+    frames = [Image.open(io.BytesIO(panorama(height=64, seed=s))).convert("RGB") for s in (66, 67)]
+    buf = io.BytesIO()
+    frames[0].save(buf, format=fmt, save_all=True, append_images=frames[1:])
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("fmt", ["PNG", "WEBP", "TIFF"])
+def test_animated_or_multi_page_images_are_422(fmt):
+    """Only the first frame would have been used, without a word."""
+    with pytest.raises(BadInput) as info:
+        check_header(_frames(fmt), "image_a", **LIMITS)
+    assert info.value.code == "animated_image" and "image_a" in info.value.message
+
+
+def test_turned_jpeg_upload_makes_the_scene_of_the_shown_panorama(client, live):
+    shown = Image.open(io.BytesIO(panorama(seed=68)))
+    turned = _with_orientation(shown, 6, "JPEG")  # stored 128 x 256: refused as 1:2 before
+    r = client.post("/v1/scenes", files={"image_a": ("a.jpg", turned), "image_b": ("b.png", panorama(seed=68, shift=4))},
+                    data={"poses": POSES})
+    assert r.status_code == 201, r.text
+    meta = client.get(f"/v1/scenes/{r.json()['id']}").json()
+    assert meta["inputs"]["image_a"]["width"] == 256 and meta["inputs"]["image_a"]["exif_orientation"] == 6
+    r = client.post("/v1/scenes", files={"image_a": ("a.webp", _frames("WEBP")), "image_b": ("b.png", panorama(seed=69))},
+                    data={"poses": POSES})
+    assert r.status_code == 422 and r.json()["error"]["code"] == "animated_image"
