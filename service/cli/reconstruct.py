@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError, say
+from .common import CliError, read_panorama, say
 
 
 def load_pair(args: argparse.Namespace):
@@ -16,7 +16,7 @@ def load_pair(args: argparse.Namespace):
     Two images without ``--poses`` give ``c2w_a = c2w_b = None``: the poses are estimated.
     """
     from rasterizer.geometry import PoseError
-    from rasterizer.scene_folder import load_image, load_scene
+    from rasterizer.scene_folder import load_scene
 
     from ..inputs import parse_poses
 
@@ -47,10 +47,7 @@ def load_pair(args: argparse.Namespace):
             raise CliError(f"{args.poses}: {exc.message}") from None
         except OSError as exc:
             raise CliError(f"cannot read {args.poses}: {exc}") from None
-        try:
-            a, b = load_image(inputs[0]), load_image(inputs[1])
-        except OSError as exc:
-            raise CliError(f"cannot read image: {exc}") from None
+        a, b = read_panorama(inputs[0]), read_panorama(inputs[1])  # as the API reads uploads
         if poses is None:
             return a, b, None, None, {"images": [str(p) for p in inputs]}
         return a, b, poses.c2w_a, poses.c2w_b, {"images": [str(p) for p in inputs]}

@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError, say
+from .common import CliError, read_panorama, say
 
 
 def _pose_from_args(args: argparse.Namespace):
@@ -39,12 +39,10 @@ def _rig_layer_from_args(args: argparse.Namespace):
     if not args.rig:
         return None
     from rasterizer.rig import NoRigError, require_rig_layer
-    from rasterizer.scene_folder import load_image
-
     try:
-        images = [load_image(Path(p)) for p in args.rig]
-    except OSError as exc:
-        raise CliError(f"--rig: cannot read image: {exc}") from None
+        images = [read_panorama(p) for p in args.rig]
+    except CliError as exc:
+        raise CliError(f"--rig: {exc}") from None
     if images[0].shape != images[1].shape or images[0].shape[1] != 2 * images[0].shape[0]:
         raise CliError(f"--rig: need two 2:1 panoramas of one size, got {images[0].shape[1]}x{images[0].shape[0]} "
                        f"and {images[1].shape[1]}x{images[1].shape[0]}")

@@ -113,6 +113,35 @@ def test_reconstruct_argument_errors(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
+def test_reconstruct_reads_images_as_the_api_does(tmp_path, capsys):
+    """A 16-bit greyscale PNG is scaled by its range (Pillow's RGB conversion made it white) and a PNG
+    holding fewer rows than its header says is refused (Pillow left the missing rows black)."""
+    import argparse
+    import io
+
+    from PIL import Image
+
+    from service.cli.reconstruct import load_pair
+    from service.images import decode_rgb
+    from tests.service._support import POSES, panorama
+
+    grey = np.asarray(Image.open(io.BytesIO(panorama(seed=5))).convert("L")).astype(np.uint16) * 257
+    Image.fromarray(grey).save(tmp_path / "a.png")
+    (tmp_path / "b.png").write_bytes(panorama(seed=6))
+    (tmp_path / "poses.json").write_text(POSES)
+    args = argparse.Namespace(inputs=[str(tmp_path / "a.png"), str(tmp_path / "b.png")], poses=str(tmp_path / "poses.json"))
+    a, _, _, _, _ = load_pair(args)
+    api, _ = decode_rgb((tmp_path / "a.png").read_bytes(), "image_a", max_pixels=1 << 25, min_height=32)
+    assert a.dtype == np.float32 and np.array_equal(np.round(a * 255).astype(np.uint8), api)
+    assert abs(float(a.mean()) - grey.mean() / 65535) < 0.01  # not white
+    whole = (tmp_path / "b.png").read_bytes()
+    (tmp_path / "b.png").write_bytes(whole[: len(whole) // 3] + whole[-12:])  # IEND kept: Pillow reads no error
+    assert cli.main(["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--poses",
+                     str(tmp_path / "poses.json"), "--no-build", "--model", str(tmp_path / "none.onnx")]) == 2
+    err = capsys.readouterr().err
+    assert "b.png" in err and "truncated" in err
+
+
 def test_reconstruct_compaction_flags_map_to_options():
     parser = cli.build_parser()
 
