@@ -112,6 +112,16 @@ def parse_poses(text: str | bytes | None) -> Poses | None:
     return Poses(convention, out[0], out[1])
 
 
+def check_scale_options(poses_given: bool, pose_options: PoseOptions) -> None:
+    """422 when ``camera_height`` or ``baseline`` come with given poses: they scale estimated poses only,
+    and given poses carry their own scale, so the option would be ignored without a word."""
+    given = [k for k in ("camera_height", "baseline") if getattr(pose_options, k) is not None]
+    if poses_given and given:
+        raise BadInput(f"options.{given[0]}: sets the scale of estimated poses only; these poses are given and "
+                       "carry their own scale (leave the option out, or scale the c2w translations)",
+                       code="invalid_options")
+
+
 def check_sweep_range(c2w_a: np.ndarray, c2w_b: np.ndarray, options: dict) -> None:
     """422 when ``options`` near/far do not fit the cameras (see :func:`rasterizer.sweep.check_scene_scale`)."""
     try:

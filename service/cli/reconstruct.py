@@ -88,14 +88,16 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     erp_a, erp_b, c2w_a, c2w_b, source = load_pair(args)  # bad inputs fail before any model build
     options = pipeline_options(args)
     from ..errors import ServiceError
-    from ..inputs import Poses
+    from ..inputs import Poses, check_scale_options
     from ..poses import PoseOptions, poses_for_scene
 
     try:
         pose_options = PoseOptions.pop_from({"camera_height": args.camera_height, "baseline": args.baseline,
                                              "refine_poses": args.refine_poses})
+        check_scale_options(c2w_a is not None, pose_options)
     except ServiceError as exc:
-        raise CliError(exc.message) from None
+        raise CliError(exc.message.replace("options.camera_height", "--camera-height")
+                       .replace("options.baseline", "--baseline")) from None
     for name, img in (("image A", erp_a), ("image B", erp_b)):
         if img.shape[1] != 2 * img.shape[0]:
             raise CliError(f"{name} is {img.shape[1]}x{img.shape[0]}; an ERP panorama must be exactly 2:1")

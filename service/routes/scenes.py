@@ -24,7 +24,16 @@ from ..deps import (
 )
 from ..errors import BadInput, NotFound
 from ..images import MEDIA_TYPES
-from ..inputs import Compositing, ImageFormat, Projection, check_render_query, check_sweep_range, parse_options, parse_poses
+from ..inputs import (
+    Compositing,
+    ImageFormat,
+    Projection,
+    check_render_query,
+    check_scale_options,
+    check_sweep_range,
+    parse_options,
+    parse_poses,
+)
 from ..memory import trimmed
 from ..options import options_json_schema, options_markdown
 from ..schemas import SceneCreated, SceneMeta, error_responses
@@ -85,6 +94,7 @@ async def create_scene(
                        f"{', '.join(FORM_FIELDS)}", code="unknown_form_field")
     parsed_poses = parse_poses(poses)
     parsed_options, pipeline_options, pose_options = parse_options(options)
+    check_scale_options(parsed_poses is not None, pose_options)
     if parsed_poses is not None:  # estimated poses are checked once estimated
         check_sweep_range(parsed_poses.c2w_a, parsed_poses.c2w_b, parsed_options)
     data_a, data_b = await image_a.read(), await image_b.read()

@@ -142,6 +142,20 @@ def test_reconstruct_reads_images_as_the_api_does(tmp_path, capsys):
     assert "b.png" in err and "truncated" in err
 
 
+def test_reconstruct_scale_flags_with_given_poses_are_refused(tmp_path, capsys):
+    """--baseline / --camera-height scale estimated poses only; with --poses they were ignored without a word."""
+    from tests.service._support import POSES, panorama
+
+    for name, seed in (("a.png", 7), ("b.png", 8)):
+        (tmp_path / name).write_bytes(panorama(seed=seed))
+    (tmp_path / "poses.json").write_text(POSES)
+    for flag in ("--baseline", "--camera-height"):
+        assert cli.main(["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--poses",
+                         str(tmp_path / "poses.json"), flag, "2", "--no-build", "--model", str(tmp_path / "none.onnx")]) == 2
+        err = capsys.readouterr().err
+        assert flag in err and "given" in err
+
+
 def test_reconstruct_compaction_flags_map_to_options():
     parser = cli.build_parser()
 

@@ -60,6 +60,19 @@ def test_a_query_parameter_given_twice_is_400_naming_it(client, scene, path, par
     assert err["code"] == "duplicate_query_parameter" and repr(again[0]) in err["message"]
 
 
+
+@pytest.mark.parametrize("options", ['{"baseline": 3.0}', '{"camera_height": 1.6}', '{"baseline": 3.0, "refine_poses": true}'])
+def test_scale_options_with_given_poses_are_422_not_ignored(client, live, options):
+    """They scale estimated poses only: with given poses the scene kept the poses' scale without a word."""
+    before = stored_scene_count(live.settings.store_dir)
+    r = client.post("/v1/scenes", files={"image_a": ("a.png", panorama(seed=70)), "image_b": ("b.png", panorama(seed=71))},
+                    data={"poses": POSES, "options": options})
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["code"] == "invalid_options" and "given" in err["message"]
+    assert err["message"].startswith("options.baseline" if "baseline" in options else "options.camera_height")
+    assert stored_scene_count(live.settings.store_dir) == before
+
 # -- uploads a viewer shows otherwise than they are stored ---------------------------------------
 
 LIMITS = {"max_pixels": 4096 * 2048, "min_height": 32}
