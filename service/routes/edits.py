@@ -8,7 +8,7 @@ import math
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Body, Path, Query, Response
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
 
 from .. import edits as work
 from ..deps import RenderGateDep, SceneId, SettingsDep, SingleQueryValues, StoreDep
@@ -20,7 +20,8 @@ from ..store import SCENE_ID_PATTERN
 
 router = APIRouter(prefix="/v1/scenes", tags=["edit"], dependencies=[SingleQueryValues])
 
-Point = tuple[float, float]
+#: strict numbers: JSON true or "0.5" is refused, not read as 1 or 0.5
+Point = tuple[StrictFloat, StrictFloat]
 
 
 def _check_points(points: list[Point], name: str) -> None:
@@ -38,7 +39,7 @@ class SelectionRequest(BaseModel):
     view: Literal["a", "b"] | None = Field(None, description="reference the points are on")
     points: list[Point] | None = Field(None, max_length=64, description="positive (u, v) points in [0, 1]")
     negative: list[Point] = Field(default_factory=list, max_length=64, description="negative (u, v) points")
-    segment: int | None = Field(None, ge=0, description="label of an automatic segment (GET .../segments)")
+    segment: StrictInt | None = Field(None, ge=0, description="label of an automatic segment (GET .../segments)")
 
     @model_validator(mode="after")
     def _one_kind(self):
@@ -70,8 +71,8 @@ class EditRequest(BaseModel):
 
     selection: str = Field(pattern=SCENE_ID_PATTERN, description="id from POST .../selections")
     op: Literal["remove", "keep", "recolor", "translate"]
-    color: tuple[float, float, float] | None = Field(None, description="recolor: RGB in [0, 1]")
-    offset: tuple[float, float, float] | None = Field(None, description="translate: world units")
+    color: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(None, description="recolor: RGB in [0, 1]")
+    offset: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(None, description="translate: world units")
 
     @model_validator(mode="after")
     def _args(self):

@@ -73,6 +73,21 @@ def test_scale_options_with_given_poses_are_422_not_ignored(client, live, option
     assert err["message"].startswith("options.baseline" if "baseline" in options else "options.camera_height")
     assert stored_scene_count(live.settings.store_dir) == before
 
+
+@pytest.mark.parametrize("path, body", [
+    ("selections", {"segment": True}), ("selections", {"segment": 1.0}), ("selections", {"segment": "1"}),
+    ("selections", {"view": "a", "points": [["0.5", 0.5]]}), ("selections", {"view": "a", "points": [[True, 0.5]]}),
+    ("selections", {"view": "a", "points": [[0.5, 0.5]], "negative": [[False, 0.5]]}),
+    ("selections", {"view": "a", "points": [[10**400, 0.5]]}),
+    ("edits", {"selection": "0" * 32, "op": "recolor", "color": [True, 0, 0]}),
+    ("edits", {"selection": "0" * 32, "op": "translate", "offset": ["1", 0, 0]}),
+])
+def test_selection_and_edit_numbers_are_strict(client, scene, path, body):
+    """JSON true, false or "0.5" were read as 1, 0 or 0.5 (segment true selected segment 1)."""
+    r = client.post(f"/v1/scenes/{scene}/{path}", json=body)
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["code"] == "invalid_request"
+
 # -- uploads a viewer shows otherwise than they are stored ---------------------------------------
 
 LIMITS = {"max_pixels": 4096 * 2048, "min_height": 32}
