@@ -173,6 +173,9 @@ def install_error_handlers(app: FastAPI) -> None:
             allow = _allowed_methods(request)
             if allow:
                 headers["Allow"] = allow
+        if exc.status_code == 400 and str(exc.detail).startswith(("Part exceeded maximum size", "Field exceeded")):
+            return error_response(413, "form_field_too_large", f"a text form field is too large ({exc.detail}): "
+                                  "poses and options are small JSON objects; images go as files")
         if exc.status_code == 400 and "parsing the body" in str(exc.detail):  # one status for a malformed body
             return error_response(422, "invalid_request", f"the request body could not be parsed ({exc.detail})")
         return error_response(exc.status_code, code, str(exc.detail), headers or None)

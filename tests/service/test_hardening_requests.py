@@ -88,6 +88,18 @@ def test_selection_and_edit_numbers_are_strict(client, scene, path, body):
     assert r.status_code == 422, r.text
     assert r.json()["error"]["code"] == "invalid_request"
 
+
+@pytest.mark.parametrize("field", ["poses", "options"])
+def test_oversize_text_field_is_413_saying_what_is_too_large(client, live, field):
+    before = stored_scene_count(live.settings.store_dir)
+    data = {"poses": POSES, field: '{"near": 0.5' + " " * (1 << 20) + "}"}
+    r = client.post("/v1/scenes", files={"image_a": ("a.png", panorama(seed=72)), "image_b": ("b.png", panorama(seed=73))},
+                    data=data)
+    assert r.status_code == 413, r.text
+    err = r.json()["error"]
+    assert err["code"] == "form_field_too_large" and "text form field" in err["message"]
+    assert stored_scene_count(live.settings.store_dir) == before
+
 # -- uploads a viewer shows otherwise than they are stored ---------------------------------------
 
 LIMITS = {"max_pixels": 4096 * 2048, "min_height": 32}
