@@ -27,11 +27,12 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from .edits import EDIT_ARTIFACT
 from .errors import StoreUnavailable
 from .job_state import ACTIVE, HEARTBEAT_S, JobFiles
 from .memory import release_memory
 from .references import REFERENCES_ARTIFACT, load_references, references_artifact
-from .store import SceneStore, StoreFull, canonical_json, content_id
+from .store import SceneNotFound, SceneStore, StoreFull, canonical_json, content_id
 
 log = logging.getLogger("omnisplat.jobs")
 
@@ -77,6 +78,14 @@ def _refine(store: SceneStore, parent_id: str, result_id: str, params: dict, rep
     gaussians = store.gaussians(parent_id)
     # read once, now: the result keeps them even when the parent is deleted while the job runs
     references = references_artifact(store, parent_id)
+    # geometry, count and order of the Gaussians stay: the parent's correspondences hold for the result
+    correspondences = store.artifact(parent_id, EDIT_ARTIFACT)
+    artifacts = {REFERENCES_ARTIFACT: references}
+    if correspondences is not None:
+        try:
+            artifacts[EDIT_ARTIFACT] = correspondences.read_bytes()
+        except FileNotFoundError:  # the parent was deleted meanwhile
+            raise SceneNotFound(parent_id) from None
     images, c2ws = load_references(store, parent_id)
     timings["load"] = time.perf_counter() - t0
     t1 = time.perf_counter()
@@ -107,7 +116,9 @@ def _refine(store: SceneStore, parent_id: str, result_id: str, params: dict, rep
     t1 = time.perf_counter()
     timings["total"] = time.perf_counter() - t0
     meta["timings"] = timings
-    stored = store.put(result_id, result.gaussians, meta, artifacts={REFERENCES_ARTIFACT: references})
+    if len(result.gaussians) != len(gaussians):  # the correspondences index the parent's Gaussians
+        artifacts.pop(EDIT_ARTIFACT, None)
+    stored = store.put(result_id, result.gaussians, meta, artifacts=artifacts)
     report(1.0)
     return stored
 

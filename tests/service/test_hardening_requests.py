@@ -4,6 +4,7 @@ silently in another way than meant (extra or repeated fields, image files a view
 from __future__ import annotations
 
 import io
+import time
 
 import numpy as np
 import pytest
@@ -99,6 +100,28 @@ def test_oversize_text_field_is_413_saying_what_is_too_large(client, live, field
     err = r.json()["error"]
     assert err["code"] == "form_field_too_large" and "text form field" in err["message"]
     assert stored_scene_count(live.settings.store_dir) == before
+
+
+def test_a_refined_scene_can_be_selected_and_edited_like_its_parent(client, scene):
+    """Refinement keeps the Gaussians' geometry, count and order: the parent's correspondences hold, and
+    the refined scene answered selections and segments with a 409 'built by a model without matches'."""
+    r = client.post(f"/v1/scenes/{scene}/refine", json={"iterations": 1, "height": 16, "cross_check": False})
+    assert r.status_code == 202, r.text
+    for _ in range(600):
+        job = client.get(r.headers["location"]).json()
+        if job["status"] in ("done", "failed"):
+            break
+        time.sleep(0.1)
+    assert job["status"] == "done", job
+    refined = job["scene_id"]
+    point = {"view": "a", "points": [[0.5, 0.6]]}
+    parent_sel = client.post(f"/v1/scenes/{scene}/selections", json=point)
+    refined_sel = client.post(f"/v1/scenes/{refined}/selections", json=point)
+    assert refined_sel.status_code == 201, refined_sel.text
+    assert refined_sel.json()["num_gaussians"] == parent_sel.json()["num_gaussians"]
+    assert client.get(f"/v1/scenes/{refined}/segments", params={"view": "b", "width": 64}).status_code == 200
+    edit = client.post(f"/v1/scenes/{refined}/edits", json={"selection": refined_sel.json()["id"], "op": "remove"})
+    assert edit.status_code == 201, edit.text
 
 # -- uploads a viewer shows otherwise than they are stored ---------------------------------------
 
