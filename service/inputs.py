@@ -214,9 +214,11 @@ class RenderQuery:
 MIN_FOV_DEG, MAX_FOV_DEG = 1.0, 170.0
 
 
-def check_render_query(c2w: str, projection: str, width: int, height: int | None, fov_deg: float, fmt: str,
+def check_render_query(c2w: str | np.ndarray, projection: str, width: int, height: int | None, fov_deg: float, fmt: str,
                        *, max_width: int, max_pixels: int, compositing: str = "plain", rig: bool = False) -> RenderQuery:
-    pose = parse_c2w_query(c2w)
+    """The render query of the API (``c2w`` as its query text) or the CLI (a checked 4x4 OpenCV c2w); 422 naming
+    the parameter that is out of range."""
+    pose = c2w if isinstance(c2w, np.ndarray) else parse_c2w_query(c2w)
     if compositing not in COMPOSITINGS:
         raise BadInput(f"compositing: expected plain or va, got {compositing!r}", code="invalid_render_query")
     if projection not in ("erp", "perspective", "yin", "yang"):

@@ -22,6 +22,10 @@ def _pose_from_args(args: argparse.Namespace):
         from rasterizer.geometry import PoseError, as_c2w
 
         obj = json.loads(Path(args.pose).read_text())
+        unknown = sorted(set(obj) - {"convention", "c2w"}) if isinstance(obj, dict) else []
+        if unknown:  # a misspelt "convention" would otherwise mean OpenCV
+            raise CliError(f"{args.pose}: unknown key(s) {unknown[:5]}; expected a 4x4 matrix or "
+                           '{"convention": "opencv"|"opengl", "c2w": M}')
         matrix = obj["c2w"] if isinstance(obj, dict) else obj
         convention = obj.get("convention", "opencv") if isinstance(obj, dict) else "opencv"
         try:
@@ -57,16 +61,27 @@ def cmd_render(args: argparse.Namespace) -> int:
     from rasterizer.ply import read_ply
     from rasterizer.render import render, to_uint8
 
+    from ..config import Settings
+    from ..errors import ServiceError
     from ..images import encode
-    from ..inputs import RenderQuery
+    from ..inputs import check_render_query
 
+    fmt = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg"}.get(Path(args.output).suffix.lower())
+    if fmt is None:
+        raise CliError(f"--output {args.output}: the name must end in .png, .jpg or .jpeg (the image format)")
+    # as the API renders (the same query and its limits): plain compositing unless --compositing va
+    settings = Settings()
+    try:
+        query = check_render_query(c2w, args.projection, args.width, args.height, args.fov_deg, fmt,
+                                   max_width=settings.max_render_width, max_pixels=settings.max_render_pixels,
+                                   compositing=args.compositing)
+    except ServiceError as exc:
+        raise CliError(exc.message.replace("width:", "--width:", 1).replace("height:", "--height:", 1)
+                       .replace("fov_deg:", "--fov-deg:", 1)) from None
     try:
         gaussians = read_ply(args.ply)
     except (OSError, ValueError) as exc:
         raise CliError(f"cannot read {args.ply}: {exc}") from None
-    fmt = "jpeg" if Path(args.output).suffix.lower() in (".jpg", ".jpeg") else "png"
-    # as the API renders (the same query's arguments): plain compositing unless --compositing va
-    query = RenderQuery(c2w, args.projection, args.width, args.height, args.fov_deg, fmt, args.compositing)
     kwargs = query.render_kwargs(normalize=args.compositing == "va")
     layer = _rig_layer_from_args(args)
     say(f"rendering {len(gaussians)} Gaussians, {args.projection} {args.width} px wide")
@@ -80,7 +95,10 @@ def cmd_render(args: argparse.Namespace) -> int:
         h, w = colour.shape[:2]
         colour = overlay_rig(colour, camera_directions(args.projection, h, w, args.fov_deg), layer)
     data = encode(to_uint8(colour), fmt)
-    Path(args.output).write_bytes(data)
+    try:
+        Path(args.output).write_bytes(data)
+    except OSError as exc:
+        raise CliError(f"cannot write {args.output}: {exc.strerror or exc}") from None
     say(f"wrote {args.output} in {time.perf_counter() - t0:.2f} s")
     return 0
 

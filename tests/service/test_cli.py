@@ -186,6 +186,34 @@ def test_render_argument_errors(tmp_path, capsys):
     assert "16" in capsys.readouterr().err
 
 
+IDENTITY_ARG = "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1"
+
+
+@pytest.mark.parametrize("extra, says", [
+    (["--width", "0"], "--width"),  # was a ValueError traceback
+    (["--width", "99999999"], "--width"),  # was a MemoryError traceback
+    (["--width", "63"], "even width"),  # was a 63 x 31 'ERP'
+    (["--projection", "perspective", "--fov-deg", "180"], "--fov-deg"),  # was a traceback
+    (["--projection", "perspective", "--width", "1", "--height", "640", "--fov-deg", "120"], "vertically"),  # black rows
+    (["--height", "32"], "only a perspective"),  # was ignored
+    (["-o", "view.gif"], ".png, .jpg or .jpeg"),  # PNG bytes were written to view.gif
+])
+def test_render_checks_its_query_as_the_api_does_before_reading_the_ply(tmp_path, capsys, extra, says):
+    argv = ["render", str(tmp_path / "missing.ply"), "--c2w", IDENTITY_ARG, "-o", str(tmp_path / "view.png")]
+    if extra[0] == "-o":
+        argv[-1] = str(tmp_path / extra[1])
+        extra = []
+    assert cli.main(argv + extra) == 2
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err
+
+
+def test_render_pose_file_with_an_unknown_key_is_refused(tmp_path, capsys):
+    (tmp_path / "pose.json").write_text('{"convension": "opengl", "c2w": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}')
+    assert cli.main(["render", "x.ply", "--pose", str(tmp_path / "pose.json")]) == 2
+    assert "convension" in capsys.readouterr().err
+
+
 def test_serve_without_model_and_no_build(tmp_path, capsys):
     assert cli.main(["serve", "--model", str(tmp_path / "missing.onnx"), "--no-build"]) == 2
     assert "does not exist" in capsys.readouterr().err
