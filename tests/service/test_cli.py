@@ -214,6 +214,19 @@ def test_render_pose_file_with_an_unknown_key_is_refused(tmp_path, capsys):
     assert "convension" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("argv, says", [
+    (["select", "../../etc", "--view", "a", "--point", "0.5,0.5"], "invalid_scene_id"),  # was a traceback
+    (["edit", "../x", "--selection", "0" * 32, "--op", "keep"], "invalid_scene_id"),
+    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "remove", "--color", "1,0,0"], "only for op recolor"),  # ignored
+    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "keep", "--offset", "1,0,0"], "only for op translate"),
+    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "translate", "--offset", "1e7,0,0"], "finite"),
+])
+def test_select_and_edit_errors_are_one_line_as_the_api_words_them(tmp_path, capsys, argv, says):
+    assert cli.main([argv[0], "--store", str(tmp_path / "store"), *argv[1:]]) == 2
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err
+
+
 def test_serve_without_model_and_no_build(tmp_path, capsys):
     assert cli.main(["serve", "--model", str(tmp_path / "missing.onnx"), "--no-build"]) == 2
     assert "does not exist" in capsys.readouterr().err
