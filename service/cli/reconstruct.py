@@ -85,6 +85,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..model_files import ModelUnavailable, ensure_model
     from ..pipeline import build_scene
 
+    for flag, name in (("-o", args.output), ("--json", args.json)):
+        if name is not None and Path(name).is_dir():
+            raise CliError(f"{flag} {name} is a folder; give a file name")
     erp_a, erp_b, c2w_a, c2w_b, source = load_pair(args)  # bad inputs fail before any model build
     options = pipeline_options(args)
     from ..errors import ServiceError
@@ -131,8 +134,11 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     total = time.perf_counter() - t0
     out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_ply(out, rec.gaussians)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_ply(out, rec.gaussians)
+    except OSError as exc:
+        raise CliError(f"cannot write {out}: {exc.strerror or exc}") from None
     from ..store import json_safe
 
     summary = json_safe({
@@ -143,7 +149,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     })
     text = json.dumps(summary, indent=2)
     if args.json:
-        Path(args.json).write_text(text + "\n")
+        try:
+            Path(args.json).write_text(text + "\n")
+        except OSError as exc:
+            raise CliError(f"cannot write {args.json}: {exc.strerror or exc}") from None
     print(text)
     say(f"wrote {len(rec.gaussians)} Gaussians to {out} in {total:.2f} s")
     return 0

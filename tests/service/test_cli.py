@@ -156,6 +156,16 @@ def test_reconstruct_scale_flags_with_given_poses_are_refused(tmp_path, capsys):
         assert flag in err and "given" in err
 
 
+@pytest.mark.parametrize("flag", ["-o", "--json"])
+def test_reconstruct_output_that_is_a_folder_is_refused_before_any_work(tmp_path, capsys, flag):
+    (tmp_path / "out").mkdir()
+    argv = ["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), flag, str(tmp_path / "out"),
+            "--no-build", "--model", str(tmp_path / "none.onnx")]
+    assert cli.main(argv) == 2  # was an IsADirectoryError traceback after the reconstruction
+    err = capsys.readouterr().err
+    assert "is a folder" in err and "Traceback" not in err
+
+
 def test_reconstruct_compaction_flags_map_to_options():
     parser = cli.build_parser()
 
