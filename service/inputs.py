@@ -45,9 +45,25 @@ def _bounded_int(text: str) -> int:
     return value
 
 
+class _DuplicateKey(ValueError):
+    pass
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object's dict; a key given twice is refused (the parser would keep the last one without a word)."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKey(f"the key {key[:40]!r} is given more than once; give each key once")
+        out[key] = value
+    return out
+
+
 def _json_object(text: str | bytes, field: str) -> Any:
     try:
-        return json.loads(text, parse_constant=_reject_constant, parse_int=_bounded_int)
+        return json.loads(text, parse_constant=_reject_constant, parse_int=_bounded_int, object_pairs_hook=_unique_keys)
+    except _DuplicateKey as exc:
+        raise BadInput(f"{field}: {exc}", code=f"invalid_{field}") from None
     except (ValueError, RecursionError) as exc:
         raise BadInput(f"{field}: not valid JSON ({exc})", code=f"invalid_{field}") from None
 

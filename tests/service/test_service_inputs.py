@@ -138,6 +138,18 @@ def test_unknown_pose_keys_are_422_naming_them(key):
     assert info.value.code == "invalid_poses" and key in info.value.message
 
 
+@pytest.mark.parametrize("parse, text, key", [
+    (parse_poses, '{"convention": "opengl", "c2w": null, "convention": "opencv"}', "convention"),
+    (parse_options, '{"near": 0.5, "far": 9, "near": 2}', "near"),
+    (parse_options, '{"compaction": {"max_count": 5, "max_count": 6}}', "max_count"),
+])
+def test_a_json_key_given_twice_is_422_naming_it(parse, text, key):
+    """json.loads keeps the last of two equal keys without a word."""
+    with pytest.raises(BadInput) as info:
+        parse(text)
+    assert info.value.code.startswith("invalid_") and f"{key!r} is given more than once" in info.value.message
+
+
 def test_metadata_poses_can_be_sent_back():
     given = parse_poses(_poses(I4, _moved(), "opengl"))
     meta = {**given.as_json(), "source": "given", "support": {"applied": False}}  # what GET /v1/scenes/{id} shows
