@@ -123,6 +123,16 @@ def test_a_refined_scene_can_be_selected_and_edited_like_its_parent(client, scen
     edit = client.post(f"/v1/scenes/{refined}/edits", json={"selection": refined_sel.json()["id"], "op": "remove"})
     assert edit.status_code == 201, edit.text
 
+
+def test_a_file_sent_as_text_or_text_as_a_file_is_422_saying_so(client):
+    """The messages quoted the form library ("Value error, Expected UploadFile, received: <class 'str'>")."""
+    r = client.post("/v1/scenes", files={"image_b": ("b.png", panorama(seed=74)), "poses": ("poses.json", POSES.encode())},
+                    data={"image_a": "a.png"})
+    assert r.status_code == 422, r.text
+    message = r.json()["error"]["message"]
+    assert "image_a: expected a file" in message and "poses: expected a text field, got a file" in message
+    assert "UploadFile" not in message and "class" not in message
+
 # -- uploads a viewer shows otherwise than they are stored ---------------------------------------
 
 LIMITS = {"max_pixels": 4096 * 2048, "min_height": 32}
