@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Body, Path, Query, Response
+from fastapi import APIRouter, Body, Path, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from .. import edits as work
@@ -38,9 +38,17 @@ class SelectionCreated(BaseModel):
     links: dict[str, str]
 
 
-def _view_or_query(store, settings, view, c2w, width, projection, height, fov_deg):
+#: render-query parameters that only a ``c2w`` view takes
+_VIEW_PARAMS = ("projection", "height", "fov_deg")
+
+
+def _view_or_query(request: Request, settings, view, c2w, width, projection, height, fov_deg):
     if (view is None) == (c2w is None):
         raise BadInput("give either view=a|b or c2w= (+ the render query)", code="invalid_render_query")
+    ignored = [name for name in _VIEW_PARAMS if name in request.query_params]
+    if view is not None and ignored:  # a reference's own ERP: they would be dropped without a word
+        raise BadInput(f"{ignored[0]}: only with c2w=; view={view} is reference {view}'s own ERP (width only)",
+                       code="invalid_render_query")
     if view is not None:
         if not (8 <= width <= settings.max_render_width and width % 2 == 0):
             raise BadInput(f"width: an even number between 8 and {settings.max_render_width}, got {width}",
@@ -70,12 +78,12 @@ async def create_selection(scene_id: SceneId, store: StoreDep, gate: RenderGateD
 
 @router.get("/{scene_id}/selections/{sel_id}/mask", response_class=Response, summary="Selection mask (PNG)",
             responses={200: {"content": {"image/png": {}}}, **error_responses(400, 404, 409, 422, 507)})
-async def selection_mask(scene_id: SceneId, sel_id: Annotated[str, Path(pattern=SCENE_ID_PATTERN)],
+async def selection_mask(request: Request, scene_id: SceneId, sel_id: Annotated[str, Path(pattern=SCENE_ID_PATTERN)],
                          store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
                          view: Literal["a", "b"] | None = None, c2w: str | None = None,
                          width: Annotated[int, Query()] = 1024, projection: Annotated[Projection, Query()] = "erp",
                          height: int | None = None, fov_deg: float = 90.0) -> Response:
-    query = _view_or_query(store, settings, view, c2w, width, projection, height, fov_deg)
+    query = _view_or_query(request, settings, view, c2w, width, projection, height, fov_deg)
     _require(store, scene_id)
     data = await gate.run(storing, work.mask_png, store, scene_id, sel_id, view, width, query)
     return Response(data, media_type="image/png")
@@ -83,11 +91,11 @@ async def selection_mask(scene_id: SceneId, sel_id: Annotated[str, Path(pattern=
 
 @router.get("/{scene_id}/segments", response_class=Response, summary="Automatic segments (PNG)",
             responses={200: {"content": {"image/png": {}}}, **error_responses(400, 404, 409, 422, 507)})
-async def segments(scene_id: SceneId, store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
+async def segments(request: Request, scene_id: SceneId, store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
                    view: Literal["a", "b"] | None = None, c2w: str | None = None,
                    width: Annotated[int, Query()] = 1024, projection: Annotated[Projection, Query()] = "erp",
                    height: int | None = None, fov_deg: float = 90.0) -> Response:
-    query = _view_or_query(store, settings, view, c2w, width, projection, height, fov_deg)
+    query = _view_or_query(request, settings, view, c2w, width, projection, height, fov_deg)
     _require(store, scene_id)
     data = await gate.run(storing, work.segments_png, store, scene_id, view, width, query)
     return Response(data, media_type="image/png")

@@ -133,6 +133,17 @@ def test_a_file_sent_as_text_or_text_as_a_file_is_422_saying_so(client):
     assert "image_a: expected a file" in message and "poses: expected a text field, got a file" in message
     assert "UploadFile" not in message and "class" not in message
 
+
+@pytest.mark.parametrize("extra", [{"projection": "perspective"}, {"fov_deg": "30"}, {"height": "32"}, {"projection": "erp"}])
+def test_segments_of_a_reference_view_refuse_render_query_parameters(client, scene, extra):
+    """view=a is reference A's own ERP: a projection, height or fov_deg beside it was dropped without a word."""
+    r = client.get(f"/v1/scenes/{scene}/segments", params={"view": "a", "width": 64, **extra})
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["code"] == "invalid_render_query" and err["message"].startswith(next(iter(extra)))
+    with_c2w = {"c2w": IDENTITY, "width": 64, "projection": "perspective", **extra}
+    assert client.get(f"/v1/scenes/{scene}/segments", params=with_c2w).status_code == 200
+
 # -- uploads a viewer shows otherwise than they are stored ---------------------------------------
 
 LIMITS = {"max_pixels": 4096 * 2048, "min_height": 32}
