@@ -71,8 +71,11 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise CliError(f"--output {args.output}: the name must end in .png, .jpg or .jpeg (the image format)")
     # as the API renders (the same query and its limits): plain compositing unless --compositing va
     settings = Settings()
+    if args.fov_deg is not None and args.projection != "perspective":
+        raise CliError(f"--fov-deg: only a perspective render takes a field of view (this one is {args.projection})")
     try:
-        query = check_render_query(c2w, args.projection, args.width, args.height, args.fov_deg, fmt,
+        query = check_render_query(c2w, args.projection, args.width, args.height,
+                                   90.0 if args.fov_deg is None else args.fov_deg, fmt,
                                    max_width=settings.max_render_width, max_pixels=settings.max_render_pixels,
                                    compositing=args.compositing)
     except ServiceError as exc:
@@ -93,7 +96,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         from rasterizer.rig import overlay_rig
 
         h, w = colour.shape[:2]
-        colour = overlay_rig(colour, camera_directions(args.projection, h, w, args.fov_deg), layer)
+        colour = overlay_rig(colour, camera_directions(args.projection, h, w, query.fov_deg), layer)
     data = encode(to_uint8(colour), fmt)
     try:
         Path(args.output).write_bytes(data)
@@ -113,7 +116,7 @@ def add_parser(sub) -> None:
     v.add_argument("--projection", default="erp", choices=["erp", "perspective", "yin", "yang"])
     v.add_argument("--width", type=int, default=1024, help="image width (ERP height = width/2)")
     v.add_argument("--height", type=int, help="perspective only (default = width)")
-    v.add_argument("--fov-deg", type=float, default=90.0, help="perspective only: horizontal field of view")
+    v.add_argument("--fov-deg", type=float, help="perspective only: horizontal field of view (default 90)")
     v.add_argument("--compositing", default="plain", choices=["plain", "va"],
                    help="plain (default): front-to-back over black, what 3DGS viewers show of the PLY; "
                         "va: colour / accumulated alpha, the OmniSplat paper's normalisation")

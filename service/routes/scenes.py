@@ -125,6 +125,7 @@ _IMAGE_CONTENT = {t: {"schema": {"type": "string", "format": "binary"}} for t in
                **error_responses(400, 404, 413, 422, 503)},
 )
 async def render_scene(
+    request: Request,
     scene_id: SceneId,
     store: StoreDep,
     settings: SettingsDep,
@@ -142,6 +143,9 @@ async def render_scene(
     compositing: Annotated[Compositing, Query(description=_COMPOSITING_DOC)] = "plain",
     rig: Annotated[bool, Query(description=_RIG_DOC)] = False,
 ) -> Response:
+    if projection != "perspective" and "fov_deg" in request.query_params:  # as height: it would be dropped
+        raise BadInput(f"fov_deg: only a perspective render takes a field of view (this one is {projection})",
+                       code="invalid_render_query")
     query = check_render_query(c2w, projection, width, height, fov_deg, format,
                                max_width=settings.max_render_width, max_pixels=settings.max_render_pixels,
                                compositing=compositing, rig=rig)

@@ -206,6 +206,7 @@ IDENTITY_ARG = "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1"
     (["--projection", "perspective", "--fov-deg", "180"], "--fov-deg"),  # was a traceback
     (["--projection", "perspective", "--width", "1", "--height", "640", "--fov-deg", "120"], "vertically"),  # black rows
     (["--height", "32"], "only a perspective"),  # was ignored
+    (["--fov-deg", "30"], "only a perspective"),  # was ignored
     (["-o", "view.gif"], ".png, .jpg or .jpeg"),  # PNG bytes were written to view.gif
 ])
 def test_render_checks_its_query_as_the_api_does_before_reading_the_ply(tmp_path, capsys, extra, says):

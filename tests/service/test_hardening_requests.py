@@ -144,6 +144,16 @@ def test_segments_of_a_reference_view_refuse_render_query_parameters(client, sce
     with_c2w = {"c2w": IDENTITY, "width": 64, "projection": "perspective", **extra}
     assert client.get(f"/v1/scenes/{scene}/segments", params=with_c2w).status_code == 200
 
+
+@pytest.mark.parametrize("projection", ["erp", "yin"])
+def test_fov_deg_on_a_panoramic_render_is_422_as_height_is(client, scene, projection):
+    """fov_deg=30 on an ERP render answered the full panorama without a word."""
+    width = {"erp": 64, "yin": 66}[projection]
+    r = client.get(f"/v1/scenes/{scene}/render", params={"c2w": IDENTITY, "width": width, "projection": projection,
+                                                         "fov_deg": "30"})
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["message"].startswith("fov_deg: only a perspective render")
+
 # -- uploads a viewer shows otherwise than they are stored ---------------------------------------
 
 LIMITS = {"max_pixels": 4096 * 2048, "min_height": 32}
