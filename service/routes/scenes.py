@@ -75,7 +75,8 @@ def _require_scene(store, scene_id: str) -> None:
 async def create_scene(
     request: Request,
     response: Response,
-    image_a: Annotated[UploadFile, File(description="first ERP panorama (PNG/JPEG/WebP/TIFF/BMP, width = 2 x height)")],
+    image_a: Annotated[UploadFile, File(description="first ERP panorama (PNG/JPEG/WebP/TIFF/BMP, one frame, width = "
+                                                    "2 x height as shown: turned by its EXIF orientation)")],
     image_b: Annotated[UploadFile, File(description="second ERP panorama (any 2:1 size)")],
     settings: SettingsDep,
     store: StoreDep,
@@ -84,7 +85,8 @@ async def create_scene(
     metrics: MetricsDep,
     options: Annotated[str | None, Form(description=_OPTIONS_DOC, json_schema_extra=_OPTIONS_SCHEMA)] = None,
     poses: Annotated[str | None, Form(description='JSON {"convention": "opencv"|"opengl", "c2w": [A, B]}, '
-                                                  "each camera-to-world 4x4 or 3x4; leave out (or c2w null) to "
+                                                  "each camera-to-world 4x4 or 3x4 (no other keys but those the "
+                                                  "scene metadata's poses add); leave out (or c2w null) to "
                                                   "estimate them from the images (world = camera A, levelled)",
                                       examples=[_POSES_EXAMPLE])] = None,
 ) -> SceneCreated:
