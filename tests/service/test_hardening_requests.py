@@ -8,6 +8,8 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from PIL import Image, ImageOps
 
 from service.errors import BadInput
@@ -153,6 +155,45 @@ def test_fov_deg_on_a_panoramic_render_is_422_as_height_is(client, scene, projec
                                                          "fov_deg": "30"})
     assert r.status_code == 422, r.text
     assert r.json()["error"]["message"].startswith("fov_deg: only a perspective render")
+
+
+_ROTATIONS = st.one_of(st.sampled_from([(0.0, 90.0), (0.0, -90.0), (180.0, 0.0), (-180.0, 89.999), (179.999, -89.999)]),
+                       st.tuples(st.floats(-180, 180), st.floats(-90, 90)))
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(look=_ROTATIONS, roll=st.floats(-180, 180), where=st.one_of(st.integers(0, 10**9), st.floats(-6, 6)),
+       projection=st.sampled_from(["erp", "perspective", "yin", "yang"]))
+def test_any_rigid_camera_renders_finite_pixels(live, scene, monkeypatch, look, roll, where, projection):
+    """Cameras at a Gaussian's centre, at the poles and the seam, up to 1e6 away: finite colour (before the 8-bit
+    conversion, which would turn a NaN into black) and an image of the asked size."""
+    from scipy.spatial.transform import Rotation
+
+    from rasterizer.render import to_uint8
+    from service import scenes
+    from service.inputs import check_render_query
+
+    finite = []
+
+    def checked(colour):
+        finite.append(bool(np.all(np.isfinite(colour))))
+        return to_uint8(colour)
+
+    monkeypatch.setattr(scenes, "to_uint8", checked)
+    store = live.app.state.store
+    c2w = np.eye(4)
+    c2w[:3, :3] = Rotation.from_euler("yxz", [look[0], look[1], roll], degrees=True).as_matrix()
+    if isinstance(where, int):  # exactly at a stored Gaussian
+        means = store.gaussians(scene).means
+        c2w[:3, 3] = means[where % len(means)]
+    else:
+        c2w[:3, 3] = [10.0 ** where, -(10.0 ** (where / 2)), 0.5]
+    width = {"erp": 32, "perspective": 24, "yin": 30, "yang": 30}[projection]
+    query = check_render_query(",".join(repr(float(v)) for v in c2w.ravel()), projection, width, None, 90.0, "png",
+                               max_width=512, max_pixels=512 * 256)
+    data, _ = scenes.render_scene(store, scene, query)
+    image = np.asarray(Image.open(io.BytesIO(data)))
+    assert finite == [True] and image.shape == (*query.output_size(), 3)
 
 # -- uploads a viewer shows otherwise than they are stored ---------------------------------------
 
