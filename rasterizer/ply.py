@@ -122,8 +122,12 @@ def write_ply(path: str | os.PathLike, g: Gaussians, *, drop_invalid: bool = Tru
     """Write ``g`` to ``path`` atomically (temp file + rename); returns the path."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(ply_bytes(g, drop_invalid=drop_invalid))
-    os.replace(tmp, path)
+    try:
+        tmp.write_bytes(ply_bytes(g, drop_invalid=drop_invalid))
+        os.replace(tmp, path)
+    except BaseException:  # e.g. ``path`` is a folder: no half-written temp file is left beside it
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 

@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import Depends, Path, Request
 
 from .config import Settings
-from .errors import Busy
+from .errors import BadInput, Busy
 from .limits import WorkGate
 from .metrics import ServiceMetrics
 from .runtime import ModelRuntime
@@ -50,6 +50,16 @@ def _heavy_render_gate(request: Request) -> WorkGate:
     return request.app.state.heavy_render_gate
 
 
+def single_query_values(request: Request) -> None:
+    """400 when the query names a parameter twice: the routes would silently keep the last value."""
+    seen: set[str] = set()
+    for name, _ in request.query_params.multi_items():
+        if name in seen:
+            raise BadInput(f"the query parameter {name[:40]!r} is given more than once; give it once",
+                           code="duplicate_query_parameter", status=400)
+        seen.add(name)
+
+
 SettingsDep = Annotated[Settings, Depends(_settings)]
 StoreDep = Annotated[SceneStore, Depends(_store)]
 MetricsDep = Annotated[ServiceMetrics, Depends(_metrics)]
@@ -58,5 +68,7 @@ ReadyRuntimeDep = Annotated[ModelRuntime, Depends(_ready_runtime)]
 InferenceGateDep = Annotated[WorkGate, Depends(_inference_gate)]
 RenderGateDep = Annotated[WorkGate, Depends(_render_gate)]
 HeavyRenderGateDep = Annotated[WorkGate, Depends(_heavy_render_gate)]
+#: router-level dependency of the routes that read query parameters
+SingleQueryValues = Depends(single_query_values)
 SceneId = Annotated[str, Path(pattern=SCENE_ID_PATTERN, description="32 lower-case hex digits",
                               examples=["0123456789abcdef0123456789abcdef"])]

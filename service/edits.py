@@ -20,18 +20,21 @@ from __future__ import annotations
 
 import contextlib
 import io
+import math
 import threading
 import time
 from collections import OrderedDict
 from collections.abc import Iterator
+from typing import Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
 
 from .errors import BadInput, NotFound, ServiceError
 from .images import encode
 from .inputs import RenderQuery
 from .references import REFERENCES_ARTIFACT, ReferencesMissing, load_references
-from .store import SceneNotFound, SceneStore, canonical_json, content_id
+from .store import SCENE_ID_PATTERN, SceneNotFound, SceneStore, canonical_json, content_id
 
 EDIT_ARTIFACT = "edit.npz"
 INDEX_ARTIFACT = "edit_index.npz"
@@ -40,6 +43,61 @@ EDIT_VERSION = "edit/v1"
 INDEX_CACHE = 4
 #: Reference render width for the uncovered fraction of a removal.
 HOLE_RENDER_WIDTH = 512
+
+
+# -- requests (the HTTP bodies and the CLI's flags) ---------------------------------------------------
+
+#: strict numbers: JSON true or "0.5" is refused, not read as 1 or 0.5
+Point = tuple[StrictFloat, StrictFloat]
+
+
+class SelectionRequest(BaseModel):
+    """Points on one reference, or a whole automatic segment."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    view: Literal["a", "b"] | None = Field(None, description="reference the points are on")
+    points: list[Point] | None = Field(None, max_length=64, description="positive (u, v) points in [0, 1]")
+    negative: list[Point] = Field(default_factory=list, max_length=64, description="negative (u, v) points")
+    segment: StrictInt | None = Field(None, ge=0, description="label of an automatic segment (GET .../segments)")
+
+    @model_validator(mode="after")
+    def _one_kind(self):
+        if self.segment is not None:
+            if self.points or self.negative or self.view is not None:
+                raise ValueError("give either a segment or view + points, not both")
+            return self
+        if self.view is None or not self.points:
+            raise ValueError('give "view" ("a" or "b") and at least one positive point, or "segment"')
+        return self
+
+    def canonical(self) -> dict:
+        if self.segment is not None:
+            return {"segment": self.segment}
+        return {"view": self.view, "points": [list(p) for p in self.points], "negative": [list(p) for p in self.negative]}
+
+
+class EditRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    selection: str = Field(pattern=SCENE_ID_PATTERN, description="id from POST .../selections")
+    op: Literal["remove", "keep", "recolor", "translate"]
+    color: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(None, description="recolor: RGB in [0, 1]")
+    offset: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(None, description="translate: world units")
+
+    @model_validator(mode="after")
+    def _args(self):
+        if self.op == "recolor":
+            if self.color is None or not all(math.isfinite(c) and 0.0 <= c <= 1.0 for c in self.color):
+                raise ValueError("recolor needs color = [r, g, b] with each in [0, 1]")
+        elif self.color is not None:
+            raise ValueError(f"color is only for op recolor, not {self.op}")
+        if self.op == "translate":
+            if self.offset is None or not all(math.isfinite(c) and abs(c) <= 1e6 for c in self.offset):
+                raise ValueError("translate needs offset = [dx, dy, dz], finite")
+        elif self.offset is not None:
+            raise ValueError(f"offset is only for op translate, not {self.op}")
+        return self
 
 
 class CorrespondencesMissing(ServiceError):

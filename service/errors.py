@@ -13,6 +13,7 @@ import logging
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from starlette.datastructures import UploadFile as StarletteUploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from rasterizer.geometry import PoseError
@@ -129,7 +130,12 @@ def _validation_message(exc: RequestValidationError) -> str:
             parts.append(f"body: not valid JSON at character {where}" + (f" ({reason})" if reason else ""))
             continue
         loc = ".".join(str(p) for p in err.get("loc", ()) if p not in ("body", "query", "path"))
-        parts.append(f"{loc or 'request'}: {err.get('msg', 'invalid')}")
+        msg = str(err.get("msg", "invalid"))
+        if "Expected UploadFile" in msg:  # a form field where a file was expected (the library's words)
+            msg = "expected a file (a form part with a filename), got a text field"
+        elif err.get("type") == "string_type" and isinstance(err.get("input"), StarletteUploadFile):
+            msg = "expected a text field, got a file"
+        parts.append(f"{loc or 'request'}: {msg}")
     return "; ".join(parts) or "invalid request"
 
 
@@ -173,6 +179,9 @@ def install_error_handlers(app: FastAPI) -> None:
             allow = _allowed_methods(request)
             if allow:
                 headers["Allow"] = allow
+        if exc.status_code == 400 and str(exc.detail).startswith(("Part exceeded maximum size", "Field exceeded")):
+            return error_response(413, "form_field_too_large", f"a text form field is too large ({exc.detail}): "
+                                  "poses and options are small JSON objects; images go as files")
         if exc.status_code == 400 and "parsing the body" in str(exc.detail):  # one status for a malformed body
             return error_response(422, "invalid_request", f"the request body could not be parsed ({exc.detail})")
         return error_response(exc.status_code, code, str(exc.detail), headers or None)

@@ -1,8 +1,8 @@
 """Decode and validate uploaded ERP panoramas; encode rendered images.
 
 Checks, in order, so that nothing expensive happens before the cheap checks pass:
-the header (format, size, 2:1 aspect, minimum height, pixel cap against decompression
-bombs), then the full decode (corrupt or truncated data).
+the header (format, size, 2:1 aspect as shown after the EXIF orientation, one frame, minimum
+height, pixel cap against decompression bombs), then the full decode (corrupt or truncated data).
 
 A PNG's chunk list is walked first (:func:`scan_png`, a loop over chunk headers that stops at
 the first limit passed, no decoding): Pillow keeps every ancillary chunk before the image data
@@ -28,7 +28,7 @@ import zlib
 from dataclasses import dataclass
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageOps, UnidentifiedImageError
 
 from rasterizer.render import to_uint8
 
@@ -41,11 +41,33 @@ ACCEPTED_FORMATS = ("PNG", "JPEG", "WEBP", "TIFF", "BMP")
 class ImageHeader:
     field: str
     format: str
-    width: int
+    width: int  # as displayed: after the EXIF orientation
     height: int
+    orientation: int = 1  # EXIF orientation tag (1: as stored)
 
     def describe(self) -> dict:
-        return {"format": self.format, "width": self.width, "height": self.height}
+        out = {"format": self.format, "width": self.width, "height": self.height}
+        return out if self.orientation == 1 else {**out, "exif_orientation": self.orientation}
+
+
+#: EXIF orientation tag
+_ORIENTATION = 0x0112
+
+
+def exif_orientation(im: Image.Image) -> int:
+    """The EXIF orientation (1..8; 1 = as stored) of an opened image, read from its header only.
+
+    Every image viewer shows a file turned by this tag, so the panorama a user means is the turned one
+    (5..8 swap width and height). A PNG whose EXIF chunk follows the pixels is read as stored (1):
+    finding it would decode the image. An unreadable tag is 1, as viewers read it.
+    """
+    if im.format == "PNG" and "exif" not in im.info:
+        return 1
+    try:
+        value = im.getexif().get(_ORIENTATION, 1)
+    except Exception:  # noqa: BLE001 - damaged EXIF: shown as stored
+        return 1
+    return value if isinstance(value, int) and 1 <= value <= 8 else 1
 
 
 def _too_many_pixels(field: str, w: int, h: int, max_pixels: int) -> PayloadTooLarge:
@@ -230,25 +252,34 @@ def check_header(data: bytes, field: str, *, max_pixels: int, min_height: int) -
     try:
         w, h = im.size
         fmt = im.format or "unknown"
+        orientation = exif_orientation(im)
+        frames = getattr(im, "is_animated", False)
     finally:
         im.close()
     if w <= 0 or h <= 0:
         raise InvalidImage(f"{field}: image has no pixels ({w}x{h})")
     if w * h > max_pixels:
         raise _too_many_pixels(field, w, h, max_pixels)
+    if frames:  # only the first frame would be used, without a word
+        raise BadInput(f"{field}: the {fmt} file holds several frames (an animation or pages); send one still "
+                       "panorama", code="animated_image")
+    if orientation >= 5:  # turned by a quarter: shown as h x w
+        w, h = h, w
     if w != 2 * h:
+        turned = f" (as shown, after its EXIF orientation {orientation})" if orientation != 1 else ""
         raise BadInput(
-            f"{field}: an equirectangular panorama must be exactly twice as wide as high; got {w}x{h}",
+            f"{field}: an equirectangular panorama must be exactly twice as wide as high; got {w}x{h}{turned}",
             code="bad_aspect_ratio",
         )
     if h < min_height:
         raise BadInput(f"{field}: {w}x{h} is too small; the height must be at least {min_height} pixels",
                        code="image_too_small")
-    return ImageHeader(field, fmt, w, h)
+    return ImageHeader(field, fmt, w, h, orientation)
 
 
 def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> tuple[np.ndarray, ImageHeader]:
-    """Fully decode to uint8 RGB (H, W, 3) after :func:`check_header`; corrupt data -> 400."""
+    """Fully decode to uint8 RGB (H, W, 3), turned by its EXIF orientation, after :func:`check_header`;
+    corrupt data -> 400."""
     header = check_header(data, field, max_pixels=max_pixels, min_height=min_height)
     layout = scan_png(data, field)
     if layout is not None:
@@ -256,7 +287,7 @@ def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> 
     im = _open(data, field, max_pixels)
     try:
         im.load()  # raises on truncated or corrupt data (LOAD_TRUNCATED_IMAGES stays False)
-        arr = _rgb8(im, field)
+        arr = _rgb8(im if header.orientation == 1 else ImageOps.exif_transpose(im), field)
     except (PayloadTooLarge, InvalidImage):
         raise
     except Exception as exc:  # noqa: BLE001 - corrupt, truncated, unsupported mode...

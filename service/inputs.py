@@ -47,11 +47,33 @@ def _bounded_int(text: str) -> int:
     return value
 
 
+class _DuplicateKey(ValueError):
+    pass
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object's dict; a key given twice is refused (the parser would keep the last one without a word)."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKey(f"the key {key[:40]!r} is given more than once; give each key once")
+        out[key] = value
+    return out
+
+
 def _json_object(text: str | bytes, field: str) -> Any:
     try:
-        return json.loads(text, parse_constant=_reject_constant, parse_int=_bounded_int)
+        return json.loads(text, parse_constant=_reject_constant, parse_int=_bounded_int, object_pairs_hook=_unique_keys)
+    except _DuplicateKey as exc:
+        raise BadInput(f"{field}: {exc}", code=f"invalid_{field}") from None
     except (ValueError, RecursionError) as exc:
         raise BadInput(f"{field}: not valid JSON ({exc})", code=f"invalid_{field}") from None
+
+
+#: keys of the ``poses`` JSON object
+POSES_KEYS = frozenset({"convention", "c2w"})
+#: keys the scene metadata's ``poses`` adds (accepted and ignored, so that it can be sent back as it is)
+POSES_META_KEYS = frozenset({"input_convention", "source", "support"})
 
 
 @dataclass(frozen=True)
@@ -75,6 +97,10 @@ def parse_poses(text: str | bytes | None) -> Poses | None:
     obj = _json_object(text, "poses")
     if not isinstance(obj, dict):
         raise BadInput('poses: expected a JSON object {"convention": ..., "c2w": [A, B]}', code="invalid_poses")
+    unknown = sorted(set(obj) - POSES_KEYS - POSES_META_KEYS)
+    if unknown:  # a misspelt "convention" would otherwise silently mean OpenCV
+        raise BadInput(f"poses: unknown key(s) {[str(k)[:40] for k in unknown[:5]]}; expected "
+                       '{"convention": "opencv"|"opengl", "c2w": [A, B]}', code="invalid_poses")
     if "c2w" in obj and obj["c2w"] is None:
         return None
     convention = obj.get("convention", "opencv")
@@ -102,6 +128,16 @@ def parse_poses(text: str | bytes | None) -> Poses | None:
     except SweepRangeError as exc:
         raise BadInput(f"poses: {exc}", code="invalid_pose") from None
     return Poses(convention, out[0], out[1])
+
+
+def check_scale_options(poses_given: bool, pose_options: PoseOptions) -> None:
+    """422 when ``camera_height`` or ``baseline`` come with given poses: they scale estimated poses only,
+    and given poses carry their own scale, so the option would be ignored without a word."""
+    given = [k for k in ("camera_height", "baseline") if getattr(pose_options, k) is not None]
+    if poses_given and given:
+        raise BadInput(f"options.{given[0]}: sets the scale of estimated poses only; these poses are given and "
+                       "carry their own scale (leave the option out, or scale the c2w translations)",
+                       code="invalid_options")
 
 
 def check_sweep_range(c2w_a: np.ndarray, c2w_b: np.ndarray, options: dict) -> None:
@@ -192,9 +228,15 @@ class RenderQuery:
         return (self.height if self.height is not None else self.width), self.width
 
 
-def check_render_query(c2w: str, projection: str, width: int, height: int | None, fov_deg: float, fmt: str,
+#: field of view of a perspective render, degrees, horizontal and vertical alike
+MIN_FOV_DEG, MAX_FOV_DEG = 1.0, 170.0
+
+
+def check_render_query(c2w: str | np.ndarray, projection: str, width: int, height: int | None, fov_deg: float, fmt: str,
                        *, max_width: int, max_pixels: int, compositing: str = "plain", rig: bool = False) -> RenderQuery:
-    pose = parse_c2w_query(c2w)
+    """The render query of the API (``c2w`` as its query text) or the CLI (a checked 4x4 OpenCV c2w); 422 naming
+    the parameter that is out of range."""
+    pose = c2w if isinstance(c2w, np.ndarray) else parse_c2w_query(c2w)
     if compositing not in COMPOSITINGS:
         raise BadInput(f"compositing: expected plain or va, got {compositing!r}", code="invalid_render_query")
     if projection not in ("erp", "perspective", "yin", "yang"):
@@ -214,8 +256,15 @@ def check_render_query(c2w: str, projection: str, width: int, height: int | None
         raise BadInput("height: only a perspective render takes a height", code="invalid_render_query")
     if height is not None and not (1 <= height <= max_width):
         raise BadInput(f"height: must be between 1 and {max_width}, got {height}", code="invalid_render_query")
-    if not (math.isfinite(fov_deg) and 1.0 <= fov_deg <= 170.0):
-        raise BadInput(f"fov_deg: must be between 1 and 170 degrees, got {fov_deg}", code="invalid_render_query")
+    if not (math.isfinite(fov_deg) and MIN_FOV_DEG <= fov_deg <= MAX_FOV_DEG):
+        raise BadInput(f"fov_deg: must be between {MIN_FOV_DEG:g} and {MAX_FOV_DEG:g} degrees, got {fov_deg}",
+                       code="invalid_render_query")
+    if projection == "perspective" and height is not None:
+        vertical = math.degrees(2.0 * math.atan(math.tan(math.radians(fov_deg) / 2.0) * height / width))
+        if vertical > MAX_FOV_DEG:  # a tall, narrow view: rays near 90 deg off axis leave rows blank
+            raise BadInput(f"height: a {width}x{height} perspective view at fov_deg {fov_deg:g} (horizontal) spans "
+                           f"{vertical:.1f} degrees vertically, more than {MAX_FOV_DEG:g}; lower height or fov_deg",
+                           code="invalid_render_query")
     query = RenderQuery(pose, projection, int(width), None if height is None else int(height), float(fov_deg), fmt,
                         compositing, bool(rig))
     h, w = query.output_size()

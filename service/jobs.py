@@ -27,11 +27,14 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from pydantic import BaseModel, ConfigDict, Field
+
+from .edits import EDIT_ARTIFACT
 from .errors import StoreUnavailable
 from .job_state import ACTIVE, HEARTBEAT_S, JobFiles
 from .memory import release_memory
 from .references import REFERENCES_ARTIFACT, load_references, references_artifact
-from .store import SceneStore, StoreFull, canonical_json, content_id
+from .store import SceneNotFound, SceneStore, StoreFull, canonical_json, content_id
 
 log = logging.getLogger("omnisplat.jobs")
 
@@ -42,6 +45,22 @@ MAX_FINISHED_JOBS = 1000
 REFINE_QUEUE = 4
 #: least seconds between two progress writes of one job to its job file
 PROGRESS_WRITE_S = 0.5
+
+
+class RefineRequest(BaseModel):
+    """Options of the refinement (colour on the reference views, geometry fixed); strict types."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+
+    iterations: int = Field(100, ge=0, le=2000, description="conjugate-gradient steps on colour; early-stopped "
+                                                             "on held-out reference pixels")
+    height: int = Field(128, ge=16, le=1024, description="Yin/Yang working height h (grids h x 3h per reference)")
+    sh_degree: int = Field(0, ge=0, le=1, description="0: colour (SH DC) only; 1: also degree-1 SH")
+    colour_reg: float = Field(2.0, ge=0.0, le=1e4, description="pull toward the initial colours (relative)")
+    holdout: float = Field(0.1, ge=0.0, le=0.5, description="fraction of reference pixels held out for early stop")
+    patience: int = Field(5, ge=0, le=2000, description="stop after this many steps without held-out gain (0: off)")
+    cross_check: bool = Field(True, description="cross-view guard: fit each reference alone and score the other; "
+                                                "keep the unrefined colours when that gets worse")
 
 
 class JobCancelled(Exception):
@@ -77,6 +96,14 @@ def _refine(store: SceneStore, parent_id: str, result_id: str, params: dict, rep
     gaussians = store.gaussians(parent_id)
     # read once, now: the result keeps them even when the parent is deleted while the job runs
     references = references_artifact(store, parent_id)
+    # geometry, count and order of the Gaussians stay: the parent's correspondences hold for the result
+    correspondences = store.artifact(parent_id, EDIT_ARTIFACT)
+    artifacts = {REFERENCES_ARTIFACT: references}
+    if correspondences is not None:
+        try:
+            artifacts[EDIT_ARTIFACT] = correspondences.read_bytes()
+        except FileNotFoundError:  # the parent was deleted meanwhile
+            raise SceneNotFound(parent_id) from None
     images, c2ws = load_references(store, parent_id)
     timings["load"] = time.perf_counter() - t0
     t1 = time.perf_counter()
@@ -107,7 +134,9 @@ def _refine(store: SceneStore, parent_id: str, result_id: str, params: dict, rep
     t1 = time.perf_counter()
     timings["total"] = time.perf_counter() - t0
     meta["timings"] = timings
-    stored = store.put(result_id, result.gaussians, meta, artifacts={REFERENCES_ARTIFACT: references})
+    if len(result.gaussians) != len(gaussians):  # the correspondences index the parent's Gaussians
+        artifacts.pop(EDIT_ARTIFACT, None)
+    stored = store.put(result_id, result.gaussians, meta, artifacts=artifacts)
     report(1.0)
     return stored
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 
 class CliError(Exception):
@@ -22,3 +23,26 @@ def forward_import(load, hint: str):
         if exc.name and exc.name.split(".")[0] in ("export", "service"):
             raise CliError(f"not available: module {exc.name} is not installed here ({hint})") from None
         raise CliError(f"not available: needs {exc.name!r}, which is not installed ({hint})") from None
+
+
+def read_panorama(path: str | Path):
+    """An image file decoded as the API decodes an upload (:func:`service.images.decode_rgb`: 16-bit and
+    float images scaled by their range, the EXIF orientation applied, truncated or non-2:1 files refused,
+    the API's default pixel limits), as float32 RGB (H, W, 3) in [0, 1]; a bad file is a CliError naming it."""
+    import numpy as np
+
+    from ..config import Settings
+    from ..errors import ServiceError
+    from ..images import decode_rgb
+
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise CliError(f"cannot read image {path}: {exc.strerror or exc}") from None
+    fields = Settings.model_fields
+    try:
+        rgb, _ = decode_rgb(data, str(path), max_pixels=fields["max_image_pixels"].default,
+                            min_height=fields["min_image_height"].default)
+    except ServiceError as exc:
+        raise CliError(exc.message) from None
+    return rgb.astype(np.float32) / np.float32(255.0)

@@ -35,15 +35,31 @@ def _edit_store(args: argparse.Namespace):
 
 
 def _edit_call(fn, *a):
-    from ..errors import ServiceError
+    from ..errors import ServiceError, translate
     from ..store import json_safe
 
     try:
         out = fn(*a)
-    except ServiceError as exc:
-        raise CliError(f"{exc.code}: {exc.message}") from None
+    except Exception as exc:  # domain errors (a malformed scene id, a full store...) as the API words them
+        mapped = translate(exc)
+        if not isinstance(mapped, ServiceError):
+            raise
+        raise CliError(f"{mapped.code}: {mapped.message}") from None
     print(json.dumps(json_safe(out), indent=1))
     return 0
+
+
+def _checked(model, request: dict, what: str) -> dict:
+    """``request`` validated by the API's body model (:class:`service.edits.SelectionRequest` / ``EditRequest``)."""
+    from pydantic import ValidationError
+
+    from ..options import describe_error
+
+    try:
+        model.model_validate(request)
+    except ValidationError as exc:
+        raise CliError(describe_error(exc, prefix=what)) from None
+    return request
 
 
 def cmd_select(args: argparse.Namespace) -> int:
@@ -59,6 +75,7 @@ def cmd_select(args: argparse.Namespace) -> int:
         bad = [p for p in request["points"] + request["negative"] if not all(0.0 <= c <= 1.0 for c in p)]
         if bad:
             raise CliError(f"points must lie in [0, 1]: {bad}")
+    _checked(edits.SelectionRequest, request, "select")
     return _edit_call(edits.create_selection, _edit_store(args), args.scene, request)
 
 
@@ -66,12 +83,13 @@ def cmd_edit(args: argparse.Namespace) -> int:
     from .. import edits
 
     request = {"selection": args.selection, "op": args.op}
-    if args.op == "recolor":
+    if args.op == "recolor" or args.color is not None:
         request["color"] = _triple(args.color or "", "--color")
-        if not all(0.0 <= c <= 1.0 for c in request["color"]):
+        if args.op == "recolor" and not all(0.0 <= c <= 1.0 for c in request["color"]):
             raise CliError("--color: each channel in [0, 1]")
-    if args.op == "translate":
+    if args.op == "translate" or args.offset is not None:
         request["offset"] = _triple(args.offset or "", "--offset")
+    _checked(edits.EditRequest, request, "edit")  # e.g. --color with --op remove: refused, as the API does
     return _edit_call(lambda *a: edits.create_edit(*a)[0], _edit_store(args), args.scene, request)
 
 

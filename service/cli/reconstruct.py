@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError, say
+from .common import CliError, read_panorama, say
 
 
 def load_pair(args: argparse.Namespace):
@@ -16,7 +16,7 @@ def load_pair(args: argparse.Namespace):
     Two images without ``--poses`` give ``c2w_a = c2w_b = None``: the poses are estimated.
     """
     from rasterizer.geometry import PoseError
-    from rasterizer.scene_folder import load_image, load_scene
+    from rasterizer.scene_folder import load_scene
 
     from ..inputs import parse_poses
 
@@ -47,10 +47,7 @@ def load_pair(args: argparse.Namespace):
             raise CliError(f"{args.poses}: {exc.message}") from None
         except OSError as exc:
             raise CliError(f"cannot read {args.poses}: {exc}") from None
-        try:
-            a, b = load_image(inputs[0]), load_image(inputs[1])
-        except OSError as exc:
-            raise CliError(f"cannot read image: {exc}") from None
+        a, b = read_panorama(inputs[0]), read_panorama(inputs[1])  # as the API reads uploads
         if poses is None:
             return a, b, None, None, {"images": [str(p) for p in inputs]}
         return a, b, poses.c2w_a, poses.c2w_b, {"images": [str(p) for p in inputs]}
@@ -88,17 +85,22 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..model_files import ModelUnavailable, ensure_model
     from ..pipeline import build_scene
 
+    for flag, name in (("-o", args.output), ("--json", args.json)):
+        if name is not None and Path(name).is_dir():
+            raise CliError(f"{flag} {name} is a folder; give a file name")
     erp_a, erp_b, c2w_a, c2w_b, source = load_pair(args)  # bad inputs fail before any model build
     options = pipeline_options(args)
     from ..errors import ServiceError
-    from ..inputs import Poses
+    from ..inputs import Poses, check_scale_options
     from ..poses import PoseOptions, poses_for_scene
 
     try:
         pose_options = PoseOptions.pop_from({"camera_height": args.camera_height, "baseline": args.baseline,
                                              "refine_poses": args.refine_poses})
+        check_scale_options(c2w_a is not None, pose_options)
     except ServiceError as exc:
-        raise CliError(exc.message) from None
+        raise CliError(exc.message.replace("options.camera_height", "--camera-height")
+                       .replace("options.baseline", "--baseline")) from None
     for name, img in (("image A", erp_a), ("image B", erp_b)):
         if img.shape[1] != 2 * img.shape[0]:
             raise CliError(f"{name} is {img.shape[1]}x{img.shape[0]}; an ERP panorama must be exactly 2:1")
@@ -132,8 +134,11 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     total = time.perf_counter() - t0
     out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_ply(out, rec.gaussians)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_ply(out, rec.gaussians)
+    except OSError as exc:
+        raise CliError(f"cannot write {out}: {exc.strerror or exc}") from None
     from ..store import json_safe
 
     summary = json_safe({
@@ -144,7 +149,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     })
     text = json.dumps(summary, indent=2)
     if args.json:
-        Path(args.json).write_text(text + "\n")
+        try:
+            Path(args.json).write_text(text + "\n")
+        except OSError as exc:
+            raise CliError(f"cannot write {args.json}: {exc.strerror or exc}") from None
     print(text)
     say(f"wrote {len(rec.gaussians)} Gaussians to {out} in {total:.2f} s")
     return 0

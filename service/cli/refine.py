@@ -13,23 +13,41 @@ from .reconstruct import load_pair
 
 def cmd_refine(args: argparse.Namespace) -> int:
     """Colours of a PLY refined on its two references (L1 fit, cross-view guard); JSON summary to stdout."""
+    from pydantic import ValidationError
+
     from rasterizer.ply import read_ply, write_ply
     from rasterizer.refine import RefineOptions, reference_views, refine
 
-    if not 0 <= args.holdout < 1 or args.iterations < 0 or args.height < 8:
-        raise CliError("need 0 <= --holdout < 1, --iterations >= 0, --height >= 8")
+    from ..jobs import RefineRequest
+    from ..options import describe_error
+
+    params = {"iterations": args.iterations, "height": args.height, "sh_degree": args.sh_degree,
+              "colour_reg": args.colour_reg, "holdout": args.holdout, "patience": args.patience,
+              "cross_check": not args.no_cross_check}
+    try:  # the API's bounds (POST /v1/scenes/{id}/refine): a NaN or a huge grid fails here, not in numpy
+        RefineRequest.model_validate(params)
+    except ValidationError as exc:
+        message = describe_error(exc, prefix="refine")
+        for key in params:
+            message = message.replace(f"refine.{key}:", f"--{key.replace('_', '-')}:")
+        raise CliError(message) from None
     try:
         g = read_ply(args.ply)
     except (OSError, ValueError) as exc:
         raise CliError(f"cannot read {args.ply}: {exc}") from None
     erp_a, erp_b, c2w_a, c2w_b, desc = load_pair(args)
+    if c2w_a is None:
+        raise CliError("refine needs the references' poses: give --poses FILE.json with two images, or a scene folder")
     t0 = time.perf_counter()
     views = reference_views(g, [erp_a, erp_b], [c2w_a, c2w_b], height=args.height, holdout=args.holdout)
     t_fp = time.perf_counter() - t0
     opts = RefineOptions(iterations=args.iterations, sh_degree=args.sh_degree, colour_reg=args.colour_reg,
                          patience=args.patience, cross_check=not args.no_cross_check)
     res = refine(g, views, opts)
-    write_ply(args.out, res.gaussians)
+    try:
+        write_ply(args.out, res.gaussians)
+    except OSError as exc:
+        raise CliError(f"cannot write {args.out}: {exc.strerror or exc}") from None
     first = res.history[0]
     best = res.history[min(res.best_iteration, len(res.history) - 1)]
     print(json.dumps({"out": str(args.out), "inputs": desc, "num_gaussians": len(res.gaussians),

@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError, say
+from .common import CliError, read_panorama, say
 
 
 def _pose_from_args(args: argparse.Namespace):
@@ -22,6 +22,10 @@ def _pose_from_args(args: argparse.Namespace):
         from rasterizer.geometry import PoseError, as_c2w
 
         obj = json.loads(Path(args.pose).read_text())
+        unknown = sorted(set(obj) - {"convention", "c2w"}) if isinstance(obj, dict) else []
+        if unknown:  # a misspelt "convention" would otherwise mean OpenCV
+            raise CliError(f"{args.pose}: unknown key(s) {unknown[:5]}; expected a 4x4 matrix or "
+                           '{"convention": "opencv"|"opengl", "c2w": M}')
         matrix = obj["c2w"] if isinstance(obj, dict) else obj
         convention = obj.get("convention", "opencv") if isinstance(obj, dict) else "opencv"
         try:
@@ -39,12 +43,10 @@ def _rig_layer_from_args(args: argparse.Namespace):
     if not args.rig:
         return None
     from rasterizer.rig import NoRigError, require_rig_layer
-    from rasterizer.scene_folder import load_image
-
     try:
-        images = [load_image(Path(p)) for p in args.rig]
-    except OSError as exc:
-        raise CliError(f"--rig: cannot read image: {exc}") from None
+        images = [read_panorama(p) for p in args.rig]
+    except CliError as exc:
+        raise CliError(f"--rig: {exc}") from None
     if images[0].shape != images[1].shape or images[0].shape[1] != 2 * images[0].shape[0]:
         raise CliError(f"--rig: need two 2:1 panoramas of one size, got {images[0].shape[1]}x{images[0].shape[0]} "
                        f"and {images[1].shape[1]}x{images[1].shape[0]}")
@@ -59,16 +61,30 @@ def cmd_render(args: argparse.Namespace) -> int:
     from rasterizer.ply import read_ply
     from rasterizer.render import render, to_uint8
 
+    from ..config import Settings
+    from ..errors import ServiceError
     from ..images import encode
-    from ..inputs import RenderQuery
+    from ..inputs import check_render_query
 
+    fmt = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg"}.get(Path(args.output).suffix.lower())
+    if fmt is None:
+        raise CliError(f"--output {args.output}: the name must end in .png, .jpg or .jpeg (the image format)")
+    # as the API renders (the same query and its limits): plain compositing unless --compositing va
+    settings = Settings()
+    if args.fov_deg is not None and args.projection != "perspective":
+        raise CliError(f"--fov-deg: only a perspective render takes a field of view (this one is {args.projection})")
+    try:
+        query = check_render_query(c2w, args.projection, args.width, args.height,
+                                   90.0 if args.fov_deg is None else args.fov_deg, fmt,
+                                   max_width=settings.max_render_width, max_pixels=settings.max_render_pixels,
+                                   compositing=args.compositing)
+    except ServiceError as exc:
+        raise CliError(exc.message.replace("width:", "--width:", 1).replace("height:", "--height:", 1)
+                       .replace("fov_deg:", "--fov-deg:", 1)) from None
     try:
         gaussians = read_ply(args.ply)
     except (OSError, ValueError) as exc:
         raise CliError(f"cannot read {args.ply}: {exc}") from None
-    fmt = "jpeg" if Path(args.output).suffix.lower() in (".jpg", ".jpeg") else "png"
-    # as the API renders (the same query's arguments): plain compositing unless --compositing va
-    query = RenderQuery(c2w, args.projection, args.width, args.height, args.fov_deg, fmt, args.compositing)
     kwargs = query.render_kwargs(normalize=args.compositing == "va")
     layer = _rig_layer_from_args(args)
     say(f"rendering {len(gaussians)} Gaussians, {args.projection} {args.width} px wide")
@@ -80,9 +96,12 @@ def cmd_render(args: argparse.Namespace) -> int:
         from rasterizer.rig import overlay_rig
 
         h, w = colour.shape[:2]
-        colour = overlay_rig(colour, camera_directions(args.projection, h, w, args.fov_deg), layer)
+        colour = overlay_rig(colour, camera_directions(args.projection, h, w, query.fov_deg), layer)
     data = encode(to_uint8(colour), fmt)
-    Path(args.output).write_bytes(data)
+    try:
+        Path(args.output).write_bytes(data)
+    except OSError as exc:
+        raise CliError(f"cannot write {args.output}: {exc.strerror or exc}") from None
     say(f"wrote {args.output} in {time.perf_counter() - t0:.2f} s")
     return 0
 
@@ -97,7 +116,7 @@ def add_parser(sub) -> None:
     v.add_argument("--projection", default="erp", choices=["erp", "perspective", "yin", "yang"])
     v.add_argument("--width", type=int, default=1024, help="image width (ERP height = width/2)")
     v.add_argument("--height", type=int, help="perspective only (default = width)")
-    v.add_argument("--fov-deg", type=float, default=90.0, help="perspective only: horizontal field of view")
+    v.add_argument("--fov-deg", type=float, help="perspective only: horizontal field of view (default 90)")
     v.add_argument("--compositing", default="plain", choices=["plain", "va"],
                    help="plain (default): front-to-back over black, what 3DGS viewers show of the PLY; "
                         "va: colour / accumulated alpha, the OmniSplat paper's normalisation")

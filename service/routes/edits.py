@@ -7,20 +7,19 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Body, Path, Query, Response
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from fastapi import APIRouter, Body, Path, Query, Request, Response
+from pydantic import BaseModel, ConfigDict, Field
 
 from .. import edits as work
-from ..deps import RenderGateDep, SceneId, SettingsDep, StoreDep
+from ..deps import RenderGateDep, SceneId, SettingsDep, SingleQueryValues, StoreDep
+from ..edits import EditRequest, Point, SelectionRequest
 from ..errors import BadInput, NotFound
 from ..inputs import DEFAULT_RENDER_WIDTH, Projection, check_render_query
 from ..scenes import storing
 from ..schemas import SceneCreated, error_responses
 from ..store import SCENE_ID_PATTERN
 
-router = APIRouter(prefix="/v1/scenes", tags=["edit"])
-
-Point = tuple[float, float]
+router = APIRouter(prefix="/v1/scenes", tags=["edit"], dependencies=[SingleQueryValues])
 
 
 def _check_points(points: list[Point], name: str) -> None:
@@ -28,32 +27,6 @@ def _check_points(points: list[Point], name: str) -> None:
         if not (math.isfinite(u) and math.isfinite(v) and 0.0 <= u <= 1.0 and 0.0 <= v <= 1.0):
             raise BadInput(f"{name}[{k}] = [{u}, {v}]: u and v must lie in [0, 1] (u = (col + 0.5) / W, "
                            "v = (row + 0.5) / H on the reference's ERP)", code="invalid_selection")
-
-
-class SelectionRequest(BaseModel):
-    """Points on one reference, or a whole automatic segment."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    view: Literal["a", "b"] | None = Field(None, description="reference the points are on")
-    points: list[Point] | None = Field(None, max_length=64, description="positive (u, v) points in [0, 1]")
-    negative: list[Point] = Field(default_factory=list, max_length=64, description="negative (u, v) points")
-    segment: int | None = Field(None, ge=0, description="label of an automatic segment (GET .../segments)")
-
-    @model_validator(mode="after")
-    def _one_kind(self):
-        if self.segment is not None:
-            if self.points or self.negative or self.view is not None:
-                raise ValueError("give either a segment or view + points, not both")
-            return self
-        if self.view is None or not self.points:
-            raise ValueError('give "view" ("a" or "b") and at least one positive point, or "segment"')
-        return self
-
-    def canonical(self) -> dict:
-        if self.segment is not None:
-            return {"segment": self.segment}
-        return {"view": self.view, "points": [list(p) for p in self.points], "negative": [list(p) for p in self.negative]}
 
 
 class SelectionCreated(BaseModel):
@@ -65,32 +38,17 @@ class SelectionCreated(BaseModel):
     links: dict[str, str]
 
 
-class EditRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    selection: str = Field(pattern=SCENE_ID_PATTERN, description="id from POST .../selections")
-    op: Literal["remove", "keep", "recolor", "translate"]
-    color: tuple[float, float, float] | None = Field(None, description="recolor: RGB in [0, 1]")
-    offset: tuple[float, float, float] | None = Field(None, description="translate: world units")
-
-    @model_validator(mode="after")
-    def _args(self):
-        if self.op == "recolor":
-            if self.color is None or not all(math.isfinite(c) and 0.0 <= c <= 1.0 for c in self.color):
-                raise ValueError("recolor needs color = [r, g, b] with each in [0, 1]")
-        elif self.color is not None:
-            raise ValueError(f"color is only for op recolor, not {self.op}")
-        if self.op == "translate":
-            if self.offset is None or not all(math.isfinite(c) and abs(c) <= 1e6 for c in self.offset):
-                raise ValueError("translate needs offset = [dx, dy, dz], finite")
-        elif self.offset is not None:
-            raise ValueError(f"offset is only for op translate, not {self.op}")
-        return self
+#: render-query parameters that only a ``c2w`` view takes
+_VIEW_PARAMS = ("projection", "height", "fov_deg")
 
 
-def _view_or_query(store, settings, view, c2w, width, projection, height, fov_deg):
+def _view_or_query(request: Request, settings, view, c2w, width, projection, height, fov_deg):
     if (view is None) == (c2w is None):
         raise BadInput("give either view=a|b or c2w= (+ the render query)", code="invalid_render_query")
+    ignored = [name for name in _VIEW_PARAMS if name in request.query_params]
+    if view is not None and ignored:  # a reference's own ERP: they would be dropped without a word
+        raise BadInput(f"{ignored[0]}: only with c2w=; view={view} is reference {view}'s own ERP (width only)",
+                       code="invalid_render_query")
     if view is not None:
         if not (8 <= width <= settings.max_render_width and width % 2 == 0):
             raise BadInput(f"width: an even number between 8 and {settings.max_render_width}, got {width}",
@@ -107,7 +65,7 @@ def _require(store, scene_id: str) -> None:
 
 @router.post("/{scene_id}/selections", status_code=201, response_model=SelectionCreated,
              summary="Select an object from points (or a segment) in both references",
-             responses=error_responses(404, 409, 422, 507))
+             responses=error_responses(400, 404, 409, 422, 507))
 async def create_selection(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, response: Response,
                            body: Annotated[SelectionRequest, Body()]) -> SelectionCreated:
     _check_points(body.points or [], "points")
@@ -119,27 +77,27 @@ async def create_selection(scene_id: SceneId, store: StoreDep, gate: RenderGateD
 
 
 @router.get("/{scene_id}/selections/{sel_id}/mask", response_class=Response, summary="Selection mask (PNG)",
-            responses={200: {"content": {"image/png": {}}}, **error_responses(404, 409, 422, 507)})
-async def selection_mask(scene_id: SceneId, sel_id: Annotated[str, Path(pattern=SCENE_ID_PATTERN)],
+            responses={200: {"content": {"image/png": {}}}, **error_responses(400, 404, 409, 422, 507)})
+async def selection_mask(request: Request, scene_id: SceneId, sel_id: Annotated[str, Path(pattern=SCENE_ID_PATTERN)],
                          store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
                          view: Literal["a", "b"] | None = None, c2w: str | None = None,
                          width: Annotated[int, Query()] = DEFAULT_RENDER_WIDTH,
                          projection: Annotated[Projection, Query()] = "erp",
                          height: int | None = None, fov_deg: float = 90.0) -> Response:
-    query = _view_or_query(store, settings, view, c2w, width, projection, height, fov_deg)
+    query = _view_or_query(request, settings, view, c2w, width, projection, height, fov_deg)
     _require(store, scene_id)
     data = await gate.run(storing, work.mask_png, store, scene_id, sel_id, view, width, query)
     return Response(data, media_type="image/png")
 
 
 @router.get("/{scene_id}/segments", response_class=Response, summary="Automatic segments (PNG)",
-            responses={200: {"content": {"image/png": {}}}, **error_responses(404, 409, 422, 507)})
-async def segments(scene_id: SceneId, store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
+            responses={200: {"content": {"image/png": {}}}, **error_responses(400, 404, 409, 422, 507)})
+async def segments(request: Request, scene_id: SceneId, store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
                    view: Literal["a", "b"] | None = None, c2w: str | None = None,
                    width: Annotated[int, Query()] = DEFAULT_RENDER_WIDTH,
                    projection: Annotated[Projection, Query()] = "erp",
                    height: int | None = None, fov_deg: float = 90.0) -> Response:
-    query = _view_or_query(store, settings, view, c2w, width, projection, height, fov_deg)
+    query = _view_or_query(request, settings, view, c2w, width, projection, height, fov_deg)
     _require(store, scene_id)
     data = await gate.run(storing, work.segments_png, store, scene_id, view, width, query)
     return Response(data, media_type="image/png")
@@ -147,7 +105,7 @@ async def segments(scene_id: SceneId, store: StoreDep, settings: SettingsDep, ga
 
 @router.post("/{scene_id}/edits", status_code=201, response_model=SceneCreated,
              summary="Edit the selected Gaussians; the result is a new scene (idempotent id)",
-             responses=error_responses(404, 409, 422, 507))
+             responses=error_responses(400, 404, 409, 422, 507))
 async def create_edit(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, response: Response,
                       body: Annotated[EditRequest, Body()]) -> SceneCreated:
     _require(store, scene_id)

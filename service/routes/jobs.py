@@ -21,28 +21,13 @@ from pydantic import BaseModel, ConfigDict, Field
 from .. import jobs as work
 from ..deps import SceneId, StoreDep
 from ..errors import Busy, NotFound
+from ..jobs import RefineRequest
 from ..limits import WorkGate
 from ..references import ReferencesMissing, has_references
 from ..schemas import error_responses
 from ..store import SCENE_ID_PATTERN
 
 router = APIRouter(tags=["jobs"])
-
-class RefineRequest(BaseModel):
-    """Options of the refinement (colour on the reference views, geometry fixed); strict types."""
-
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
-
-    iterations: int = Field(100, ge=0, le=2000, description="conjugate-gradient steps on colour; early-stopped "
-                                                             "on held-out reference pixels")
-    height: int = Field(128, ge=16, le=1024, description="Yin/Yang working height h (grids h x 3h per reference)")
-    sh_degree: int = Field(0, ge=0, le=1, description="0: colour (SH DC) only; 1: also degree-1 SH")
-    colour_reg: float = Field(2.0, ge=0.0, le=1e4, description="pull toward the initial colours (relative)")
-    holdout: float = Field(0.1, ge=0.0, le=0.5, description="fraction of reference pixels held out for early stop")
-    patience: int = Field(5, ge=0, le=2000, description="stop after this many steps without held-out gain (0: off)")
-    cross_check: bool = Field(True, description="cross-view guard: fit each reference alone and score the other; "
-                                                "keep the unrefined colours when that gets worse")
-
 
 class JobStatus(BaseModel):
     model_config = ConfigDict(extra="allow")

@@ -7,7 +7,7 @@ import json
 from typing import Annotated
 
 import anyio.to_thread
-from fastapi import APIRouter, File, Form, Query, Response, UploadFile
+from fastapi import APIRouter, File, Form, Query, Request, Response, UploadFile
 from fastapi.responses import StreamingResponse
 
 from .. import scenes as work
@@ -19,9 +19,10 @@ from ..deps import (
     RenderGateDep,
     SceneId,
     SettingsDep,
+    SingleQueryValues,
     StoreDep,
 )
-from ..errors import NotFound
+from ..errors import BadInput, NotFound
 from ..images import MEDIA_TYPES
 from ..inputs import (
     DEFAULT_RENDER_WIDTH,
@@ -29,6 +30,7 @@ from ..inputs import (
     ImageFormat,
     Projection,
     check_render_query,
+    check_scale_options,
     check_sweep_range,
     parse_options,
     parse_poses,
@@ -37,7 +39,7 @@ from ..memory import trimmed
 from ..options import options_json_schema, options_markdown
 from ..schemas import SceneCreated, SceneMeta, error_responses
 
-router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
+router = APIRouter(prefix="/v1/scenes", tags=["scenes"], dependencies=[SingleQueryValues])
 
 _IDENTITY = "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1"
 _POSES_EXAMPLE = json.dumps({"convention": "opencv", "c2w": [
@@ -58,6 +60,10 @@ _RIG_DOC = ("`true`: composite the capture rig (a tripod) that both references s
             "show one (otherwise 422). Default `false`: the scene alone, what 3DGS viewers show.")
 
 
+#: the form fields of POST /v1/scenes; any other is refused (a misspelt "options" would be dropped silently)
+FORM_FIELDS = ("image_a", "image_b", "poses", "options")
+
+
 def _require_scene(store, scene_id: str) -> None:
     if not store.exists(scene_id):
         raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
@@ -68,8 +74,10 @@ def _require_scene(store, scene_id: str) -> None:
     responses=error_responses(400, 408, 413, 422, 503, 507),
 )
 async def create_scene(
+    request: Request,
     response: Response,
-    image_a: Annotated[UploadFile, File(description="first ERP panorama (PNG/JPEG/WebP/TIFF/BMP, width = 2 x height)")],
+    image_a: Annotated[UploadFile, File(description="first ERP panorama (PNG/JPEG/WebP/TIFF/BMP, one frame, width = "
+                                                    "2 x height as shown: turned by its EXIF orientation)")],
     image_b: Annotated[UploadFile, File(description="second ERP panorama (any 2:1 size)")],
     settings: SettingsDep,
     store: StoreDep,
@@ -78,12 +86,18 @@ async def create_scene(
     metrics: MetricsDep,
     options: Annotated[str | None, Form(description=_OPTIONS_DOC, json_schema_extra=_OPTIONS_SCHEMA)] = None,
     poses: Annotated[str | None, Form(description='JSON {"convention": "opencv"|"opengl", "c2w": [A, B]}, '
-                                                  "each camera-to-world 4x4 or 3x4; leave out (or c2w null) to "
+                                                  "each camera-to-world 4x4 or 3x4 (no other keys but those the "
+                                                  "scene metadata's poses add); leave out (or c2w null) to "
                                                   "estimate them from the images (world = camera A, levelled)",
                                       examples=[_POSES_EXAMPLE])] = None,
 ) -> SceneCreated:
+    unknown = sorted(set((await request.form()).keys()) - set(FORM_FIELDS))  # the form FastAPI parsed, cached
+    if unknown:
+        raise BadInput(f"unknown form field(s) {[name[:40] for name in unknown[:5]]}; this request takes "
+                       f"{', '.join(FORM_FIELDS)}", code="unknown_form_field")
     parsed_poses = parse_poses(poses)
     parsed_options, pipeline_options, pose_options = parse_options(options)
+    check_scale_options(parsed_poses is not None, pose_options)
     if parsed_poses is not None:  # estimated poses are checked once estimated
         check_sweep_range(parsed_poses.c2w_a, parsed_poses.c2w_b, parsed_options)
     data_a, data_b = await image_a.read(), await image_b.read()
@@ -111,9 +125,10 @@ _IMAGE_CONTENT = {t: {"schema": {"type": "string", "format": "binary"}} for t in
 @router.get(
     "/{scene_id}/render", response_class=Response, summary="Render a novel view",
     responses={200: {"content": _IMAGE_CONTENT, "description": "the rendered image"},
-               **error_responses(404, 413, 422, 503)},
+               **error_responses(400, 404, 413, 422, 503)},
 )
 async def render_scene(
+    request: Request,
     scene_id: SceneId,
     store: StoreDep,
     settings: SettingsDep,
@@ -132,6 +147,9 @@ async def render_scene(
     compositing: Annotated[Compositing, Query(description=_COMPOSITING_DOC)] = "plain",
     rig: Annotated[bool, Query(description=_RIG_DOC)] = False,
 ) -> Response:
+    if projection != "perspective" and "fov_deg" in request.query_params:  # as height: it would be dropped
+        raise BadInput(f"fov_deg: only a perspective render takes a field of view (this one is {projection})",
+                       code="invalid_render_query")
     query = check_render_query(c2w, projection, width, height, fov_deg, format,
                                max_width=settings.max_render_width, max_pixels=settings.max_render_pixels,
                                compositing=compositing, rig=rig)
@@ -152,7 +170,7 @@ async def render_scene(
     "/{scene_id}/gaussians.ply", response_class=StreamingResponse, summary="The Gaussians as a 3DGS PLY",
     responses={200: {"content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
                      "description": "binary little-endian INRIA 3DGS PLY in the input world frame"},
-               **error_responses(404, 422, 503)},
+               **error_responses(400, 404, 422, 503)},
 )
 async def scene_ply(scene_id: SceneId, store: StoreDep, gate: RenderGateDep) -> StreamingResponse:
     _require_scene(store, scene_id)
@@ -169,7 +187,7 @@ async def scene_ply(scene_id: SceneId, store: StoreDep, gate: RenderGateDep) -> 
 
 
 @router.get("/{scene_id}", response_model=SceneMeta, summary="Scene metadata",
-            responses=error_responses(404, 422))
+            responses=error_responses(400, 404, 422))
 async def scene_meta(scene_id: SceneId, store: StoreDep) -> SceneMeta:
     _require_scene(store, scene_id)
     meta = await anyio.to_thread.run_sync(store.meta, scene_id)
@@ -177,7 +195,7 @@ async def scene_meta(scene_id: SceneId, store: StoreDep) -> SceneMeta:
 
 
 @router.delete("/{scene_id}", status_code=204, response_class=Response, summary="Delete a scene",
-               responses=error_responses(404, 422, 507))
+               responses=error_responses(400, 404, 422, 507))
 async def delete_scene(scene_id: SceneId, store: StoreDep) -> Response:
     if not await anyio.to_thread.run_sync(store.delete, scene_id):
         raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")

@@ -99,3 +99,10 @@ def test_reader_refuses_bad_files():
 def test_empty_gaussians_round_trip():
     back = read_ply(ply_bytes(Gaussians.empty()))
     assert len(back) == 0
+
+
+def test_a_failed_write_leaves_no_temp_file(tmp_path):
+    (tmp_path / "out.ply").mkdir()  # the target is a folder: the rename fails
+    with pytest.raises(OSError):
+        write_ply(tmp_path / "out.ply", scene(np.random.default_rng(0), n=10))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.ply"]

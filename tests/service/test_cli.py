@@ -113,6 +113,59 @@ def test_reconstruct_argument_errors(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
+def test_reconstruct_reads_images_as_the_api_does(tmp_path, capsys):
+    """A 16-bit greyscale PNG is scaled by its range (Pillow's RGB conversion made it white) and a PNG
+    holding fewer rows than its header says is refused (Pillow left the missing rows black)."""
+    import argparse
+    import io
+
+    from PIL import Image
+
+    from service.cli.reconstruct import load_pair
+    from service.images import decode_rgb
+    from tests.service._support import POSES, panorama
+
+    grey = np.asarray(Image.open(io.BytesIO(panorama(seed=5))).convert("L")).astype(np.uint16) * 257
+    Image.fromarray(grey).save(tmp_path / "a.png")
+    (tmp_path / "b.png").write_bytes(panorama(seed=6))
+    (tmp_path / "poses.json").write_text(POSES)
+    args = argparse.Namespace(inputs=[str(tmp_path / "a.png"), str(tmp_path / "b.png")], poses=str(tmp_path / "poses.json"))
+    a, _, _, _, _ = load_pair(args)
+    api, _ = decode_rgb((tmp_path / "a.png").read_bytes(), "image_a", max_pixels=1 << 25, min_height=32)
+    assert a.dtype == np.float32 and np.array_equal(np.round(a * 255).astype(np.uint8), api)
+    assert abs(float(a.mean()) - grey.mean() / 65535) < 0.01  # not white
+    whole = (tmp_path / "b.png").read_bytes()
+    (tmp_path / "b.png").write_bytes(whole[: len(whole) // 3] + whole[-12:])  # IEND kept: Pillow reads no error
+    assert cli.main(["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--poses",
+                     str(tmp_path / "poses.json"), "--no-build", "--model", str(tmp_path / "none.onnx")]) == 2
+    err = capsys.readouterr().err
+    assert "b.png" in err and "truncated" in err
+
+
+def test_reconstruct_scale_flags_with_given_poses_are_refused(tmp_path, capsys):
+    """--baseline / --camera-height scale estimated poses only; with --poses they were ignored without a word."""
+    from tests.service._support import POSES, panorama
+
+    for name, seed in (("a.png", 7), ("b.png", 8)):
+        (tmp_path / name).write_bytes(panorama(seed=seed))
+    (tmp_path / "poses.json").write_text(POSES)
+    for flag in ("--baseline", "--camera-height"):
+        assert cli.main(["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--poses",
+                         str(tmp_path / "poses.json"), flag, "2", "--no-build", "--model", str(tmp_path / "none.onnx")]) == 2
+        err = capsys.readouterr().err
+        assert flag in err and "given" in err
+
+
+@pytest.mark.parametrize("flag", ["-o", "--json"])
+def test_reconstruct_output_that_is_a_folder_is_refused_before_any_work(tmp_path, capsys, flag):
+    (tmp_path / "out").mkdir()
+    argv = ["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), flag, str(tmp_path / "out"),
+            "--no-build", "--model", str(tmp_path / "none.onnx")]
+    assert cli.main(argv) == 2  # was an IsADirectoryError traceback after the reconstruction
+    err = capsys.readouterr().err
+    assert "is a folder" in err and "Traceback" not in err
+
+
 def test_reconstruct_compaction_flags_map_to_options():
     parser = cli.build_parser()
 
@@ -141,6 +194,48 @@ def test_render_argument_errors(tmp_path, capsys):
     assert "exactly one of" in capsys.readouterr().err
     assert cli.main(["render", "x.ply", "--c2w", "1,2,3"]) == 2
     assert "16" in capsys.readouterr().err
+
+
+IDENTITY_ARG = "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1"
+
+
+@pytest.mark.parametrize("extra, says", [
+    (["--width", "0"], "--width"),  # was a ValueError traceback
+    (["--width", "99999999"], "--width"),  # was a MemoryError traceback
+    (["--width", "63"], "even width"),  # was a 63 x 31 'ERP'
+    (["--projection", "perspective", "--fov-deg", "180"], "--fov-deg"),  # was a traceback
+    (["--projection", "perspective", "--width", "1", "--height", "640", "--fov-deg", "120"], "vertically"),  # black rows
+    (["--height", "32"], "only a perspective"),  # was ignored
+    (["--fov-deg", "30"], "only a perspective"),  # was ignored
+    (["-o", "view.gif"], ".png, .jpg or .jpeg"),  # PNG bytes were written to view.gif
+])
+def test_render_checks_its_query_as_the_api_does_before_reading_the_ply(tmp_path, capsys, extra, says):
+    argv = ["render", str(tmp_path / "missing.ply"), "--c2w", IDENTITY_ARG, "-o", str(tmp_path / "view.png")]
+    if extra[0] == "-o":
+        argv[-1] = str(tmp_path / extra[1])
+        extra = []
+    assert cli.main(argv + extra) == 2
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err
+
+
+def test_render_pose_file_with_an_unknown_key_is_refused(tmp_path, capsys):
+    (tmp_path / "pose.json").write_text('{"convension": "opengl", "c2w": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}')
+    assert cli.main(["render", "x.ply", "--pose", str(tmp_path / "pose.json")]) == 2
+    assert "convension" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["select", "../../etc", "--view", "a", "--point", "0.5,0.5"], "invalid_scene_id"),  # was a traceback
+    (["edit", "../x", "--selection", "0" * 32, "--op", "keep"], "invalid_scene_id"),
+    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "remove", "--color", "1,0,0"], "only for op recolor"),  # ignored
+    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "keep", "--offset", "1,0,0"], "only for op translate"),
+    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "translate", "--offset", "1e7,0,0"], "finite"),
+])
+def test_select_and_edit_errors_are_one_line_as_the_api_words_them(tmp_path, capsys, argv, says):
+    assert cli.main([argv[0], "--store", str(tmp_path / "store"), *argv[1:]]) == 2
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err
 
 
 def test_serve_without_model_and_no_build(tmp_path, capsys):

@@ -49,3 +49,26 @@ def test_refine_cli_bad_arguments(tmp_path):
     for flag in (["--loss", "huber"], ["--optimise-opacity"], ["--opacity-lr", "0.1"]):  # experiment switches
         with pytest.raises(SystemExit):
             main([str(tmp_path / "missing.ply"), str(tmp_path), "--out", str(tmp_path / "o.ply"), *flag])
+
+
+@pytest.mark.parametrize("flag, value", [("--height", "100000"), ("--colour-reg", "nan"), ("--holdout", "0.9"),
+                                         ("--patience", "-3"), ("--iterations", "5000")])
+def test_refine_cli_takes_the_api_bounds_before_any_work(tmp_path, capsys, flag, value):
+    """--height 100000 was a MemoryError traceback and --colour-reg nan ran; the API's bounds apply."""
+    assert main([str(tmp_path / "missing.ply"), str(tmp_path), "--out", str(tmp_path / "o.ply"), flag, value]) == 2
+    err = capsys.readouterr().err
+    assert f"{flag}:" in err and "Traceback" not in err
+
+
+def test_refine_cli_needs_poses_and_a_writable_output(tmp_path, capsys):
+    write_ply(tmp_path / "in.ply", toy_scene(4, n=50))
+    img = np.zeros((32, 64, 3), np.uint8)
+    for name in ("a.png", "b.png"):
+        Image.fromarray(img).save(tmp_path / name)
+    images = [str(tmp_path / "a.png"), str(tmp_path / "b.png")]
+    assert main([str(tmp_path / "in.ply"), *images, "--out", str(tmp_path / "o.ply")]) == 2  # was a PoseError traceback
+    assert "--poses" in capsys.readouterr().err
+    (tmp_path / "poses.json").write_text(json.dumps({"c2w": [np.eye(4).tolist(), (np.eye(4) + np.eye(4, k=3)).tolist()]}))
+    assert main([str(tmp_path / "in.ply"), *images, "--poses", str(tmp_path / "poses.json"), "--iterations", "1",
+                 "--height", "16", "--out", str(tmp_path / "no" / "such" / "o.ply")]) == 2  # was a traceback
+    assert "cannot write" in capsys.readouterr().err

@@ -128,6 +128,35 @@ def test_bad_poses(text, code):
     assert info.value.code == code, info.value.message
 
 
+@pytest.mark.parametrize("key", ["convension", "C2W", "c2w_b", "scale"])
+def test_unknown_pose_keys_are_422_naming_them(key):
+    obj = {"convention": "opengl", "c2w": [I4, _moved()], key: "opengl"}
+    if key == "convension":  # the misspelt key must not silently leave the matrices read as OpenCV
+        del obj["convention"]
+    with pytest.raises(BadInput) as info:
+        parse_poses(json.dumps(obj))
+    assert info.value.code == "invalid_poses" and key in info.value.message
+
+
+@pytest.mark.parametrize("parse, text, key", [
+    (parse_poses, '{"convention": "opengl", "c2w": null, "convention": "opencv"}', "convention"),
+    (parse_options, '{"near": 0.5, "far": 9, "near": 2}', "near"),
+    (parse_options, '{"compaction": {"max_count": 5, "max_count": 6}}', "max_count"),
+])
+def test_a_json_key_given_twice_is_422_naming_it(parse, text, key):
+    """json.loads keeps the last of two equal keys without a word."""
+    with pytest.raises(BadInput) as info:
+        parse(text)
+    assert info.value.code.startswith("invalid_") and f"{key!r} is given more than once" in info.value.message
+
+
+def test_metadata_poses_can_be_sent_back():
+    given = parse_poses(_poses(I4, _moved(), "opengl"))
+    meta = {**given.as_json(), "source": "given", "support": {"applied": False}}  # what GET /v1/scenes/{id} shows
+    again = parse_poses(json.dumps(meta))
+    assert np.array_equal(again.c2w_a, given.c2w_a) and np.array_equal(again.c2w_b, given.c2w_b)
+
+
 def test_nan_pose_in_matrix():
     with pytest.raises(BadInput):
         parse_poses(json.dumps({"c2w": [I4, [[float("nan")] * 4] * 4]}).replace("NaN", "1e999"))
@@ -179,6 +208,19 @@ def test_render_query_sizes():
     assert q.output_size() == (64, 64)
     with pytest.raises(BadInput):
         check_render_query(IDENT, "perspective", 4096, 4096, 60, "png", max_width=4096, max_pixels=4096 * 2048)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(1, 4096), st.integers(1, 4096), st.floats(1.0, 170.0))
+def test_perspective_views_never_span_more_than_the_fov_limit_vertically(width, height, fov):
+    """A tall, narrow view (1 x 640 at 120 deg spans 179.9 deg vertically) rendered rows of black: refused."""
+    vertical = np.degrees(2 * np.arctan(np.tan(np.radians(fov) / 2) * height / width))
+    try:
+        check_render_query(IDENT, "perspective", width, height, fov, "png", max_width=4096, max_pixels=4096 * 4096)
+    except BadInput as exc:
+        assert vertical > 170.0 - 1e-9 and "vertically" in exc.message and exc.code == "invalid_render_query"
+    else:
+        assert vertical <= 170.0 + 1e-9
 
 
 # -- ASGI body limit and work gate, on a bare Starlette app ------------------------------
