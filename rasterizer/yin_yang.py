@@ -210,32 +210,43 @@ TAP_BLOCK_PIXELS = 1 << 18
 def _block_taps(h: int, w: int, height: int, width: int, r0: int, r1: int):
     """Merge taps of ERP rows [r0, r1) into the stacked [Yin; Yang] pixels, zero-weight taps left out.
 
-    About 94% of ERP pixels read only one grid (4 of their 8 bilinear taps have weight 0).
-    Returns two (pixels, idx, wts) pieces, flat ERP pixel indices ascending: the pixels with 4
-    non-zero taps (in their original order) and the rest (all 8); idx int32 (the stacked grids hold
-    2 h w < 2^31 pixels).
+    About 94% of ERP pixels read only one grid (4 of their 8 bilinear taps have weight 0), so each
+    grid's taps are made only where its blend weight is non-zero. Returns two (pixels, idx, wts)
+    pieces, flat ERP pixel indices ascending: the pixels with 4 non-zero taps (in their original order)
+    and the rest (all 8); idx int32 (the stacked grids hold 2 h w < 2^31 pixels).
     """
     lat, lon = geo.erp_lat_lon(height, width)
     d = geo.direction_from_lat_lon(lat[r0:r1], lon).reshape(-1, 3)
-    wy = blend_weight_yin(d, feather=FEATHER_PIXELS * 2 * geo.YIN_LAT_MAX / h).astype(np.float32)[:, None]
-    taps = []
-    for kind, scale in (("yin", wy), ("yang", 1.0 - wy)):
-        col, row = geo.project_to_grid(kind, d, h, w)
-        idx, wts = _grid_taps(col, row, h, w)
-        if kind == "yang":
-            idx = idx + h * w
-        taps.append((idx, wts * scale))
-    idx = np.concatenate([taps[0][0], taps[1][0]], axis=1).astype(np.int32)
-    wts = np.concatenate([taps[0][1], taps[1][1]], axis=1)
-    yin_zero = ~np.any(wts[:, :4] != 0, axis=1)
-    yang_zero = ~np.any(wts[:, 4:] != 0, axis=1)
-    one = yin_zero | yang_zero
+    wy = blend_weight_yin(d, feather=FEATHER_PIXELS * 2 * geo.YIN_LAT_MAX / h).astype(np.float32)
+    n = len(d)
+    grids = []  # per grid: (pixels it is read at, their taps' idx and weights, where in those rows is a pixel)
+    zero = []  # per grid: True where all its 4 weighted taps are 0
+    for k, (kind, scale) in enumerate((("yin", wy), ("yang", 1.0 - wy))):
+        some = np.flatnonzero(scale != 0)
+        col, row = geo.project_to_grid(kind, d[some], h, w)
+        i, t = _grid_taps(col, row, h, w)
+        t *= scale[some, None]
+        where = np.zeros(n, np.int64)
+        where[some] = np.arange(some.size)
+        none = np.ones(n, bool)
+        none[some] = ~np.any(t != 0, axis=1)
+        grids.append(((i + k * h * w).astype(np.int32), t, where))
+        zero.append(none)
+    one = zero[0] | zero[1]
     four = np.flatnonzero(one)
-    cols = np.where(yin_zero[four], 4, 0)[:, None] + np.arange(4)
+    from_yang = zero[0][four]
+    idx4 = np.empty((four.size, 4), np.int32)
+    wts4 = np.empty((four.size, 4), np.float32)
+    for k, sel in enumerate((~from_yang, from_yang)):
+        i, t, where = grids[k]
+        rows = where[four[sel]]
+        idx4[sel], wts4[sel] = i[rows], t[rows]
     eight = np.flatnonzero(~one)
+    (i0, t0, w0), (i1, t1, w1) = grids
+    idx8 = np.concatenate([i0[w0[eight]], i1[w1[eight]]], axis=1)
+    wts8 = np.concatenate([t0[w0[eight]], t1[w1[eight]]], axis=1)
     offset = r0 * width
-    return ((four + offset, np.take_along_axis(idx[four], cols, axis=1), np.take_along_axis(wts[four], cols, axis=1)),
-            (eight + offset, idx[eight], wts[eight]))
+    return (four + offset, idx4, wts4), (eight + offset, idx8, wts8)
 
 
 def _row_blocks(height: int, width: int) -> list[tuple[int, int]]:
