@@ -26,12 +26,6 @@ def live(model_path, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def client(live):
-    with live.client() as c:
-        yield c
-
-
-@pytest.fixture(scope="module")
 def scene(client, m3d_dir):
     s = load_scene(m3d_dir)
     fa, fb = s.frames["00"], s.frames["02"]

@@ -23,12 +23,6 @@ def live(model_path, tmp_path_factory):
         yield server
 
 
-@pytest.fixture(scope="module")
-def client(live):
-    with live.client() as c:
-        yield c
-
-
 def _decode(data: bytes) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
 

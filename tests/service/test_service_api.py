@@ -27,12 +27,6 @@ def live(model_path, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def client(live):
-    with live.client() as c:
-        yield c
-
-
-@pytest.fixture(scope="module")
 def scene_id(client) -> str:
     return new_scene(client, seed=1, shift=5)
 

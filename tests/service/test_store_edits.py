@@ -15,12 +15,6 @@ def live(model_path, tmp_path_factory):
         yield server
 
 
-@pytest.fixture(scope="module")
-def client(live):
-    with live.client() as c:
-        yield c
-
-
 def _scene(client, seed: int) -> str:
     return new_scene(client, seed, shift=7)
 
