@@ -15,7 +15,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from rasterizer.geometry import PoseError, as_c2w
-from rasterizer.sweep import MIN_BASELINE, SweepRangeError, check_scene_scale
+from rasterizer.sweep import MAX_SCENE_EXTENT, MIN_BASELINE, SweepRangeError, check_scene_scale
 
 from .errors import BadInput
 from .options import SceneOptions, describe_error
@@ -237,6 +237,10 @@ def check_render_query(c2w: str | np.ndarray, projection: str, width: int, heigh
     """The render query of the API (``c2w`` as its query text) or the CLI (a checked 4x4 OpenCV c2w); 422 naming
     the parameter that is out of range."""
     pose = c2w if isinstance(c2w, np.ndarray) else parse_c2w_query(c2w)
+    reach = float(np.abs(pose[:3, 3]).max())
+    if not reach <= MAX_SCENE_EXTENT:  # as the scenes' own cameras: float32 positions beyond cannot resolve a room
+        raise BadInput(f"c2w: the camera lies {reach:.3g} from the origin; render cameras, as the scenes' cameras, "
+                       f"must lie within {MAX_SCENE_EXTENT:g} of it", code="invalid_pose")
     if compositing not in COMPOSITINGS:
         raise BadInput(f"compositing: expected plain or va, got {compositing!r}", code="invalid_render_query")
     if projection not in ("erp", "perspective", "yin", "yang"):

@@ -210,6 +210,20 @@ def test_render_query_sizes():
         check_render_query(IDENT, "perspective", 4096, 4096, 60, "png", max_width=4096, max_pixels=4096 * 2048)
 
 
+@pytest.mark.parametrize("offset", [1e6, -1e6, 1.01e6, 1e15, -1e300])
+def test_render_cameras_lie_within_the_scene_extent(offset):
+    """A render camera obeys the bound of the scenes' own cameras (float32 cannot resolve a room from 1e15 m
+    away: the image would be noise, not the scene)."""
+    from rasterizer.sweep import MAX_SCENE_EXTENT
+
+    c2w = ",".join(str(v) for v in [1, 0, 0, offset, 0, 1, 0, 0.5, 0, 0, 1, 0, 0, 0, 0, 1])
+    if abs(offset) <= MAX_SCENE_EXTENT:
+        assert check_render_query(c2w, "erp", 64, None, 90, "png", max_width=4096, max_pixels=10**7).c2w[0, 3] == offset
+    else:
+        with pytest.raises(BadInput, match="from the origin"):
+            check_render_query(c2w, "erp", 64, None, 90, "png", max_width=4096, max_pixels=10**7)
+
+
 @settings(max_examples=200, deadline=None)
 @given(st.integers(1, 4096), st.integers(1, 4096), st.floats(1.0, 170.0))
 def test_perspective_views_never_span_more_than_the_fov_limit_vertically(width, height, fov):
