@@ -29,6 +29,8 @@ Compositing = Literal["plain", "va"]
 COMPOSITINGS = ("plain", "va")
 #: Width in pixels of a render (and of a selection mask) when the request names none.
 DEFAULT_RENDER_WIDTH = 1024
+#: Horizontal field of view (degrees) of a perspective render when the request names none.
+DEFAULT_FOV_DEG = 90.0
 
 
 def _reject_constant(name: str) -> Any:
@@ -232,10 +234,12 @@ class RenderQuery:
 MIN_FOV_DEG, MAX_FOV_DEG = 1.0, 170.0
 
 
-def check_render_query(c2w: str | np.ndarray, projection: str, width: int, height: int | None, fov_deg: float, fmt: str,
+def check_render_query(c2w: str | np.ndarray, projection: str, width: int, height: int | None, fov_deg: float | None,
+                       fmt: str,
                        *, max_width: int, max_pixels: int, compositing: str = "plain", rig: bool = False) -> RenderQuery:
     """The render query of the API (``c2w`` as its query text) or the CLI (a checked 4x4 OpenCV c2w); 422 naming
-    the parameter that is out of range."""
+    the parameter that is out of range. ``height`` and ``fov_deg`` are None where the request names none: only a
+    perspective render takes them (default: square, :data:`DEFAULT_FOV_DEG`)."""
     pose = c2w if isinstance(c2w, np.ndarray) else parse_c2w_query(c2w)
     reach = float(np.abs(pose[:3, 3]).max())
     if not reach <= MAX_SCENE_EXTENT:  # as the scenes' own cameras: float32 positions beyond cannot resolve a room
@@ -260,6 +264,10 @@ def check_render_query(c2w: str | np.ndarray, projection: str, width: int, heigh
         raise BadInput("height: only a perspective render takes a height", code="invalid_render_query")
     if height is not None and not (1 <= height <= max_width):
         raise BadInput(f"height: must be between 1 and {max_width}, got {height}", code="invalid_render_query")
+    if fov_deg is not None and projection != "perspective":  # as height: it would be dropped
+        raise BadInput(f"fov_deg: only a perspective render takes a field of view (this one is {projection})",
+                       code="invalid_render_query")
+    fov_deg = DEFAULT_FOV_DEG if fov_deg is None else fov_deg
     if not (math.isfinite(fov_deg) and MIN_FOV_DEG <= fov_deg <= MAX_FOV_DEG):
         raise BadInput(f"fov_deg: must be between {MIN_FOV_DEG:g} and {MAX_FOV_DEG:g} degrees, got {fov_deg}",
                        code="invalid_render_query")

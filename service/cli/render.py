@@ -71,11 +71,9 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise CliError(f"--output {args.output}: the name must end in .png, .jpg or .jpeg (the image format)")
     # as the API renders (the same query and its limits): plain compositing unless --compositing va
     settings = Settings()
-    if args.fov_deg is not None and args.projection != "perspective":
-        raise CliError(f"--fov-deg: only a perspective render takes a field of view (this one is {args.projection})")
     try:
         query = check_render_query(c2w, args.projection, args.width, args.height,
-                                   90.0 if args.fov_deg is None else args.fov_deg, fmt,
+                                   args.fov_deg, fmt,
                                    max_width=settings.max_render_width, max_pixels=settings.max_render_pixels,
                                    compositing=args.compositing)
     except ServiceError as exc:

@@ -83,7 +83,7 @@ async def selection_mask(request: Request, scene_id: SceneId, sel_id: Annotated[
                          view: Literal["a", "b"] | None = None, c2w: str | None = None,
                          width: Annotated[int, Query()] = DEFAULT_RENDER_WIDTH,
                          projection: Annotated[Projection, Query()] = "erp",
-                         height: int | None = None, fov_deg: float = 90.0) -> Response:
+                         height: int | None = None, fov_deg: float | None = None) -> Response:
     query = _view_or_query(request, settings, view, c2w, width, projection, height, fov_deg)
     _require(store, scene_id)
     data = await gate.run(storing, work.mask_png, store, scene_id, sel_id, view, width, query)
@@ -96,7 +96,7 @@ async def segments(request: Request, scene_id: SceneId, store: StoreDep, setting
                    view: Literal["a", "b"] | None = None, c2w: str | None = None,
                    width: Annotated[int, Query()] = DEFAULT_RENDER_WIDTH,
                    projection: Annotated[Projection, Query()] = "erp",
-                   height: int | None = None, fov_deg: float = 90.0) -> Response:
+                   height: int | None = None, fov_deg: float | None = None) -> Response:
     query = _view_or_query(request, settings, view, c2w, width, projection, height, fov_deg)
     _require(store, scene_id)
     data = await gate.run(storing, work.segments_png, store, scene_id, view, width, query)

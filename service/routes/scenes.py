@@ -25,6 +25,7 @@ from ..deps import (
 from ..errors import BadInput, NotFound
 from ..images import MEDIA_TYPES
 from ..inputs import (
+    DEFAULT_FOV_DEG,
     DEFAULT_RENDER_WIDTH,
     Compositing,
     ImageFormat,
@@ -128,7 +129,6 @@ _IMAGE_CONTENT = {t: {"schema": {"type": "string", "format": "binary"}} for t in
                **error_responses(400, 404, 413, 422, 503)},
 )
 async def render_scene(
-    request: Request,
     scene_id: SceneId,
     store: StoreDep,
     settings: SettingsDep,
@@ -142,14 +142,12 @@ async def render_scene(
                      ] = DEFAULT_RENDER_WIDTH,
     projection: Annotated[Projection, Query()] = "erp",
     height: Annotated[int | None, Query(description="perspective only; default = width")] = None,
-    fov_deg: Annotated[float, Query(description="perspective only: horizontal field of view")] = 90.0,
+    fov_deg: Annotated[float | None, Query(description="perspective only: horizontal field of view, degrees; "
+                                                       f"default {DEFAULT_FOV_DEG:g}")] = None,
     format: Annotated[ImageFormat, Query()] = "png",
     compositing: Annotated[Compositing, Query(description=_COMPOSITING_DOC)] = "plain",
     rig: Annotated[bool, Query(description=_RIG_DOC)] = False,
 ) -> Response:
-    if projection != "perspective" and "fov_deg" in request.query_params:  # as height: it would be dropped
-        raise BadInput(f"fov_deg: only a perspective render takes a field of view (this one is {projection})",
-                       code="invalid_render_query")
     query = check_render_query(c2w, projection, width, height, fov_deg, format,
                                max_width=settings.max_render_width, max_pixels=settings.max_render_pixels,
                                compositing=compositing, rig=rig)
@@ -160,7 +158,7 @@ async def render_scene(
     data, timings = await gate.run(trimmed, work.render_scene, store, scene_id, query)
     metrics.observe_stages({f"render_{k}": v for k, v in timings.items()})
     etag = hashlib.sha256(f"{scene_id}|{query.c2w.round(9).tolist()}|{projection}|{width}|{height}|"
-                          f"{fov_deg}|{format}|{compositing}|{rig}".encode()).hexdigest()[:32]
+                          f"{query.fov_deg}|{format}|{compositing}|{rig}".encode()).hexdigest()[:32]
     return Response(data, media_type=MEDIA_TYPES[format],
                     headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{etag}"',
                              "Server-Timing": ", ".join(f"{k};dur={v * 1000:.1f}" for k, v in timings.items())})

@@ -32,6 +32,7 @@ from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 from ..access import KEY_COOKIE, DuplicateKey, query_key
 from ..deps import SceneId, SettingsDep, StoreDep
 from ..errors import BadInput, NotFound, ServiceError
+from ..inputs import DEFAULT_FOV_DEG
 from ..schemas import error_responses
 
 router = APIRouter(tags=["viewer"])
@@ -85,7 +86,7 @@ def _page(scene_id: str, meta: dict) -> str:
         "scene_id": scene_id,
         "ply": f"/v1/scenes/{scene_id}/gaussians.ply",
         "c2w": [float(v) for row in c2w_a for v in row] if c2w_a else None,  # reference A, OpenCV, row-major
-        "fov_deg": 90.0,  # horizontal, as the render API's perspective default
+        "fov_deg": DEFAULT_FOV_DEG,  # horizontal, the render API's perspective default
         "num_gaussians": meta.get("num_gaussians"),
     }
     template = (PAGE_DIR / "viewer.html").read_text(encoding="utf-8")

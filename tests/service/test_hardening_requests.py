@@ -183,7 +183,8 @@ def test_any_rigid_camera_renders_finite_pixels(live, scene, monkeypatch, look, 
     else:
         c2w[:3, 3] = [10.0 ** where, -(10.0 ** (where / 2)), 0.5]
     width = {"erp": 32, "perspective": 24, "yin": 30, "yang": 30}[projection]
-    query = check_render_query(",".join(repr(float(v)) for v in c2w.ravel()), projection, width, None, 90.0, "png",
+    fov = 90.0 if projection == "perspective" else None
+    query = check_render_query(",".join(repr(float(v)) for v in c2w.ravel()), projection, width, None, fov, "png",
                                max_width=512, max_pixels=512 * 256)
     data, _ = scenes.render_scene(store, scene, query)
     image = np.asarray(Image.open(io.BytesIO(data)))

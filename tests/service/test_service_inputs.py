@@ -192,9 +192,9 @@ IDENT = ",".join(str(v) for v in np.eye(4).ravel())
 
 
 @pytest.mark.parametrize("projection,width,height,fov", [
-    ("erp", 0, None, 90), ("erp", 1023, None, 90), ("erp", 10**9, None, 90), ("yin", 100, None, 90),
+    ("erp", 0, None, None), ("erp", 1023, None, None), ("erp", 10**9, None, None), ("yin", 100, None, None),
     ("perspective", 64, 0, 90), ("perspective", 64, 64, 0), ("perspective", 64, 64, float("nan")),
-    ("erp", 64, 32, 90), ("fisheye", 64, None, 90),
+    ("erp", 64, 32, None), ("erp", 64, None, 90), ("yang", 96, None, 60), ("fisheye", 64, None, None),
 ])
 def test_bad_render_queries(projection, width, height, fov):
     with pytest.raises(BadInput):
@@ -202,7 +202,7 @@ def test_bad_render_queries(projection, width, height, fov):
 
 
 def test_render_query_sizes():
-    q = check_render_query(IDENT, "yin", 96, None, 90, "png", max_width=4096, max_pixels=10**7)
+    q = check_render_query(IDENT, "yin", 96, None, None, "png", max_width=4096, max_pixels=10**7)
     assert q.output_size() == (32, 96)
     q = check_render_query(IDENT, "perspective", 64, None, 60, "jpeg", max_width=4096, max_pixels=10**7)
     assert q.output_size() == (64, 64)
@@ -218,10 +218,10 @@ def test_render_cameras_lie_within_the_scene_extent(offset):
 
     c2w = ",".join(str(v) for v in [1, 0, 0, offset, 0, 1, 0, 0.5, 0, 0, 1, 0, 0, 0, 0, 1])
     if abs(offset) <= MAX_SCENE_EXTENT:
-        assert check_render_query(c2w, "erp", 64, None, 90, "png", max_width=4096, max_pixels=10**7).c2w[0, 3] == offset
+        assert check_render_query(c2w, "erp", 64, None, None, "png", max_width=4096, max_pixels=10**7).c2w[0, 3] == offset
     else:
         with pytest.raises(BadInput, match="from the origin"):
-            check_render_query(c2w, "erp", 64, None, 90, "png", max_width=4096, max_pixels=10**7)
+            check_render_query(c2w, "erp", 64, None, None, "png", max_width=4096, max_pixels=10**7)
 
 
 @settings(max_examples=200, deadline=None)
