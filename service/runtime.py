@@ -51,20 +51,21 @@ class ModelRuntime:
             log.exception("model failed to load")
 
     def _warmup(self) -> None:
-        """Build a scene of two synthetic panoramas and render it as the API's default ERP: onnxruntime's
-        first run, the numpy stages' cached tables and the Yin-Yang merge's taps for that size (about
-        0.2 s) are then made before the first request, which runs as fast as later ones within ~0.15 s."""
+        """Build a scene of two synthetic panoramas and render it as the API renders a default ERP request:
+        onnxruntime's first run, the numpy stages' cached tables and the Yin-Yang merge's taps of the surfels'
+        grid are made before the first request. That one still builds the taps of its shell's grid, whose size
+        follows the view's scale."""
         from rasterizer.render import render
 
-        from .inputs import DEFAULT_RENDER_WIDTH
+        from .inputs import DEFAULT_FOV_DEG, DEFAULT_RENDER_WIDTH, RenderQuery
         from .pipeline import PipelineOptions, build_scene
 
         img = np.random.default_rng(0).random((self.encoder.height, self.encoder.width, 3), dtype=np.float32)
         c2w_b = np.eye(4)
         c2w_b[2, 3] = 1.0
         scene = build_scene(self.encoder, img, img, np.eye(4), c2w_b, PipelineOptions.from_dict({}))
-        render(scene.gaussians, np.eye(4), projection="erp", width=DEFAULT_RENDER_WIDTH, resolution="scene",
-               backdrop=scene.info["shell"])
+        query = RenderQuery(np.eye(4), "erp", DEFAULT_RENDER_WIDTH, None, DEFAULT_FOV_DEG, "png", "plain", False)
+        render(scene.gaussians, query.c2w, **query.render_kwargs(normalize=False), backdrop=scene.info["shell"])
 
     @property
     def version(self) -> str:
