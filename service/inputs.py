@@ -63,6 +63,21 @@ def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def check_unique_keys(text: str | bytes) -> None:
+    """BadInput (422 ``invalid_request``) when a JSON object in ``text`` names a key twice.
+
+    Request bodies that FastAPI parses keep the last of repeated keys without a word; the
+    routes that take a JSON body run this first. Other JSON errors are left to the body's own
+    validation, which names them.
+    """
+    try:
+        json.loads(text, object_pairs_hook=_unique_keys)
+    except _DuplicateKey as exc:
+        raise BadInput(f"request body: {exc}", code="invalid_request") from None
+    except (ValueError, RecursionError):
+        pass
+
+
 def _json_object(text: str | bytes, field: str) -> Any:
     try:
         return json.loads(text, parse_constant=_reject_constant, parse_int=_bounded_int, object_pairs_hook=_unique_keys)

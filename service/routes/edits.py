@@ -11,7 +11,7 @@ from fastapi import APIRouter, Body, Path, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from .. import edits as work
-from ..deps import RenderGateDep, SceneId, SettingsDep, SingleQueryValues, StoreDep
+from ..deps import RenderGateDep, SceneId, SettingsDep, SingleQueryValues, StoreDep, UniqueBodyKeys
 from ..edits import EditRequest, Point, SelectionRequest
 from ..errors import BadInput, NotFound
 from ..inputs import DEFAULT_RENDER_WIDTH, Projection, check_render_query
@@ -63,7 +63,7 @@ def _require(store, scene_id: str) -> None:
         raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
 
 
-@router.post("/{scene_id}/selections", status_code=201, response_model=SelectionCreated,
+@router.post("/{scene_id}/selections", status_code=201, response_model=SelectionCreated, dependencies=[UniqueBodyKeys],
              summary="Select an object from points (or a segment) in both references",
              responses=error_responses(400, 404, 409, 422, 507))
 async def create_selection(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, response: Response,
@@ -103,7 +103,7 @@ async def segments(request: Request, scene_id: SceneId, store: StoreDep, setting
     return Response(data, media_type="image/png")
 
 
-@router.post("/{scene_id}/edits", status_code=201, response_model=SceneCreated,
+@router.post("/{scene_id}/edits", status_code=201, response_model=SceneCreated, dependencies=[UniqueBodyKeys],
              summary="Edit the selected Gaussians; the result is a new scene (idempotent id)",
              responses=error_responses(400, 404, 409, 422, 507))
 async def create_edit(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, response: Response,

@@ -19,7 +19,7 @@ from fastapi import APIRouter, Body, Path, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from .. import jobs as work
-from ..deps import SceneId, StoreDep
+from ..deps import SceneId, StoreDep, UniqueBodyKeys
 from ..errors import Busy, NotFound
 from ..jobs import RefineRequest
 from ..limits import WorkGate
@@ -48,7 +48,7 @@ def _gate(request: Request) -> WorkGate:
     return request.app.state.refine_gate
 
 
-@router.post("/v1/scenes/{scene_id}/refine", status_code=202, response_model=JobStatus,
+@router.post("/v1/scenes/{scene_id}/refine", status_code=202, response_model=JobStatus, dependencies=[UniqueBodyKeys],
              summary="Refine the colours on the reference views; runs as a job",
              responses=error_responses(404, 409, 422, 503))
 async def refine_scene(scene_id: SceneId, request: Request, response: Response, store: StoreDep,

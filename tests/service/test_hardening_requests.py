@@ -86,6 +86,20 @@ def test_selection_and_edit_numbers_are_strict(client, scene, path, body):
     assert r.json()["error"]["code"] == "invalid_request"
 
 
+@pytest.mark.parametrize("path, body, key", [
+    ("selections", '{"view": "a", "points": [[0.5, 0.5]], "view": "b"}', "view"),
+    ("selections", '{"view": "a", "points": [[0.5, 0.5]], "negative": [], "negative": [[0.1, 0.1]]}', "negative"),
+    ("edits", '{"selection": "%s", "op": "remove", "op": "recolor", "color": [1, 0, 0]}' % ("0" * 32), "op"),
+    ("refine", '{"iterations": 1, "iterations": 50}', "iterations"),
+])
+def test_a_key_repeated_in_a_json_body_is_422_naming_it(client, scene, path, body, key):
+    """The body's model kept the last of repeated keys without a word (view "b" selected in the other reference)."""
+    r = client.post(f"/v1/scenes/{scene}/{path}", content=body, headers={"Content-Type": "application/json"})
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["code"] == "invalid_request" and f"{key!r} is given more than once" in err["message"], err
+
+
 @pytest.mark.parametrize("field", ["poses", "options"])
 def test_oversize_text_field_is_413_saying_what_is_too_large(client, live, field):
     before = stored_scene_count(live.settings.store_dir)
