@@ -6,6 +6,7 @@ actually needed, so the runtime (and the Docker runtime stage) never imports it.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import sys
@@ -18,18 +19,32 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 _RASTERIZER_DEPS = ("geometry.py", "gaussians.py", "sweep.py", "yin_yang.py")
 
 
+def source_hash(files) -> str:
+    """Short hash (10 hex digits) of the named source files' bytes, in the order given (absent ones skipped)."""
+    h = hashlib.sha256()
+    for f in files:
+        if f.exists():
+            h.update(f.name.encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:10]
+
+
 def export_code_hash() -> str:
     """Short hash of the exporter's source (export/*.py and the rasterizer modules it uses).
 
     Part of model file names, so a model built by older code is never reused. Reads the
     files as bytes: no torch import.
     """
-    h = hashlib.sha256()
-    files = sorted((REPO_ROOT / "export").glob("*.py")) + [REPO_ROOT / "rasterizer" / f for f in _RASTERIZER_DEPS]
-    for f in files:
-        if f.exists():
-            h.update(f.name.encode() + b"\0" + f.read_bytes())
-    return h.hexdigest()[:10]
+    return source_hash(sorted((REPO_ROOT / "export").glob("*.py")) + [REPO_ROOT / "rasterizer" / f for f in _RASTERIZER_DEPS])
+
+
+@functools.cache
+def build_code_hash() -> str:
+    """Short hash of the code that turns uploads into a stored scene (rasterizer/ and service/ sources).
+
+    Part of scene ids, so a store written by other code (another pose estimator, colour fit,
+    compaction or image decoding) never answers a new upload with a scene built otherwise.
+    """
+    return source_hash(sorted((REPO_ROOT / "rasterizer").rglob("*.py")) + sorted((REPO_ROOT / "service").rglob("*.py")))
 
 
 def default_model_name() -> str:

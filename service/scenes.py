@@ -28,6 +28,7 @@ from .images import check_header, decode_rgb, encode
 from .inputs import Poses, RenderQuery, check_sweep_range
 from .limits import render_cost
 from .memory import release_memory
+from .model_files import build_code_hash
 from .pipeline import PipelineOptions, build_scene
 from .poses import PoseOptions, poses_for_scene
 from .references import REFERENCES_ARTIFACT, load_references, references_bytes
@@ -59,10 +60,10 @@ def links(scene_id: str) -> dict[str, str]:
 
 
 def scene_id_for(model_sha256: str, image_a: bytes, image_b: bytes, poses: Poses | None, options: dict) -> str:
-    """Content hash: same image bytes + poses (or "estimated") + options + model file give the same id."""
+    """Content hash: same image bytes + poses (or "estimated") + options + model file + build code give the same id."""
     pose_key = "estimated" if poses is None else \
         json.dumps([np.round(poses.c2w_a, 9).tolist(), np.round(poses.c2w_b, 9).tolist()])
-    return content_id("scene/v1", model_sha256, hashlib.sha256(image_a).hexdigest(),
+    return content_id("scene/v1", model_sha256, build_code_hash(), hashlib.sha256(image_a).hexdigest(),
                       hashlib.sha256(image_b).hexdigest(), pose_key, json.dumps(options, sort_keys=True))
 
 

@@ -32,6 +32,32 @@ def test_content_id_is_stable_and_part_boundaries_matter():
     assert len(content_id("x")) == 32 and all(c in "0123456789abcdef" for c in content_id("x"))
 
 
+def test_scene_ids_follow_the_inputs_and_the_code_that_builds_them(monkeypatch, tmp_path):
+    """A store written by other code (another pose estimator, decoding or colour fit) must not answer an
+    upload with the scene that code built: the id hashes the rasterizer's and the service's sources."""
+    from service import model_files, scenes
+
+    args = ("model-sha", b"image a", b"image b", None, {"near": 0.5})
+    first = scenes.scene_id_for(*args)
+    assert first == scenes.scene_id_for(*args)
+    assert first != scenes.scene_id_for("model-sha", b"image a", b"image B", None, {"near": 0.5})
+    monkeypatch.setattr(scenes, "build_code_hash", lambda: "0123456789")
+    assert scenes.scene_id_for(*args) != first
+
+    code = tmp_path / "rasterizer"
+    code.mkdir()
+    (code / "step.py").write_text("X = 1\n")
+    monkeypatch.setattr(model_files, "REPO_ROOT", tmp_path)
+    model_files.build_code_hash.cache_clear()
+    try:
+        before = model_files.build_code_hash()
+        (code / "step.py").write_text("X = 2\n")
+        model_files.build_code_hash.cache_clear()
+        assert model_files.build_code_hash() != before
+    finally:
+        model_files.build_code_hash.cache_clear()
+
+
 def test_put_get_and_restart(tmp_path):
     store = SceneStore(tmp_path)
     g = _gaussians(100)
