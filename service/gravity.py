@@ -23,8 +23,9 @@ from rasterizer.relative_pose import yaw_rotation
 #: Line crops (:data:`LINE_CROPS`): 100-deg FOV, this many pixels a side.
 LINE_CROP_SIZE = 800
 LINE_CROP_FOV_DEG = 100.0
-#: Their focal length in pixels.
-LINE_CROP_FOCAL = pinhole_intrinsics(LINE_CROP_SIZE, LINE_CROP_SIZE, LINE_CROP_FOV_DEG)[0]
+#: Their intrinsics (fx, fy, cx, cy) in pixels, and the focal length alone.
+LINE_CROP_INTRINSICS = pinhole_intrinsics(LINE_CROP_SIZE, LINE_CROP_SIZE, LINE_CROP_FOV_DEG)
+LINE_CROP_FOCAL = LINE_CROP_INTRINSICS[0]
 #: Segments shorter than this share of the crop side are too imprecise to vote.
 MIN_SEGMENT_SHARE = 0.04
 #: Segments below this latitude (deg) are dropped: a tripod, a selfie stick, the photographer.
@@ -106,7 +107,7 @@ def line_normals(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     size = LINE_CROP_SIZE
     lsd = cv2.createLineSegmentDetector()
-    fx, fy, cx, cy = pinhole_intrinsics(size, size, LINE_CROP_FOV_DEG)
+    fx, fy, cx, cy = LINE_CROP_INTRINSICS
     axes = LINE_CROP_ROTATIONS[:, :, 2]
     normals, lengths = [], []
     for k, crop in enumerate(perspective_crops(gray, LINE_CROPS, LINE_CROP_FOCAL)):
