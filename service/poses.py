@@ -6,9 +6,10 @@ Gravity: each panorama's down direction from its vertical lines or the camera's 
 bearings turned so that gravity is +y) before matching.
 
 Features: SIFT (OpenCV, ``contrastThreshold=0.02``) on 16 perspective crops per ERP
-(8 on the horizon, 4 at +50 and 4 at -50 deg pitch; 100-deg FOV, 640 px), RootSIFT, each
-keypoint kept only by the crop whose axis is nearest (no duplicates), the tripod cap below
--65 deg latitude dropped. Matching: ratio 0.8 + mutual check, then upright 3-point RANSAC
+(8 on the horizon, 4 at +50 and 4 at -50 deg pitch, each sized to the directions it keeps:
+:data:`CROPS`), RootSIFT, each keypoint kept only by the crop whose axis is nearest (no
+duplicates), the tripod cap below -65 deg latitude dropped. Matching: ratio 0.8 + mutual check
+(0.9 when that leaves too few for a pose: :data:`SEED_RATIOS`), then upright 3-point RANSAC
 (:mod:`rasterizer.relative_pose`), then matching guided by the pose (within 3 then 1.5 deg of
 the epipolar plane, in front of both cameras) and robust refinement. When a second pose mode (e.g. a
 180-deg flip) keeps half the inliers, :func:`photometric_score` of both decides, or the answer is 422.
@@ -69,6 +70,15 @@ TRIPOD_LAT_DEG = -65.0
 MIN_INLIERS = 20
 #: Fewer putative matches than this agreeing with the RANSAC pose: the views share too little.
 MIN_RANSAC_INLIERS = 12
+#: Lowe ratios of the putative matches that seed RANSAC, tried in turn while the matches are too few for a pose
+#: (fewer than MIN_INLIERS, or fewer than MIN_RANSAC_INLIERS agreeing). Wide baselines (a tripod moved 3 m)
+#: change the descriptors: 0.9, the guided matching's ratio, then keeps about three times as many. Panoramas of
+#: different rooms still leave 5-8 agreeing of 80-230 (the dev scenes' 27 cross-scene pairs).
+SEED_RATIOS = (0.8, 0.9)
+#: A seed pose whose travel is steeper than this (deg from the horizontal plane of the levelled pair) is no
+#: pose: two captures of a room are taken at about the same height (a staircase rises at under 45 deg), while a
+#: vertical baseline fits any pair of mirror-symmetric patterns (its epipolar planes are the meridians).
+MAX_TRAVEL_ELEVATION_DEG = 60.0
 #: Rival pose with at least this share of the winner's inliers -> ambiguous.
 RIVAL_SHARE = 0.8
 #: Photometric scores this many times apart decide between two pose modes.
@@ -342,30 +352,42 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
     pa, pb = prepared if prepared is not None else map_threads(prepare, (erp_a, erp_b), data)
     fa, da, fb, db = pa.bearings, pa.descriptors, pb.bearings, pb.descriptors
     t_feat = time.perf_counter() - t0
-    pairs = putative_matches(da, db)
-    info: dict[str, Any] = {"features": [int(len(fa)), int(len(fb))], "putative_matches": int(len(pairs)),
-                            "gravity": [pa.gravity, pb.gravity]}
-    if len(pairs) < MIN_INLIERS:
-        raise PoseEstimationFailed(f"poses: only {len(pairs)} feature matches between the images "
-                                   f"(need {MIN_INLIERS}); give poses, or images that overlap more")
-    ma, mb = fa[pairs[:, 0]], fb[pairs[:, 1]]
-    static = rotation_only_fraction(ma, mb)
-    info["rotation_only_share"] = static
-    if static >= NO_PARALLAX_SHARE:
-        raise PoseEstimationFailed(f"poses: {static:.0%} of the matches move by a rotation alone: the two panoramas "
-                                   "were taken from (nearly) the same point, which carries no depth",
-                                   code="no_parallax")
-    try:
-        ransac = upright_ransac(ma, mb)
-    except ValueError as exc:  # degenerate matches: no hypothesis
-        raise PoseEstimationFailed(f"poses: no relative pose fits the matches ({exc}); give poses") from None
+    info: dict[str, Any] = {"features": [int(len(fa)), int(len(fb))], "gravity": [pa.gravity, pb.gravity]}
+    for k, ratio in enumerate(SEED_RATIOS):
+        last = k == len(SEED_RATIOS) - 1
+        pairs = putative_matches(da, db, ratio)
+        info.update(putative_matches=int(len(pairs)), seed_ratio=ratio)
+        if len(pairs) < MIN_INLIERS:
+            if last:
+                raise PoseEstimationFailed(f"poses: only {len(pairs)} feature matches between the images "
+                                           f"(need {MIN_INLIERS}); give poses, or images that overlap more")
+            continue
+        ma, mb = fa[pairs[:, 0]], fb[pairs[:, 1]]
+        static = rotation_only_fraction(ma, mb)
+        info["rotation_only_share"] = static
+        if static >= NO_PARALLAX_SHARE:
+            raise PoseEstimationFailed(f"poses: {static:.0%} of the matches move by a rotation alone: the two panoramas "
+                                       "were taken from (nearly) the same point, which carries no depth",
+                                       code="no_parallax")
+        try:
+            ransac = upright_ransac(ma, mb)
+        except ValueError as exc:  # degenerate matches: no hypothesis
+            raise PoseEstimationFailed(f"poses: no relative pose fits the matches ({exc}); give poses") from None
+        elevation = float(np.degrees(np.arcsin(np.clip(abs(ransac.best.t[1]), 0.0, 1.0))))
+        if ransac.best.num_inliers >= MIN_RANSAC_INLIERS and elevation <= MAX_TRAVEL_ELEVATION_DEG:
+            break
+        if last and ransac.best.num_inliers < MIN_RANSAC_INLIERS:
+            raise PoseEstimationFailed(f"poses: only {ransac.best.num_inliers} of {len(pairs)} feature matches agree on "
+                                       f"a relative pose (need {MIN_RANSAC_INLIERS}): the views share too little; "
+                                       "give poses")
+        if last:
+            raise PoseEstimationFailed(f"poses: the matches fit only a travel {elevation:.0f} deg from horizontal "
+                                       f"(at most {MAX_TRAVEL_ELEVATION_DEG:.0f}): not two captures of one room at "
+                                       "about the same height; give poses")
     yaw, t, inl, err = _guided_refine(fa, fb, da, db, ransac.best.yaw, ransac.best.t)
     method = "sift16-rootsift+levelled+upright3pt-ransac+guided"
     info.update(_support(inl, err, method))
     info["ransac_inliers"] = ransac.best.num_inliers
-    if ransac.best.num_inliers < MIN_RANSAC_INLIERS:
-        raise PoseEstimationFailed(f"poses: only {ransac.best.num_inliers} of {len(pairs)} feature matches agree on a "
-                                   f"relative pose (need {MIN_RANSAC_INLIERS}): the views share too little; give poses")
 
     def score(yaw_, t_):  # photometric agreement of the two images under a levelled-frame pose
         return photometric_score(pa.gray, pb.gray, pa.level.T @ yaw_rotation(yaw_) @ pb.level, pa.level.T @ t_)

@@ -129,6 +129,33 @@ def test_unrelated_and_flat_images_are_refused():
     assert photometric_score(flat, flat, np.eye(3), np.array([1.0, 0, 0])) == 0.0
 
 
+def test_a_mirror_flipped_panorama_is_refused_not_given_a_vertical_baseline():
+    """An ERP flipped upside down and turned: every feature moves along its meridian, which a baseline
+    along gravity explains exactly (its epipolar planes are the meridians); no two captures of a room do."""
+    noise = np.random.default_rng(0).integers(0, 255, (256, 512, 3), dtype=np.uint8)
+    with pytest.raises(PoseEstimationFailed, match="deg from horizontal"):
+        estimate_poses(noise, np.roll(noise[::-1], 77, axis=1), PoseOptions())
+
+
+def test_too_few_seed_matches_at_the_first_ratio_retry_at_the_second(room_a, monkeypatch):
+    """A wide baseline leaves too few ratio-0.8 matches to seed RANSAC: the guided matching's 0.9 seeds it."""
+    import service.poses as poses
+
+    tried = []
+
+    def putative(da, db, ratio=0.8):
+        tried.append(ratio)
+        pairs = poses._mutual_matches(da, db, ratio)
+        return pairs[:poses.MIN_INLIERS - 1] if ratio == poses.SEED_RATIOS[0] else pairs
+
+    monkeypatch.setattr(poses, "putative_matches", putative)
+    true = _pose(35.0, [1.2, 0.0, 0.6])
+    c2w_a, c2w_b, info = estimate_poses(room_a, room_erp(true), PoseOptions(baseline=2.0))
+    assert tried == list(poses.SEED_RATIOS) and info["seed_ratio"] == poses.SEED_RATIOS[1]
+    rel = np.linalg.inv(c2w_a) @ c2w_b
+    assert _rot_err(rel[:3, :3], true[:3, :3]) < 0.5 and _angle(rel[:3, 3], true[:3, 3]) < 2.0
+
+
 def test_default_scale_is_one_and_says_so(room_a):
     _, c2w_b, info = estimate_poses(room_a, room_erp(_pose(-20.0, [0.8, 0.0, -0.9])), PoseOptions())
     assert abs(np.linalg.norm(c2w_b[:3, 3]) - 1.0) < 1e-9
