@@ -100,6 +100,8 @@ def floor_ratio(grey_a: np.ndarray, grey_b: np.ndarray, level_a: np.ndarray, lev
     ``min_zncc``. The floor is the deepest peak of the votes holding ``min_peak`` of the highest peak
     above the median (a bed or a table top is a plane too, higher: a smaller ratio; a floor is the
     lowest plane, nothing is seen below it) and ``min_share`` of the scored pixels within ``width`` bins.
+    A peak at either end of ``ratios`` is not a plane: its voters' best plane lies at or beyond it (far
+    content, with little parallax, piles on the deepest candidate).
     The ratio is refined by a parabola through the summed ZNCC of the floor's voters. Raises
     ``ValueError`` when no peak qualifies. Info: pixel counts, the floor's ``floor_share`` and every strong
     peak's ratio and share (``planes``)."""
@@ -119,6 +121,8 @@ def floor_ratio(grey_a: np.ndarray, grey_b: np.ndarray, level_a: np.ndarray, lev
     padded = np.concatenate([[-1.0], smooth, [-1.0]])
     peaks = np.nonzero((padded[1:-1] > padded[:-2]) & (padded[1:-1] >= padded[2:]))[0]
     base = float(np.median(smooth))
+    # a peak at either end of the candidates is censored, not a plane (docstring)
+    peaks = peaks[(peaks > 0) & (peaks < len(ratios) - 1)]
     strong = peaks[smooth[peaks] - base >= min_peak * (smooth.max() - base)] if smooth.max() > base else peaks[:0]
     info = {"scored_pixels": scored, "voters": int(votes.sum())}
     if not len(strong):

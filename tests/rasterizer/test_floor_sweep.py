@@ -70,3 +70,26 @@ def test_flat_images_have_no_floor():
     flat = np.full((128, 256), 0.5, np.float32)
     with pytest.raises(ValueError, match="floor is not seen"):
         floor_ratio(flat, flat, np.eye(3), np.eye(3), np.eye(3), np.array([1.0, 0.0, 0.0]))
+
+
+def test_votes_piled_at_the_deepest_candidate_are_not_a_floor_there(monkeypatch):
+    """Pixels whose best plane is the deepest candidate say "this deep or deeper" (far content, nearly no
+    parallax), not that a plane lies there: on a real pair (bedroom_theta 3+9) such a pile, the deepest peak,
+    gave a baseline 20x too small. The floor is the deepest peak inside the candidates."""
+    import rasterizer.floor_sweep as fs
+
+    k, h, w = len(fs.FLOOR_RATIOS), 40, 80
+    floor, rng = 40, np.random.default_rng(0)
+
+    def zncc(ref, other, level_ref, level_other, R, t, normal, offsets, **_):
+        z = rng.uniform(-0.2, 0.5, (k, h, w)).astype(np.float32)
+        z[floor, :10] = 0.9  # a quarter of the band agrees on the floor's plane
+        z[k - 1, 10:14] = 0.9  # a tenth on the deepest candidate, the strongest pile
+        z[k - 2, 10:14] = 0.8
+        return z
+
+    monkeypatch.setattr(fs, "plane_zncc", zncc)
+    d, info = fs.floor_ratio(np.zeros((8, 16)), np.zeros((8, 16)), np.eye(3), np.eye(3), np.eye(3),
+                             np.array([1.0, 0.0, 0.0]))
+    assert abs(np.log(d / fs.FLOOR_RATIOS[floor])) < 0.06, (d, info)
+    assert all(p["ratio"] < fs.FLOOR_RATIOS[-1] for p in info["planes"]), info
