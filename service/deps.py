@@ -61,6 +61,13 @@ def single_query_values(request: Request) -> None:
         seen.add(name)
 
 
+async def unique_body_keys(request: Request) -> None:
+    """422 when the JSON body names a key twice: the body's model would silently keep the last value."""
+    body = await request.body()  # Starlette caches it for the route's own body parameter
+    if body:
+        check_unique_keys(body)
+
+
 SettingsDep = Annotated[Settings, Depends(_settings)]
 StoreDep = Annotated[SceneStore, Depends(_store)]
 MetricsDep = Annotated[ServiceMetrics, Depends(_metrics)]
@@ -70,14 +77,8 @@ InferenceGateDep = Annotated[WorkGate, Depends(_inference_gate)]
 RenderGateDep = Annotated[WorkGate, Depends(_render_gate)]
 HeavyRenderGateDep = Annotated[WorkGate, Depends(_heavy_render_gate)]
 #: router-level dependency of the routes that read query parameters
-async def unique_body_keys(request: Request) -> None:
-    """422 when the JSON body names a key twice: the body's model would silently keep the last value."""
-    body = await request.body()  # Starlette caches it for the route's own body parameter
-    if body:
-        check_unique_keys(body)
-
-
 SingleQueryValues = Depends(single_query_values)
+#: route dependency of the routes that take a JSON body
 UniqueBodyKeys = Depends(unique_body_keys)
 SceneId = Annotated[str, Path(pattern=SCENE_ID_PATTERN, description="32 lower-case hex digits",
                               examples=["0123456789abcdef0123456789abcdef"])]
