@@ -156,6 +156,24 @@ def test_too_few_seed_matches_at_the_first_ratio_retry_at_the_second(room_a, mon
     assert _rot_err(rel[:3, :3], true[:3, :3]) < 0.5 and _angle(rel[:3, 3], true[:3, 3]) < 2.0
 
 
+def test_pose_modes_photometry_decides_then_the_floor_then_no_one():
+    """Two pose modes (a best and a rival): photometric scores 1.15x apart decide; else floor shares 1.5x
+    apart (bedroom_theta 2+8: the true pose lines up 7.0% of the band through the floor, the rival 2.6%,
+    at photometric 0.30 vs 0.29); else the inlier counts pick without deciding."""
+    from service.poses import _mode_choice
+
+    def never():
+        raise AssertionError("the floor sweep runs only when the photometric scores are close")
+
+    assert _mode_choice((0.40, 0.30), (200, 150), never) == (False, True)
+    assert _mode_choice((0.30, 0.40), (200, 150), never) == (True, True)
+    assert _mode_choice((0.30, 0.297), (261, 225), lambda: (0.070, 0.026)) == (False, True)
+    assert _mode_choice((0.30, 0.297), (261, 225), lambda: (0.026, 0.070)) == (True, True)
+    assert _mode_choice((0.30, 0.297), (261, 225), lambda: (0.0, 0.03)) == (True, True)  # no floor under the best
+    assert _mode_choice((0.30, 0.297), (261, 225), lambda: (0.05, 0.041)) == (False, False)
+    assert _mode_choice((0.30, 0.297), (225, 261), lambda: (0.0, 0.0)) == (True, False)
+
+
 def test_default_scale_is_one_and_says_so(room_a):
     _, c2w_b, info = estimate_poses(room_a, room_erp(_pose(-20.0, [0.8, 0.0, -0.9])), PoseOptions())
     assert abs(np.linalg.norm(c2w_b[:3, 3]) - 1.0) < 1e-9
