@@ -25,6 +25,14 @@ def forward_import(load, hint: str):
         raise CliError(f"not available: needs {exc.name!r}, which is not installed ({hint})") from None
 
 
+def as_flags(message: str, names, prefix: str = "") -> str:
+    """An API error message with each parameter ``prefix + name + ":"`` written as the CLI's flag ``--name:``
+    (underscores as dashes), so that the user reads the option they typed."""
+    for name in names:
+        message = message.replace(f"{prefix}{name}:", f"--{name.replace('_', '-')}:")
+    return message
+
+
 def read_panorama(path: str | Path):
     """An image file decoded as the API decodes an upload (:func:`service.images.decode_rgb`: 16-bit and
     float images scaled by their range, the EXIF orientation applied, truncated or non-2:1 files refused,

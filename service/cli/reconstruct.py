@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError, read_panorama, say
+from .common import CliError, as_flags, read_panorama, say
 
 
 def load_pair(args: argparse.Namespace):
@@ -99,8 +99,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
                                              "refine_poses": args.refine_poses})
         check_scale_options(c2w_a is not None, pose_options)
     except ServiceError as exc:
-        raise CliError(exc.message.replace("options.camera_height", "--camera-height")
-                       .replace("options.baseline", "--baseline")) from None
+        raise CliError(as_flags(exc.message, ("camera_height", "baseline"), prefix="options.")) from None
     for name, img in (("image A", erp_a), ("image B", erp_b)):
         if img.shape[1] != 2 * img.shape[0]:
             raise CliError(f"{name} is {img.shape[1]}x{img.shape[0]}; an ERP panorama must be exactly 2:1")

@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError
+from .common import CliError, as_flags
 from .reconstruct import load_pair
 
 
@@ -27,10 +27,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
     try:  # the API's bounds (POST /v1/scenes/{id}/refine): a NaN or a huge grid fails here, not in numpy
         RefineRequest.model_validate(params)
     except ValidationError as exc:
-        message = describe_error(exc, prefix="refine")
-        for key in params:
-            message = message.replace(f"refine.{key}:", f"--{key.replace('_', '-')}:")
-        raise CliError(message) from None
+        raise CliError(as_flags(describe_error(exc, prefix="refine"), params, prefix="refine.")) from None
     try:
         g = read_ply(args.ply)
     except (OSError, ValueError) as exc:

@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError, read_panorama, say
+from .common import CliError, as_flags, read_panorama, say
 
 
 def _pose_from_args(args: argparse.Namespace):
@@ -77,8 +77,7 @@ def cmd_render(args: argparse.Namespace) -> int:
                                    max_width=settings.max_render_width, max_pixels=settings.max_render_pixels,
                                    compositing=args.compositing)
     except ServiceError as exc:
-        raise CliError(exc.message.replace("width:", "--width:", 1).replace("height:", "--height:", 1)
-                       .replace("fov_deg:", "--fov-deg:", 1)) from None
+        raise CliError(as_flags(exc.message, ("width", "height", "fov_deg"))) from None
     try:
         gaussians = read_ply(args.ply)
     except (OSError, ValueError) as exc:
