@@ -77,6 +77,14 @@ class SelectionRequest(BaseModel):
         return {"view": self.view, "points": [list(p) for p in self.points], "negative": [list(p) for p in self.negative]}
 
 
+def check_points(points: list[Point], name: str) -> None:
+    """422 unless every (u, v) point lies in [0, 1]: u = (col + 0.5) / W, v = (row + 0.5) / H on the reference's ERP."""
+    for k, (u, v) in enumerate(points):
+        if not (math.isfinite(u) and math.isfinite(v) and 0.0 <= u <= 1.0 and 0.0 <= v <= 1.0):
+            raise BadInput(f"{name}[{k}] = [{u}, {v}]: u and v must lie in [0, 1] (u = (col + 0.5) / W, "
+                           "v = (row + 0.5) / H on the reference's ERP)", code="invalid_selection")
+
+
 class EditRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 

@@ -64,6 +64,7 @@ def _checked(model, request: dict, what: str) -> dict:
 
 def cmd_select(args: argparse.Namespace) -> int:
     from .. import edits
+    from ..errors import ServiceError
 
     if args.segment is not None:
         request = {"segment": args.segment}
@@ -72,9 +73,11 @@ def cmd_select(args: argparse.Namespace) -> int:
             raise CliError("give --point u,v (one or more) or --segment N")
         request = {"view": args.view, "points": [_point(p) for p in args.point],
                    "negative": [_point(p) for p in args.negative or []]}
-        bad = [p for p in request["points"] + request["negative"] if not all(0.0 <= c <= 1.0 for c in p)]
-        if bad:
-            raise CliError(f"points must lie in [0, 1]: {bad}")
+        try:  # the API's check (POST .../selections)
+            for name in ("points", "negative"):
+                edits.check_points(request[name], name)
+        except ServiceError as exc:
+            raise CliError(exc.message) from None
     _checked(edits.SelectionRequest, request, "select")
     return _edit_call(edits.create_selection, _edit_store(args), args.scene, request)
 

@@ -4,7 +4,6 @@
 
 from __future__ import annotations
 
-import math
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Body, Path, Query, Request, Response
@@ -12,7 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .. import edits as work
 from ..deps import RenderGateDep, SceneId, SettingsDep, SingleQueryValues, StoreDep, UniqueBodyKeys
-from ..edits import EditRequest, Point, SelectionRequest
+from ..edits import EditRequest, SelectionRequest
 from ..errors import BadInput, NotFound
 from ..inputs import DEFAULT_RENDER_WIDTH, Projection, check_render_query
 from ..scenes import storing
@@ -20,13 +19,6 @@ from ..schemas import SceneCreated, error_responses
 from ..store import SCENE_ID_PATTERN
 
 router = APIRouter(prefix="/v1/scenes", tags=["edit"], dependencies=[SingleQueryValues])
-
-
-def _check_points(points: list[Point], name: str) -> None:
-    for k, (u, v) in enumerate(points):
-        if not (math.isfinite(u) and math.isfinite(v) and 0.0 <= u <= 1.0 and 0.0 <= v <= 1.0):
-            raise BadInput(f"{name}[{k}] = [{u}, {v}]: u and v must lie in [0, 1] (u = (col + 0.5) / W, "
-                           "v = (row + 0.5) / H on the reference's ERP)", code="invalid_selection")
 
 
 class SelectionCreated(BaseModel):
@@ -68,8 +60,8 @@ def _require(store, scene_id: str) -> None:
              responses=error_responses(400, 404, 409, 422, 507))
 async def create_selection(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, response: Response,
                            body: Annotated[SelectionRequest, Body()]) -> SelectionCreated:
-    _check_points(body.points or [], "points")
-    _check_points(body.negative, "negative")
+    work.check_points(body.points or [], "points")
+    work.check_points(body.negative, "negative")
     _require(store, scene_id)
     out = await gate.run(storing, work.create_selection, store, scene_id, body.canonical())
     response.headers["Location"] = out["links"]["self"]
