@@ -88,11 +88,9 @@ def cmd_edit(args: argparse.Namespace) -> int:
     request = {"selection": args.selection, "op": args.op}
     if args.op == "recolor" or args.color is not None:
         request["color"] = _triple(args.color or "", "--color")
-        if args.op == "recolor" and not all(0.0 <= c <= 1.0 for c in request["color"]):
-            raise CliError("--color: each channel in [0, 1]")
     if args.op == "translate" or args.offset is not None:
         request["offset"] = _triple(args.offset or "", "--offset")
-    _checked(edits.EditRequest, request, "edit")  # e.g. --color with --op remove: refused, as the API does
+    _checked(edits.EditRequest, request, "edit")  # e.g. --color 2,0,0, or with --op remove: refused as the API does
     return _edit_call(lambda *a: edits.create_edit(*a)[0], _edit_store(args), args.scene, request)
 
 

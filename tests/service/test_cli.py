@@ -230,6 +230,7 @@ def test_render_pose_file_with_an_unknown_key_is_refused(tmp_path, capsys):
     (["select", "0" * 32, "--view", "a", "--point", "0.5,0.5", "--negative", "1.5,0.5"], "negative[0] = [1.5, 0.5]"),
     (["edit", "../x", "--selection", "0" * 32, "--op", "keep"], "invalid_scene_id"),
     (["edit", "0" * 32, "--selection", "0" * 32, "--op", "remove", "--color", "1,0,0"], "only for op recolor"),  # ignored
+    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "recolor", "--color", "2,0,0"], "each in [0, 1]"),
     (["edit", "0" * 32, "--selection", "0" * 32, "--op", "keep", "--offset", "1,0,0"], "only for op translate"),
     (["edit", "0" * 32, "--selection", "0" * 32, "--op", "translate", "--offset", "1e7,0,0"], "finite"),
 ])
