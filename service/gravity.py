@@ -6,7 +6,9 @@ geometry in :mod:`rasterizer.gravity`.
 where it came from: ``"lines"`` (the vertical vanishing point), ``"xmp"`` (the file's
 ``PosePitchDegrees`` / ``PoseRollDegrees``, used when the image has too few vertical lines for a
 vanishing point of its own but most of those agree with it within :data:`XMP_AGREE_DEG`) or
-``"none"`` (neither: the panorama is taken as level).
+``"none"`` (neither: the panorama is taken as level). A reading describes the pixels as stored, so
+it is ignored when the file's EXIF orientation turns the image (every viewer, and the decoder, show
+the turned one).
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ import numpy as np
 from rasterizer.geometry import lat_lon_from_direction, pinhole_intrinsics, pinhole_rays
 from rasterizer.gravity import down_from_pitch_roll, line_support, tilt_deg, vertical_from_lines
 from rasterizer.relative_pose import yaw_rotation
+
+from .images import file_orientation
 
 #: Line crops (:data:`LINE_CROPS`): 100-deg FOV, this many pixels a side.
 LINE_CROP_SIZE = 800
@@ -143,6 +147,11 @@ def panorama_gravity(gray: np.ndarray, data: bytes | None = None) -> tuple[np.nd
     """
     info: dict[str, Any] = {}
     reading = xmp_pitch_roll(data)
+    turn = file_orientation(data) if reading is not None else 1
+    if turn != 1:  # the reading describes the pixels as stored, not the panorama as shown
+        info["xmp"] = {"pitch_deg": reading[0], "roll_deg": reading[1],
+                       "ignored": f"the file's EXIF orientation {turn} turns the image the reading describes"}
+        reading = None
     normals, lengths = line_normals(gray)
     lines_down = None
     try:

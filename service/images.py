@@ -70,6 +70,17 @@ def exif_orientation(im: Image.Image) -> int:
     return value if isinstance(value, int) and 1 <= value <= 8 else 1
 
 
+def file_orientation(data: bytes) -> int:
+    """The EXIF orientation (:func:`exif_orientation`) of an image file's bytes; 1 when it cannot be read."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(data), formats=ACCEPTED_FORMATS) as im:
+                return exif_orientation(im)
+    except Exception:  # noqa: BLE001 - an unreadable header has no orientation
+        return 1
+
+
 def _too_many_pixels(field: str, w: int, h: int, max_pixels: int) -> PayloadTooLarge:
     return PayloadTooLarge(f"{field}: {w}x{h} = {w * h} pixels exceeds the limit of {max_pixels} pixels",
                            code="image_too_many_pixels")

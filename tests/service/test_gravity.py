@@ -1,8 +1,11 @@
 """Gravity of an uploaded panorama: XMP readings and the vertical lines of a synthetic tilted room."""
 
+import io
+
 import cv2
 import numpy as np
 import pytest
+from PIL import Image
 
 from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction, pinhole_rays
 from rasterizer.gravity import down_from_pitch_roll, level_rotation
@@ -24,9 +27,12 @@ def _room_erp(down, height=1024):
     return cv2.resize(shade.astype(np.float32), (height, height // 2), interpolation=cv2.INTER_AREA).astype(np.uint8)
 
 
-def _jpeg_with_xmp(pitch, roll, attributes=False):
-    ok, buf = cv2.imencode(".jpg", np.full((8, 16), 128, np.uint8))
-    assert ok
+def _jpeg_with_xmp(pitch, roll, attributes=False, base=None):
+    """A small JPEG (``base``'s bytes, else a grey 16x8 one) with a GPano XMP segment after its SOI."""
+    if base is None:
+        ok, buf = cv2.imencode(".jpg", np.full((8, 16), 128, np.uint8))
+        assert ok
+        base = buf.tobytes()
     if attributes:
         desc = f'<rdf:Description GPano:PosePitchDegrees="{pitch}" GPano:PoseRollDegrees="{roll}"/>'
     else:
@@ -37,8 +43,7 @@ def _jpeg_with_xmp(pitch, roll, attributes=False):
            f'xmlns:GPano="http://ns.google.com/photos/1.0/panorama/">{desc}</rdf:RDF></x:xmpmeta>'
            '<?xpacket end="r"?>').encode()
     payload = b"http://ns.adobe.com/xap/1.0/\x00" + xmp
-    data = buf.tobytes()
-    return data[:2] + b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload + data[2:]
+    return base[:2] + b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload + base[2:]
 
 
 @pytest.mark.parametrize("attributes", [False, True])
@@ -78,6 +83,25 @@ def test_reading_used_when_the_image_has_too_few_lines_but_they_agree():
     assert info["lines"].get("error") and info["source"] == "xmp" and np.allclose(est, [0, 1, 0])
     est, info = panorama_gravity(flat, _jpeg_with_xmp(8.0, 6.0))  # the edges disagree with this reading
     assert info["source"] == "none" and np.allclose(est, [0, 1, 0])
+
+
+def test_reading_ignored_when_exif_turns_the_image():
+    """A GPano reading describes the stored pixels; a file that EXIF turns (here by 180 deg) is shown, and
+    decoded, turned, so the reading does not describe that panorama and is not used."""
+    flat = np.full((256, 512), 120, np.uint8)
+    flat[:, 100:110] = 30
+    flat[:, 140:150] = 30
+    buf = io.BytesIO()
+    exif = Image.Exif()
+    exif[0x0112] = 3
+    Image.fromarray(np.full((8, 16), 128, np.uint8)).save(buf, "JPEG", exif=exif)
+    plain = _jpeg_with_xmp(0.0, 0.0)
+    turned = _jpeg_with_xmp(0.0, 0.0, base=buf.getvalue())
+    assert xmp_pitch_roll(turned) == (0.0, 0.0)
+    _, info = panorama_gravity(flat, plain)
+    assert info["source"] == "xmp"
+    est, info = panorama_gravity(flat, turned)
+    assert info["source"] == "none" and "orientation 3" in info["xmp"]["ignored"]
 
 
 def test_crops_shifted_per_yaw_equal_the_crops_of_their_own_rotation():
