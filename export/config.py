@@ -13,8 +13,6 @@ from typing import Literal, get_args
 from rasterizer.depth_gaussians import SURFEL_MAX_STRETCH, SURFEL_SCALE_FACTOR
 from rasterizer.sweep import FAR_PER_BASELINE, NEAR_PER_BASELINE
 
-from .layout import WALL_NARROW_DEG
-
 Matcher = Literal["window", "descriptor"]
 Readout = Literal["wta", "softargmin"]
 Fill = Literal["pushpull", "guided", "planar", "planar_guided"]
@@ -92,15 +90,6 @@ class EncoderConfig:
     # "Nothing below the floor")
     floor_clamp: bool = True
     floor_clamp_tol: float = 0.1
-    # layout surfaces (export/layout.py, layout_inverse): where the room fits, each pixel whose output
-    # confidence is below layout_confidence takes the room's range (floor, ceiling, walls: the median
-    # horizontal distance per azimuth, kernel half-width layout_wall_deg) instead of the fill's, and every
-    # surfel is opaque with the confident footprint; where it does not fit the fill and the
-    # confidence-graded opacity stay. Off: on m3d it loses 2.5-3.3 dB, on zind_room09 0.56 dB above the
-    # nadir for straight walls and +0.07 sharpness (docs/design.md)
-    layout_surfaces: bool = False
-    layout_confidence: float = 0.5
-    layout_wall_deg: float = WALL_NARROW_DEG
     upsample: Upsample = "guided"
     upsample_radius: int = 2
     upsample_eps: float = 1e-3

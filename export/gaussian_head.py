@@ -167,8 +167,7 @@ class GaussianHead(nn.Module):
         self.opacity_gamma = float(opacity_gamma)
         self.max_stretch = float(max_stretch)
 
-    def forward(self, rng, conf, colour, c2w, cam_quats, opaque=None):
-        """``opaque`` (2, G, H, W) in [0, 1], optional: moves each opacity that far to ``opacity_max``."""
+    def forward(self, rng, conf, colour, c2w, cam_quats):
         rot = c2w[:, :3, :3]  # (2, 3, 3)
         centre = c2w[:, :3, 3]  # (2, 3)
         plane = lambda name: tuple(getattr(self, f"{name}_{c}") for c in range(3))  # noqa: E731
@@ -178,9 +177,8 @@ class GaussianHead(nn.Module):
         b = _steps(pts, fb, 2, self.max_stretch)
         axes, scales = surfel_frames(a, b, fa, fb, self.scale_factor, self.ray_scale_ratio)
         c = conf.clamp(0.0, 1.0)
-        if self.confident_shrink:  # opaque layout surfels get the confident footprint: sharp, the shell behind
-            fp = c if opaque is None else torch.maximum(c, opaque)
-            scales = _scaled(scales, 1.0 - self.confident_shrink * fp)
+        if self.confident_shrink:
+            scales = _scaled(scales, 1.0 - self.confident_shrink * c)
         # camera frame -> world: one flat (N, 3) x (3, 3) GEMM per view
         means = centre.reshape(2, 1, 3) + torch.matmul(torch.stack(pts, -1).reshape(2, -1, 3), rot.transpose(1, 2))
         # camera-frame surfel rotation, turned to the world by the camera quaternion (one MatMul)
@@ -191,8 +189,6 @@ class GaussianHead(nn.Module):
         elif self.opacity_gamma != 1.0:
             c = torch.pow(c, self.opacity_gamma)
         opac = self.opacity_min + (self.opacity_max - self.opacity_min) * c
-        if opaque is not None:
-            opac = opac + opaque * (self.opacity_max - opac)
         sh_dc = (colour.permute(0, 1, 3, 4, 2) - 0.5) / SH_C0
         return (means.reshape(-1, 3), torch.stack(scales, -1).reshape(-1, 3), quats.reshape(-1, 4),
                 opac.reshape(-1), sh_dc.reshape(-1, 3))

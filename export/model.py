@@ -60,7 +60,7 @@ from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, sam
 from .features import LUMA, GreyFeatures, TrainingFreeFeatures
 from .fine_sweep import FineSweep
 from .gaussian_head import GaussianHead
-from .layout import clamp_below_floor, fit_planes, layout_inverse, plane_prior, with_plane_prior
+from .layout import clamp_below_floor, fit_planes, plane_prior, with_plane_prior
 from .matches import Matches
 from .readout import DepthReadout, baseline_of, index_to_inverse, plane_step
 from .select import select
@@ -220,15 +220,6 @@ class OmniSplatEncoder(nn.Module):
         filled = linear_push_pull(value, weight, guide, self.fine_levels, inv_depths[0])  # far: see forward()
         return guided_filter(grey, filled, 1, cfg.upsample_eps, wrap), grey
 
-    def room_surfaces(self, room, inv_full, conf_full, size):
-        """(inverse range, opaque) (2G, 1, H, W): the room's range where the output confidence is below
-        ``layout_confidence`` and the room fits (:func:`export.layout.layout_inverse`), all opaque there."""
-        lay, fit = room
-        lay_full = F.interpolate(lay, size=size, mode="bilinear", align_corners=False)
-        known = (F.interpolate((lay > 0).to(lay.dtype), size=size, mode="bilinear", align_corners=False) > 0.999)
-        use = known.to(lay.dtype) * (conf_full < self.cfg.layout_confidence).to(lay.dtype) * fit
-        return use * lay_full + (1.0 - use) * inv_full, fit * torch.ones_like(inv_full)
-
     # -- forward -------------------------------------------------------------
     def forward(self, erp_a, erp_b, warp_grids, rel_rt, inv_depths, c2w, cam_quats):
         cfg = self.cfg
@@ -256,10 +247,8 @@ class OmniSplatEncoder(nn.Module):
         # seen (the mean inverse depth, ~0.6 baselines, put opaque floaters between the cameras)
         fallback = inv_depths[0]
         fill_weight = conf_fill * reliable
-        use_planes = cfg.layout_strength > 0 or cfg.floor_clamp or cfg.layout_surfaces
+        use_planes = cfg.layout_strength > 0 or cfg.floor_clamp
         planes = fit_planes(self.feat_rays, inv, fill_weight, c2w) if use_planes else None
-        room = layout_inverse(planes, self.feat_rays, inv, fill_weight, c2w, cfg.layout_wall_deg) \
-            if cfg.layout_surfaces else None
         value, value_w = self.layout(planes, inv, fill_weight, self.feat_rays, c2w, self.levels)
         if cfg.fill == "guided":
             filled = guided_push_pull(value, value_w, grey_low, self.levels, fallback, cfg.fill_eps)
@@ -286,15 +275,10 @@ class OmniSplatEncoder(nn.Module):
         inv_full = self.floor_clamp(planes, inv_full, self.head.rays, c2w)
         inv_full = inv_full.clamp(min=inv_depths[0], max=inv_depths[d_count - 1])
         conf_full = weight if cfg.downscale == 1 else F.interpolate(weight, size=size, mode="bilinear", align_corners=False)
-        opaque = None
-        if room is not None:
-            inv_full, opaque = self.room_surfaces(room, inv_full, conf_full, size)
-            inv_full = inv_full.clamp(min=inv_depths[0], max=inv_depths[d_count - 1])
-            opaque = opaque.reshape(2, g_count, *size)
         rng = (1.0 / inv_full).reshape(2, g_count, *size)
         conf_full = conf_full.reshape(2, g_count, *size)
 
-        means, scales, quats, opac, sh_dc = self.head(rng, conf_full, full, c2w, cam_quats, opaque)
+        means, scales, quats, opac, sh_dc = self.head(rng, conf_full, full, c2w, cam_quats)
 
         def tol(expected):  # lr_tol_planes candidate steps at the other view's inverse range
             return self.cfg.lr_tol_planes * plane_step(expected, inv_depths, b, parallax=self.parallax)
