@@ -269,9 +269,12 @@ def guided_matches(fa, fb, desc_a, desc_b, R, t, *, max_deg: float, ratio: float
 
     def fits_pose(sl):  # (r, c) of the rows' pairs that fit
         # the first test leaves a few percent of the pairs: the others are evaluated at those only
-        r, c = np.nonzero(np.abs(fa[sl] @ n_hat.T) < sin_thr)
-        sin_b = np.abs((fa[sl] @ n.T)[r, c]) / np.maximum(cross_a[sl][r], 1e-12)
-        k = (fa[sl] @ g.T)[r, c]
+        near = fa[sl] @ n_hat.T
+        np.abs(near, out=near)
+        r, c = np.nonzero(near < sin_thr)
+        a = fa[sl][r]
+        sin_b = np.abs(np.einsum("ij,ij->i", a, n[c])) / np.maximum(cross_a[sl][r], 1e-12)
+        k = np.einsum("ij,ij->i", a, g[c])
         den = np.maximum(1 - k * k, 1e-9)
         a_t, g_t = at[sl][r], gt[c]
         ok = (sin_b < sin_thr) & ((a_t - k * g_t) / den > 0) & ((k * a_t - g_t) / den > 0)
