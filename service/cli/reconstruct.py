@@ -37,7 +37,8 @@ def load_pair(args: argparse.Namespace):
         if len(refs) != 2 or any(r not in scene.frames for r in refs):
             raise CliError(f"references {refs} are not two frames of {inputs[0]} (frames: {list(scene.frames)})")
         fa, fb = scene.frames[refs[0]], scene.frames[refs[1]]
-        return fa.image(), fb.image(), fa.c2w, fb.c2w, {"scene": str(inputs[0]), "references": list(refs)}
+        return (read_panorama(fa.image_path), read_panorama(fb.image_path), fa.c2w, fb.c2w,  # as the API reads uploads
+                {"scene": str(inputs[0]), "references": list(refs)})
     if len(inputs) == 2:
         from ..errors import ServiceError
 

@@ -142,6 +142,33 @@ def test_reconstruct_reads_images_as_the_api_does(tmp_path, capsys):
     assert "b.png" in err and "truncated" in err
 
 
+def test_reconstruct_reads_a_scene_folder_as_the_api_reads_uploads(tmp_path):
+    """A scene folder's images go through the API's decoder too: a 16-bit PNG scaled by its range, not white."""
+    import argparse
+    import io
+    import json
+
+    from PIL import Image
+
+    from service.cli.reconstruct import load_pair
+    from service.images import decode_rgb
+    from tests.service._support import panorama
+
+    grey = np.asarray(Image.open(io.BytesIO(panorama(seed=5))).convert("L")).astype(np.uint16) * 257
+    Image.fromarray(grey).save(tmp_path / "a.png")
+    (tmp_path / "b.png").write_bytes(panorama(seed=6))
+    eye = np.eye(4)
+    moved = eye.copy()
+    moved[0, 3] = 1.0
+    frames = [{"name": "a", "image": "a.png", "c2w": eye.tolist()}, {"name": "b", "image": "b.png", "c2w": moved.tolist()}]
+    (tmp_path / "scene.json").write_text(json.dumps({"convention": "opencv", "frames": frames}))
+    a, b, c2w_a, c2w_b, _ = load_pair(argparse.Namespace(inputs=[str(tmp_path)], refs=None, split=0))
+    api, _ = decode_rgb((tmp_path / "a.png").read_bytes(), "image_a", max_pixels=1 << 25, min_height=32)
+    assert a.dtype == np.float32 and np.array_equal(np.round(a * 255).astype(np.uint8), api)
+    assert abs(float(a.mean()) - grey.mean() / 65535) < 0.01  # not white
+    assert np.allclose(c2w_b[:3, 3], [1.0, 0.0, 0.0])
+
+
 def test_reconstruct_scale_flags_with_given_poses_are_refused(tmp_path, capsys):
     """--baseline / --camera-height scale estimated poses only; with --poses they were ignored without a word."""
     from tests.service._support import POSES, panorama
