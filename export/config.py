@@ -13,7 +13,6 @@ from typing import Literal, get_args
 from rasterizer.depth_gaussians import SURFEL_MAX_STRETCH, SURFEL_SCALE_FACTOR
 from rasterizer.sweep import FAR_PER_BASELINE, NEAR_PER_BASELINE
 
-Matcher = Literal["window", "descriptor"]
 Readout = Literal["wta", "softargmin"]
 Fill = Literal["pushpull", "guided", "planar", "planar_guided"]
 Upsample = Literal["guided", "bilinear"]
@@ -41,9 +40,7 @@ class EncoderConfig:
     num_planes: int = 64
     downscale: int = 4
     erp_encoder: bool = False
-    # features and matching (export/features.py, export/cost_volume.py): "window" = ZNCC + census
-    # on the warped grey image in target windows, "descriptor" = per-pixel descriptors warped and correlated
-    matcher: Matcher = "window"
+    # matching (export/cost_volume.py): ZNCC + soft census on the warped grey image in target windows
     zncc_radius: int = 2
     census_radii: tuple[int, ...] = (1, 3)
     census_sigma: float = 0.015
@@ -123,7 +120,7 @@ class EncoderConfig:
         full_h, full_w = self.full_size
         if full_h % self.downscale or full_w % self.downscale:
             raise ValueError(f"grid size {full_h}x{full_w} is not divisible by downscale={self.downscale}")
-        for name, choices in (("matcher", Matcher), ("readout", Readout), ("fill", Fill), ("upsample", Upsample),
+        for name, choices in (("readout", Readout), ("fill", Fill), ("upsample", Upsample),
                               ("candidate_spacing", CandidateSpacing)):
             if getattr(self, name) not in get_args(choices):
                 raise ValueError(f"{name} must be one of {get_args(choices)}, got {getattr(self, name)!r}")

@@ -6,9 +6,10 @@ refinement can replace a stage without touching the geometry):
 1. :class:`YinYangSampler` - ERP -> full-resolution Yin and Yang images
    (or the ERP itself in the ``erp_encoder`` ablation);
 2. average pooling by ``downscale`` -> feature-grid colour; grey guide;
-3. :class:`TrainingFreeFeatures` - per-pixel ZNCC + census descriptors;
+3. :class:`GreyFeatures` - the grey image the window matcher works on;
 4. :class:`SweepCostVolume` - A<-B and B<-A sphere sweeps, each point read in
-   the source grid that owns it (paper eq. 4, Yin taking the overlap), correlation;
+   the source grid that owns it (paper eq. 4, Yin taking the overlap), ZNCC + census
+   in target windows (:class:`export.cost_volume.WindowMatcher`);
 5. :class:`CostAggregation` - multi-scale guided filter per plane;
 6. :class:`DepthReadout` - sub-plane depth + two peak confidences (a steep
    one weights the fill, a gentle one becomes the output confidence);
@@ -56,8 +57,8 @@ from .aggregation import (
     pyramid_levels,
 )
 from .config import EncoderConfig
-from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, sample_maps, stacked_source
-from .features import LUMA, GreyFeatures, TrainingFreeFeatures
+from .cost_volume import SweepCostVolume, WindowMatcher, sample_maps, stacked_source
+from .features import LUMA, GreyFeatures
 from .fine_sweep import FineSweep
 from .gaussian_head import GaussianHead
 from .layout import clamp_below_floor, fit_planes, plane_prior, with_plane_prior
@@ -80,13 +81,8 @@ class OmniSplatEncoder(nn.Module):
         self.feat_h, self.feat_w = cfg.feature_size
         self.sampler = None if cfg.erp_encoder else YinYangSampler(cfg.height, self.full_h, self.full_w)
         match_args = (cfg.zncc_radius, cfg.census_radii, cfg.census_sigma, cfg.zncc_eps, cfg.zncc_weight)
-        if cfg.matcher == "window":
-            self.features = GreyFeatures()
-            matcher = WindowMatcher(*match_args, wrap=wrap)
-        else:
-            self.features = TrainingFreeFeatures(*match_args, wrap=wrap)
-            matcher = CorrelationMatcher()
-        self.cost_volume = SweepCostVolume(self.num_grids, erp_source=wrap, matcher=matcher,
+        self.features = GreyFeatures()
+        self.cost_volume = SweepCostVolume(self.num_grids, erp_source=wrap, matcher=WindowMatcher(*match_args, wrap=wrap),
                                            aggregation=CostAggregation(cfg.agg_radii, cfg.agg_eps, wrap=wrap))
         fill_scale = cfg.peak_margin_scale if cfg.fill_margin_scale is None else cfg.fill_margin_scale
         self.readout = DepthReadout(cfg.readout, cfg.softargmin_beta, (cfg.peak_margin_scale, fill_scale))
