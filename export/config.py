@@ -13,7 +13,6 @@ from typing import Literal, get_args
 from rasterizer.depth_gaussians import SURFEL_MAX_STRETCH, SURFEL_SCALE_FACTOR
 from rasterizer.sweep import FAR_PER_BASELINE, NEAR_PER_BASELINE
 
-Readout = Literal["wta", "softargmin"]
 Fill = Literal["pushpull", "guided", "planar", "planar_guided"]
 Upsample = Literal["guided", "bilinear"]
 CandidateSpacing = Literal["inverse", "parallax"]
@@ -49,9 +48,7 @@ class EncoderConfig:
     # aggregation (export/aggregation.py)
     agg_radii: tuple[int, ...] = (2, 6)
     agg_eps: float = 1e-2
-    # read-out (export/readout.py): winner-take-all with a parabolic sub-plane step, or soft-argmin
-    readout: Readout = "wta"
-    softargmin_beta: float = 50.0
+    # read-out (export/readout.py): winner-take-all with a parabolic sub-plane step
     # two confidences from the same peak margin: a steep one weights the fill (fill_margin_scale;
     # None = peak_margin_scale), a gentle one gives the output confidence / opacity
     peak_margin_scale: float = 0.2
@@ -120,7 +117,7 @@ class EncoderConfig:
         full_h, full_w = self.full_size
         if full_h % self.downscale or full_w % self.downscale:
             raise ValueError(f"grid size {full_h}x{full_w} is not divisible by downscale={self.downscale}")
-        for name, choices in (("readout", Readout), ("fill", Fill), ("upsample", Upsample),
+        for name, choices in (("fill", Fill), ("upsample", Upsample),
                               ("candidate_spacing", CandidateSpacing)):
             if getattr(self, name) not in get_args(choices):
                 raise ValueError(f"{name} must be one of {get_args(choices)}, got {getattr(self, name)!r}")

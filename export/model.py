@@ -85,7 +85,7 @@ class OmniSplatEncoder(nn.Module):
         self.cost_volume = SweepCostVolume(self.num_grids, erp_source=wrap, matcher=WindowMatcher(*match_args, wrap=wrap),
                                            aggregation=CostAggregation(cfg.agg_radii, cfg.agg_eps, wrap=wrap))
         fill_scale = cfg.peak_margin_scale if cfg.fill_margin_scale is None else cfg.fill_margin_scale
-        self.readout = DepthReadout(cfg.readout, cfg.softargmin_beta, (cfg.peak_margin_scale, fill_scale))
+        self.readout = DepthReadout((cfg.peak_margin_scale, fill_scale))
         self.head = GaussianHead(cfg.grids, self.full_h, self.full_w, cfg.scale_factor,
                                  cfg.ray_scale_ratio, cfg.opacity_min, cfg.opacity_max,
                                  cfg.opacity_gamma, cfg.max_stretch, cfg.scale_factor_confident)
@@ -108,7 +108,7 @@ class OmniSplatEncoder(nn.Module):
             self.fine_levels = pyramid_levels(self.fine_h, self.fine_w)
             self.fine = FineSweep(cfg.grids, cfg.fine_hypotheses, WindowMatcher(*match_args, wrap=wrap),
                                   CostAggregation(cfg.fine_agg_radii, cfg.agg_eps, wrap=wrap),
-                                  DepthReadout("wta", margin_scales=(cfg.peak_margin_scale, fill_scale)),
+                                  DepthReadout(margin_scales=(cfg.peak_margin_scale, fill_scale)),
                                   erp_width=self.fine_w if wrap else 0)
 
     # -- stages ------------------------------------------------------------

@@ -112,11 +112,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--num-planes", type=int, default=None)
     p.add_argument("--downscale", type=int, default=None, help="feature grid = Gaussian grid / downscale")
     p.add_argument("--erp-encoder", action="store_true", help="ablation: sweep on the raw ERP, no Yin-Yang")
-    p.add_argument("--readout", choices=("wta", "softargmin"), default=None)
     args = p.parse_args(argv)
     path = export_model(args.out, height=args.height, width=2 * args.height, num_planes=args.num_planes,
-                        erp_encoder=args.erp_encoder, preset=args.preset, downscale=args.downscale,
-                        readout=args.readout)
+                        erp_encoder=args.erp_encoder, preset=args.preset, downscale=args.downscale)
     meta = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
     print(json.dumps({"path": str(path), "bytes": path.stat().st_size,
                       **{k: meta[k] for k in ("name", "num_planes", "grids", "num_gaussians")}}))

@@ -2,12 +2,9 @@
 
 Cost (N, D, h, w) is a similarity (higher = better) over D candidates
 uniform in inverse range, ``inv_depths`` ascending (far ... near).
-
-* ``wta``: winner-take-all plus parabolic sub-plane refinement from the two
-  neighbouring planes (offset clamped to +-0.5 plane; none at the ends).
-* ``softargmin``: expectation of the plane index under softmax(beta cost).
-
-The result is a fractional plane index k; its inverse range is linear between neighbouring
+Winner-take-all plus parabolic sub-plane refinement from the two
+neighbouring planes (offset clamped to +-0.5 plane; none at the ends)
+gives a fractional plane index k; its inverse range is linear between neighbouring
 candidates (:func:`index_to_inverse`). The candidates are uniform in inverse range, or uniform in the
 parallax angle u = atan(b / r) (b the baseline, :func:`rasterizer.sweep.inverse_depth_candidates`;
 ``EncoderConfig.candidate_spacing``), and one plane step in inverse range at a given inverse range is
@@ -33,10 +30,8 @@ class DepthReadout(nn.Module):
     a gentler one for the output confidence / opacity.
     """
 
-    def __init__(self, mode: str = "wta", beta: float = 50.0, margin_scales=(0.05,)) -> None:
+    def __init__(self, margin_scales=(0.05,)) -> None:
         super().__init__()
-        self.mode = mode
-        self.beta = float(beta)
         self.margin_scales = tuple(float(m) for m in margin_scales)
 
     def forward(self, cost: torch.Tensor):
@@ -46,15 +41,11 @@ class DepthReadout(nn.Module):
         best = torch.gather(cost, 1, idx)
         lo = torch.gather(cost, 1, (idx - 1).clamp(min=0))
         hi = torch.gather(cost, 1, (idx + 1).clamp(max=d_count - 1))
-        if self.mode == "wta":
-            curv = lo - 2.0 * best + hi
-            inner = (idx > 0) & (idx < d_count - 1) & (curv < -1e-6)
-            offset = 0.5 * (lo - hi) / select(inner, curv, -1.0)
-            offset = select(inner, offset.clamp(-0.5, 0.5), 0.0)
-            k = idx.to(cost.dtype) + offset
-        else:
-            p = torch.softmax(self.beta * cost, dim=1)
-            k = (p * planes).sum(dim=1, keepdim=True)
+        curv = lo - 2.0 * best + hi
+        inner = (idx > 0) & (idx < d_count - 1) & (curv < -1e-6)
+        offset = 0.5 * (lo - hi) / select(inner, curv, -1.0)
+        offset = select(inner, offset.clamp(-0.5, 0.5), 0.0)
+        k = idx.to(cost.dtype) + offset
         far_from_peak = (planes - idx.to(cost.dtype)).abs() > 1.5
         second = select(far_from_peak, cost, -2.0).amax(dim=1, keepdim=True)
         margin = select(idx == d_count - 1, 0.0, (best - second).clamp(min=0.0))

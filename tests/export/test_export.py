@@ -206,8 +206,8 @@ def test_config_rejects_bad_settings():
         make_config("fast", height=100, width=300)
     with pytest.raises(ValueError, match="preset"):
         make_config("nope")
-    with pytest.raises(ValueError, match="readout"):
-        make_config("fast", readout="median")
+    with pytest.raises(ValueError, match="fill_plane_scale"):
+        make_config("fast", fill_plane_scale=0.0)
 
 
 def test_guided_push_pull_fill():
