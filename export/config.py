@@ -13,7 +13,6 @@ from typing import Literal, get_args
 from rasterizer.depth_gaussians import SURFEL_MAX_STRETCH, SURFEL_SCALE_FACTOR
 from rasterizer.sweep import FAR_PER_BASELINE, NEAR_PER_BASELINE
 
-Fill = Literal["pushpull", "guided", "planar", "planar_guided"]
 Upsample = Literal["guided", "bilinear"]
 CandidateSpacing = Literal["inverse", "parallax"]
 
@@ -54,10 +53,9 @@ class EncoderConfig:
     peak_margin_scale: float = 0.2
     fill_margin_scale: float | None = 0.01
     lr_tol_planes: float = 1.5
-    # fill of unconfident pixels (export/aggregation.py): plain weighted pyramid, pyramid of local
-    # linear models in the grey guide (eps = fill_eps), local linear models of inverse range in the ray
-    # direction (exact for planes; eps = fill_plane_scale^2 feature pixels^2), or both together
-    fill: Fill = "planar_guided"
+    # fill of unconfident pixels (export/aggregation.py, linear_push_pull): pyramid of local linear models of
+    # inverse range in the ray direction (exact for planes; eps = fill_plane_scale^2 feature pixels^2) and the
+    # grey level (eps = fill_eps)
     fill_eps: float = 1e-2
     fill_plane_scale: float = 3.0
     fill_min_weight: float = 0.05
@@ -117,7 +115,7 @@ class EncoderConfig:
         full_h, full_w = self.full_size
         if full_h % self.downscale or full_w % self.downscale:
             raise ValueError(f"grid size {full_h}x{full_w} is not divisible by downscale={self.downscale}")
-        for name, choices in (("fill", Fill), ("upsample", Upsample),
+        for name, choices in (("upsample", Upsample),
                               ("candidate_spacing", CandidateSpacing)):
             if getattr(self, name) not in get_args(choices):
                 raise ValueError(f"{name} must be one of {get_args(choices)}, got {getattr(self, name)!r}")

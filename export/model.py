@@ -19,8 +19,7 @@ refinement can replace a stage without touching the geometry):
    and a floor nothing may lie below (after the coarse fill and on the final map);
    fill of unreliable pixels (``linear_push_pull``: pyramid of local linear
    models of inverse range in the ray direction and grey level - exact for
-   planes; or ``guided_push_pull`` in the grey level only, or plain
-   push-pull), guided-filter smoothing, guided upsampling to the Gaussian grid;
+   planes), guided-filter smoothing, guided upsampling to the Gaussian grid;
 9. optional cascade stage (:class:`export.fine_sweep.FineSweep`, ``fine_hypotheses``
    > 0): a per-pixel sweep of a few hypotheses around that depth on a grid
    ``fine_downscale`` times smaller than the Gaussians', its own left-right
@@ -50,10 +49,8 @@ from rasterizer.geometry import grid_directions
 from .aggregation import (
     CostAggregation,
     guided_filter,
-    guided_push_pull,
     guided_upsample,
     linear_push_pull,
-    push_pull,
     pyramid_levels,
 )
 from .config import EncoderConfig
@@ -246,16 +243,10 @@ class OmniSplatEncoder(nn.Module):
         use_planes = cfg.layout_strength > 0 or cfg.floor_clamp
         planes = fit_planes(self.feat_rays, inv, fill_weight, c2w) if use_planes else None
         value, value_w = self.layout(planes, inv, fill_weight, self.feat_rays, c2w, self.levels)
-        if cfg.fill == "guided":
-            filled = guided_push_pull(value, value_w, grey_low, self.levels, fallback, cfg.fill_eps)
-        elif cfg.fill in ("planar", "planar_guided"):
-            guide = self.plane_guide  # (G, 3, h, w) -> per (view, grid)
-            guide = guide.unsqueeze(0).expand(2, g_count, 3, h, w).reshape(2 * g_count, 3, h, w)
-            if cfg.fill == "planar_guided":
-                guide = torch.cat([guide, grey_low * float(cfg.fill_eps ** -0.5)], dim=1)
-            filled = linear_push_pull(value, value_w, guide, self.levels, fallback)
-        else:
-            filled = push_pull(value, value_w, self.levels, fallback)
+        guide = self.plane_guide  # (G, 3, h, w) -> per (view, grid), with the grey level as a fourth channel
+        guide = guide.unsqueeze(0).expand(2, g_count, 3, h, w).reshape(2 * g_count, 3, h, w)
+        guide = torch.cat([guide, grey_low * float(cfg.fill_eps ** -0.5)], dim=1)
+        filled = linear_push_pull(value, value_w, guide, self.levels, fallback)
         filled = guided_filter(grey_low, filled, 1, cfg.upsample_eps, wrap)
         filled = self.floor_clamp(planes, filled, self.feat_rays, c2w)
 
