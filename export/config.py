@@ -13,7 +13,6 @@ from typing import Literal, get_args
 from rasterizer.depth_gaussians import SURFEL_MAX_STRETCH, SURFEL_SCALE_FACTOR
 from rasterizer.sweep import FAR_PER_BASELINE, NEAR_PER_BASELINE
 
-Upsample = Literal["guided", "bilinear"]
 CandidateSpacing = Literal["inverse", "parallax"]
 
 #: Named settings on the error/run-time curve (``omnisplat-bench depth``); docs/design.md.
@@ -82,7 +81,8 @@ class EncoderConfig:
     # "Nothing below the floor")
     floor_clamp: bool = True
     floor_clamp_tol: float = 0.1
-    upsample: Upsample = "guided"
+    # guided upsampling to the Gaussian grid (export/aggregation.py, guided_upsample); upsample_eps also
+    # regularises the guided-filter smoothing after each fill
     upsample_radius: int = 2
     upsample_eps: float = 1e-3
     # Gaussian head (export/gaussian_head.py): oriented surfels spanning the steps to the neighbouring
@@ -115,8 +115,7 @@ class EncoderConfig:
         full_h, full_w = self.full_size
         if full_h % self.downscale or full_w % self.downscale:
             raise ValueError(f"grid size {full_h}x{full_w} is not divisible by downscale={self.downscale}")
-        for name, choices in (("upsample", Upsample),
-                              ("candidate_spacing", CandidateSpacing)):
+        for name, choices in (("candidate_spacing", CandidateSpacing),):
             if getattr(self, name) not in get_args(choices):
                 raise ValueError(f"{name} must be one of {get_args(choices)}, got {getattr(self, name)!r}")
         if not 0 < self.scale_factor_confident <= self.scale_factor:

@@ -253,10 +253,8 @@ class OmniSplatEncoder(nn.Module):
         size = (self.full_h, self.full_w)
         if self.fine is not None:
             filled, grey_low = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes, b)
-        if cfg.upsample == "guided" and filled.shape[-2:] != size:
+        if filled.shape[-2:] != size:
             inv_full = guided_upsample(grey_low, filled, grey_full, cfg.upsample_radius, cfg.upsample_eps, wrap)
-        elif filled.shape[-2:] != size:
-            inv_full = F.interpolate(filled, size=size, mode="bilinear", align_corners=False)
         else:
             inv_full = filled
         inv_full = self.floor_clamp(planes, inv_full, self.head.rays, c2w)
