@@ -8,12 +8,9 @@ Why each default is what it is (the ablations behind it): docs/design.md.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
-from typing import Literal, get_args
 
 from rasterizer.depth_gaussians import SURFEL_MAX_STRETCH, SURFEL_SCALE_FACTOR
 from rasterizer.sweep import FAR_PER_BASELINE, NEAR_PER_BASELINE
-
-CandidateSpacing = Literal["inverse", "parallax"]
 
 #: Named settings on the error/run-time curve (``omnisplat-bench depth``); docs/design.md.
 PRESETS: dict[str, dict] = {
@@ -103,9 +100,6 @@ class EncoderConfig:
     # default runtime sweep range in units of the baseline (rasterizer.sweep.default_near_far)
     near_per_baseline: float = NEAR_PER_BASELINE
     far_per_baseline: float = FAR_PER_BASELINE
-    # the depth candidates' law (rasterizer.sweep.inverse_depth_candidates): uniform in inverse range, or
-    # uniform in the parallax angle atan(baseline / range); written to the model's metadata (docs/design.md)
-    candidate_spacing: CandidateSpacing = "inverse"
     name: str = "omnisplat-trainingfree"
     version: str = "0.16.0"
 
@@ -115,9 +109,6 @@ class EncoderConfig:
         full_h, full_w = self.full_size
         if full_h % self.downscale or full_w % self.downscale:
             raise ValueError(f"grid size {full_h}x{full_w} is not divisible by downscale={self.downscale}")
-        for name, choices in (("candidate_spacing", CandidateSpacing),):
-            if getattr(self, name) not in get_args(choices):
-                raise ValueError(f"{name} must be one of {get_args(choices)}, got {getattr(self, name)!r}")
         if not 0 < self.scale_factor_confident <= self.scale_factor:
             raise ValueError(f"need 0 < scale_factor_confident <= scale_factor, got {self.scale_factor_confident} "
                              f"and {self.scale_factor}")

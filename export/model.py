@@ -60,7 +60,7 @@ from .fine_sweep import FineSweep
 from .gaussian_head import GaussianHead
 from .layout import clamp_below_floor, fit_planes, plane_prior, with_plane_prior
 from .matches import Matches
-from .readout import DepthReadout, baseline_of, index_to_inverse, plane_step
+from .readout import DepthReadout, index_to_inverse, plane_step
 from .select import select
 from .yin_yang_sampling import YinYangSampler
 
@@ -71,7 +71,6 @@ class OmniSplatEncoder(nn.Module):
     def __init__(self, cfg: EncoderConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        self.parallax = cfg.candidate_spacing == "parallax"  # the candidates' law (export.readout.plane_step)
         wrap = cfg.erp_encoder
         self.num_grids = len(cfg.grids)
         self.full_h, self.full_w = cfg.full_size
@@ -116,7 +115,7 @@ class OmniSplatEncoder(nn.Module):
             return erps.unsqueeze(1)
         return self.sampler(erps)
 
-    def lr_consistency(self, k, inv, warp_grids, rel_rt, inv_depths, b):
+    def lr_consistency(self, k, inv, warp_grids, rel_rt, inv_depths):
         """1 where the A->B and B->A depths agree within ``lr_tol_planes``, else 0.
 
         k, inv: (2, G, 1, h, w) plane index and inverse range per target map.
@@ -142,7 +141,7 @@ class OmniSplatEncoder(nn.Module):
         source = source.unsqueeze(1).expand(2, g_count, 1, hs, ws).reshape(2 * g_count, 1, hs, ws)
         seen = sample_maps(source, loc, self.cfg.erp_encoder).reshape(2, g_count, h, w)
         # one candidate step at the source's inverse range
-        step = plane_step(expected, inv_depths, b, parallax=self.parallax)
+        step = plane_step(expected, inv_depths)
         ok = ((seen - expected).abs() <= self.cfg.lr_tol_planes * step).to(k.dtype)
         return ok.reshape(2, g_count, 1, h, w)
 
@@ -184,7 +183,7 @@ class OmniSplatEncoder(nn.Module):
             return inv
         return clamp_below_floor(planes, inv, rays, c2w, self.cfg.floor_clamp_tol)
 
-    def cascade(self, inv, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes, b):
+    def cascade(self, inv, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes):
         """Coarse inverse range (2G, 1, h, w) -> refined on the fine grid, with that grid's grey guide.
 
         Guided upsampling of the coarse map seeds :class:`FineSweep`; with
@@ -199,12 +198,12 @@ class OmniSplatEncoder(nn.Module):
         grey = F.avg_pool2d(grey_full, cfg.fine_downscale) if cfg.fine_downscale > 1 else grey_full
         seed = guided_upsample(grey_low, inv, grey, cfg.upsample_radius, cfg.upsample_eps, wrap).clamp(min=lo, max=hi)
         # (2G, 1, h, w) one coarse candidate step at each pixel
-        step = plane_step(seed, inv_depths, b, parallax=self.parallax)
+        step = plane_step(seed, inv_depths)
         refined, _, conf_fill = self.fine(seed, grey, self.fine_rays, rel_rt, step * cfg.fine_step, lo, hi)
         if not cfg.fine_fill:
             return refined, grey
         ok = self.fine.lr_consistency(refined, self.fine_rays, rel_rt,
-                                      lambda e: plane_step(e, inv_depths, b, parallax=self.parallax) * cfg.fine_lr_tol)
+                                      lambda e: plane_step(e, inv_depths) * cfg.fine_lr_tol)
         obs = F.interpolate(obs.reshape(2 * g_count, 1, *obs.shape[-2:]), size=size, mode="bilinear",
                             align_corners=False)
         guide = self.fine_plane_guide.unsqueeze(0).expand(2, g_count, 3, *size).reshape(2 * g_count, 3, *size)
@@ -228,11 +227,10 @@ class OmniSplatEncoder(nn.Module):
         cost = self.cost_volume(feats, warp_grids, grey_low)  # (2, G, D, h, w), aggregated
         d_count = cost.shape[2]
         k, conf, conf_fill = self.readout(cost.reshape(2 * g_count, d_count, h, w))  # (2G, 1, h, w)
-        b = baseline_of(c2w)
-        inv = index_to_inverse(k, inv_depths, b)
+        inv = index_to_inverse(k, inv_depths)
 
         ok = self.lr_consistency(k.reshape(2, g_count, 1, h, w), inv.reshape(2, g_count, 1, h, w),
-                                 warp_grids, rel_rt, inv_depths, b)
+                                 warp_grids, rel_rt, inv_depths)
         obs = self.observability(rel_rt, inv_depths)
         reliable = (ok * obs).reshape(2 * g_count, 1, h, w)
         weight = conf * reliable
@@ -252,7 +250,7 @@ class OmniSplatEncoder(nn.Module):
 
         size = (self.full_h, self.full_w)
         if self.fine is not None:
-            filled, grey_low = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes, b)
+            filled, grey_low = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes)
         if filled.shape[-2:] != size:
             inv_full = guided_upsample(grey_low, filled, grey_full, cfg.upsample_radius, cfg.upsample_eps, wrap)
         else:
@@ -266,7 +264,7 @@ class OmniSplatEncoder(nn.Module):
         means, scales, quats, opac, sh_dc = self.head(rng, conf_full, full, c2w, cam_quats)
 
         def tol(expected):  # lr_tol_planes candidate steps at the other view's inverse range
-            return self.cfg.lr_tol_planes * plane_step(expected, inv_depths, b, parallax=self.parallax)
+            return self.cfg.lr_tol_planes * plane_step(expected, inv_depths)
 
         matches = self.matches(rng, conf_full, self.head.rays, rel_rt, tol)
         return means, scales, quats, opac, sh_dc, rng, conf_full, matches

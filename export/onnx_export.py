@@ -35,8 +35,7 @@ def dummy_inputs(cfg: EncoderConfig) -> tuple[torch.Tensor, ...]:
     c2w_b = np.eye(4)
     c2w_b[2, 3] = 1.0
     si = sweep_inputs(np.eye(4), c2w_b, near=cfg.near_per_baseline, far=cfg.far_per_baseline,
-                      num_planes=cfg.num_planes, feature_size=cfg.feature_size, erp_encoder=cfg.erp_encoder,
-                     parallax=cfg.candidate_spacing == "parallax")
+                      num_planes=cfg.num_planes, feature_size=cfg.feature_size, erp_encoder=cfg.erp_encoder)
     return (erp(), erp()) + tuple(torch.from_numpy(si[k]) for k in INPUT_NAMES[2:])
 
 
@@ -59,7 +58,6 @@ def metadata(cfg: EncoderConfig) -> dict[str, str]:
         "num_gaussians": str(cfg.num_gaussians),
         "near_per_baseline": repr(cfg.near_per_baseline),
         "far_per_baseline": repr(cfg.far_per_baseline),
-        "candidate_spacing": cfg.candidate_spacing,  # service.encoder feeds the candidates by this law
         "erp_pad": str(ERP_PAD),
         "inputs": json.dumps({
             "erp_a": [1, 3, cfg.height, cfg.width], "erp_b": [1, 3, cfg.height, cfg.width],
