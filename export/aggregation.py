@@ -106,55 +106,6 @@ def push_pull(value: torch.Tensor, weight: torch.Tensor, levels: int, fallback: 
     return est
 
 
-def guided_push_pull(value: torch.Tensor, weight: torch.Tensor, guide: torch.Tensor, levels: int,
-                     fallback: torch.Tensor, eps: float = 1e-2, saturation: float = 0.5) -> torch.Tensor:
-    """Edge-aware :func:`push_pull`: the coarse estimate is a local linear model in the guide.
-
-    Push: confidence-weighted moments (w, w g, w g^2, w v, w v g) of value v and
-    grey guide g, averaged down ``levels`` halvings (one 5-channel pool per level).
-    Each level fits v ~ a g + b to its weighted samples (guided-filter
-    regression, ``eps`` on the guide variance) and blends its (a, b) with the
-    upsampled coarser coefficients by min(w / saturation, 1), coarse to fine.
-    A pixel with little weight of its own takes a g + b at its *own* grey
-    level, so a fill follows the image's grey edges (a flat curtain in front
-    of a patterned wall takes the depth of the confident pixels that look
-    like it) instead of averaging across them. Where no weight exists the
-    result tends to ``fallback``.
-    """
-    g = guide
-    mom = [torch.cat([weight, weight * g, weight * g * g, weight * value, weight * value * g], dim=1)]
-    for _ in range(levels):
-        mom.append(F.avg_pool2d(mom[-1], 2))
-
-    def moments(m: torch.Tensor, prior_eps: float):
-        w, wg, wgg, wv, wvg = m.split(1, dim=1)
-        den = w + prior_eps
-        mean_g = wg / den
-        mean_v = (wv + prior_eps * fallback) / den
-        var_g = (wgg / den - mean_g * mean_g).clamp(min=0.0)
-        return w, mean_g, mean_v, var_g, wvg / den - mean_g * mean_v
-
-    _, mean_g, mean_v, var_g, cov = moments(mom[-1], 1e-4)
-    a = cov / (var_g + eps)
-    b = mean_v - a * mean_g
-    for lvl in range(levels - 1, 0, -1):
-        size = mom[lvl].shape[-2:]
-        up_a = F.interpolate(a, size=size, mode="bilinear", align_corners=False)
-        up_b = F.interpolate(b, size=size, mode="bilinear", align_corners=False)
-        w, mean_g, mean_v, var_g, cov = moments(mom[lvl], 1e-6)
-        alpha = (w / saturation).clamp(max=1.0)
-        # a cell's own slope counts as far as its samples span grey levels; its line then
-        # passes through its own weighted mean (a flat cell keeps the coarser slope)
-        beta = alpha * var_g / (var_g + eps)
-        a = beta * (cov / (var_g + eps)) + (1.0 - beta) * up_a
-        b = alpha * (mean_v - a * mean_g) + (1.0 - alpha) * up_b
-    size = value.shape[-2:]
-    coarse = F.interpolate(a, size=size, mode="bilinear", align_corners=False) * g + \
-        F.interpolate(b, size=size, mode="bilinear", align_corners=False)
-    alpha = (weight / saturation).clamp(max=1.0)
-    return alpha * value + (1.0 - alpha) * coarse
-
-
 def solve_spd(mat: dict, rhs: list) -> list:
     """Solve A x = b per pixel for a small symmetric positive definite A, unrolled (LDL^T).
 
@@ -192,15 +143,20 @@ def solve_spd(mat: dict, rhs: list) -> list:
 
 def linear_push_pull(value: torch.Tensor, weight: torch.Tensor, guide: torch.Tensor, levels: int,
                      fallback: torch.Tensor, saturation: float = 0.5) -> torch.Tensor:
-    """:func:`guided_push_pull` with a K-channel guide: v ~ a . g + b per pyramid cell.
+    """Edge-aware :func:`push_pull`: the coarse estimate is a local linear model in a K-channel guide,
+    v ~ a . g + b per pyramid cell.
 
-    ``guide`` (N or 1, K, h, w) is pre-scaled so that the regularisation is
+    Push: confidence-weighted moments of value, guide and their products, averaged down ``levels``
+    halvings (one pool per level). A pixel with little weight of its own takes the model at its *own*
+    guide value. ``guide`` (N or 1, K, h, w) is pre-scaled so that the regularisation is
     the identity (a channel's eps is 1 in its units). With the three ray
     direction components as guide this is a *planar* fill: a plane
     n . X = c seen from the camera has inverse range (n . d) / c, exactly
     linear in the ray direction d, so a textureless wall between confident
     pixels is filled by the plane through them, not a constant. Adding the
-    grey level as a fourth channel keeps the fill edge-aware.
+    grey level as a fourth channel keeps the fill edge-aware: a flat curtain in front
+    of a patterned wall takes the depth of the confident pixels that look like it
+    instead of averaging across them. Where no weight exists the result tends to ``fallback``.
 
     Each level solves (C + I) a = cov + a_up (C, cov: the cell's weighted
     guide covariance and guide-value covariance; the prior is the upsampled

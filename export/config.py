@@ -8,16 +8,9 @@ Why each default is what it is (the ablations behind it): docs/design.md.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
-from typing import Literal, get_args
 
 from rasterizer.depth_gaussians import SURFEL_MAX_STRETCH, SURFEL_SCALE_FACTOR
 from rasterizer.sweep import FAR_PER_BASELINE, NEAR_PER_BASELINE
-
-Matcher = Literal["window", "descriptor"]
-Readout = Literal["wta", "softargmin"]
-Fill = Literal["pushpull", "guided", "planar", "planar_guided"]
-Upsample = Literal["guided", "bilinear"]
-CandidateSpacing = Literal["inverse", "parallax"]
 
 #: Named settings on the error/run-time curve (``omnisplat-bench depth``); docs/design.md.
 PRESETS: dict[str, dict] = {
@@ -41,9 +34,7 @@ class EncoderConfig:
     num_planes: int = 64
     downscale: int = 4
     erp_encoder: bool = False
-    # features and matching (export/features.py, export/cost_volume.py): "window" = ZNCC + census
-    # on the warped grey image in target windows, "descriptor" = per-pixel descriptors warped and correlated
-    matcher: Matcher = "window"
+    # matching (export/cost_volume.py): ZNCC + soft census on the warped grey image in target windows
     zncc_radius: int = 2
     census_radii: tuple[int, ...] = (1, 3)
     census_sigma: float = 0.015
@@ -52,18 +43,15 @@ class EncoderConfig:
     # aggregation (export/aggregation.py)
     agg_radii: tuple[int, ...] = (2, 6)
     agg_eps: float = 1e-2
-    # read-out (export/readout.py): winner-take-all with a parabolic sub-plane step, or soft-argmin
-    readout: Readout = "wta"
-    softargmin_beta: float = 50.0
+    # read-out (export/readout.py): winner-take-all with a parabolic sub-plane step
     # two confidences from the same peak margin: a steep one weights the fill (fill_margin_scale;
     # None = peak_margin_scale), a gentle one gives the output confidence / opacity
     peak_margin_scale: float = 0.2
     fill_margin_scale: float | None = 0.01
     lr_tol_planes: float = 1.5
-    # fill of unconfident pixels (export/aggregation.py): plain weighted pyramid, pyramid of local
-    # linear models in the grey guide (eps = fill_eps), local linear models of inverse range in the ray
-    # direction (exact for planes; eps = fill_plane_scale^2 feature pixels^2), or both together
-    fill: Fill = "planar_guided"
+    # fill of unconfident pixels (export/aggregation.py, linear_push_pull): pyramid of local linear models of
+    # inverse range in the ray direction (exact for planes; eps = fill_plane_scale^2 feature pixels^2) and the
+    # grey level (eps = fill_eps)
     fill_eps: float = 1e-2
     fill_plane_scale: float = 3.0
     fill_min_weight: float = 0.05
@@ -90,7 +78,8 @@ class EncoderConfig:
     # "Nothing below the floor")
     floor_clamp: bool = True
     floor_clamp_tol: float = 0.1
-    upsample: Upsample = "guided"
+    # guided upsampling to the Gaussian grid (export/aggregation.py, guided_upsample); upsample_eps also
+    # regularises the guided-filter smoothing after each fill
     upsample_radius: int = 2
     upsample_eps: float = 1e-3
     # Gaussian head (export/gaussian_head.py): oriented surfels spanning the steps to the neighbouring
@@ -111,9 +100,6 @@ class EncoderConfig:
     # default runtime sweep range in units of the baseline (rasterizer.sweep.default_near_far)
     near_per_baseline: float = NEAR_PER_BASELINE
     far_per_baseline: float = FAR_PER_BASELINE
-    # the depth candidates' law (rasterizer.sweep.inverse_depth_candidates): uniform in inverse range, or
-    # uniform in the parallax angle atan(baseline / range); written to the model's metadata (docs/design.md)
-    candidate_spacing: CandidateSpacing = "inverse"
     name: str = "omnisplat-trainingfree"
     version: str = "0.16.0"
 
@@ -123,10 +109,6 @@ class EncoderConfig:
         full_h, full_w = self.full_size
         if full_h % self.downscale or full_w % self.downscale:
             raise ValueError(f"grid size {full_h}x{full_w} is not divisible by downscale={self.downscale}")
-        for name, choices in (("matcher", Matcher), ("readout", Readout), ("fill", Fill), ("upsample", Upsample),
-                              ("candidate_spacing", CandidateSpacing)):
-            if getattr(self, name) not in get_args(choices):
-                raise ValueError(f"{name} must be one of {get_args(choices)}, got {getattr(self, name)!r}")
         if not 0 < self.scale_factor_confident <= self.scale_factor:
             raise ValueError(f"need 0 < scale_factor_confident <= scale_factor, got {self.scale_factor_confident} "
                              f"and {self.scale_factor}")

@@ -5,16 +5,12 @@ candidate k, the other view's features are sampled at the precomputed
 coordinates (:mod:`rasterizer.sweep`) in one image with its Yang grid stacked
 under its Yin grid: each point is read once, in Yin where Yin's domain holds
 it, else in Yang (the paper's eq. 4 mask blend with Yin taking the overlap;
-the module table of :mod:`rasterizer.sweep`). A *matcher* then scores the
-target against the warped stack:
-
-* :class:`WindowMatcher` (default, training-free): ZNCC and soft census over
-  windows laid out in the *target* lattice, on the source image warped
-  through each depth hypothesis. The window is therefore aware of the warp
-  (scale and shear from a 1 m baseline at 0.4 m are large), and only one
-  channel (grey) goes through GridSample, which dominates run time.
-* :class:`CorrelationMatcher`: channel dot product of per-pixel descriptors
-  (MVSplat's correlation; what a learned backbone would plug into).
+the module table of :mod:`rasterizer.sweep`). :class:`WindowMatcher`
+(training-free) then scores the target against the warped stack: ZNCC and
+soft census over windows laid out in the *target* lattice, on the source
+image warped through each depth hypothesis. The window is therefore aware of
+the warp (scale and shear from a 1 m baseline at 0.4 m are large), and only
+one channel (grey) goes through GridSample, which dominates run time.
 """
 
 from __future__ import annotations
@@ -43,23 +39,6 @@ def sample_maps(src: torch.Tensor, grid: torch.Tensor, erp_source: bool) -> torc
     if erp_source:
         src = pad_longitude(src)
     return F.grid_sample(src, grid, mode="bilinear", padding_mode="border", align_corners=False)
-
-
-class CorrelationMatcher(nn.Module):
-    """target (N, C, h, w), warped (N, C, D, h, w) -> (N, D, h, w) channel dot product.
-
-    ``forward`` = ``score(target_terms(target), warped)``: a sweep scoring its candidates in slabs
-    computes the target's terms once.
-    """
-
-    def target_terms(self, target: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        return (target.unsqueeze(2),)
-
-    def score(self, terms: tuple[torch.Tensor, ...], warped: torch.Tensor) -> torch.Tensor:
-        return (warped * terms[0]).sum(dim=1)
-
-    def forward(self, target: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
-        return self.score(self.target_terms(target), warped)
 
 
 class WindowMatcher(nn.Module):

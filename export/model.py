@@ -6,9 +6,10 @@ refinement can replace a stage without touching the geometry):
 1. :class:`YinYangSampler` - ERP -> full-resolution Yin and Yang images
    (or the ERP itself in the ``erp_encoder`` ablation);
 2. average pooling by ``downscale`` -> feature-grid colour; grey guide;
-3. :class:`TrainingFreeFeatures` - per-pixel ZNCC + census descriptors;
+3. :class:`GreyFeatures` - the grey image the window matcher works on;
 4. :class:`SweepCostVolume` - A<-B and B<-A sphere sweeps, each point read in
-   the source grid that owns it (paper eq. 4, Yin taking the overlap), correlation;
+   the source grid that owns it (paper eq. 4, Yin taking the overlap), ZNCC + census
+   in target windows (:class:`export.cost_volume.WindowMatcher`);
 5. :class:`CostAggregation` - multi-scale guided filter per plane;
 6. :class:`DepthReadout` - sub-plane depth + two peak confidences (a steep
    one weights the fill, a gentle one becomes the output confidence);
@@ -18,8 +19,7 @@ refinement can replace a stage without touching the geometry):
    and a floor nothing may lie below (after the coarse fill and on the final map);
    fill of unreliable pixels (``linear_push_pull``: pyramid of local linear
    models of inverse range in the ray direction and grey level - exact for
-   planes; or ``guided_push_pull`` in the grey level only, or plain
-   push-pull), guided-filter smoothing, guided upsampling to the Gaussian grid;
+   planes), guided-filter smoothing, guided upsampling to the Gaussian grid;
 9. optional cascade stage (:class:`export.fine_sweep.FineSweep`, ``fine_hypotheses``
    > 0): a per-pixel sweep of a few hypotheses around that depth on a grid
    ``fine_downscale`` times smaller than the Gaussians', its own left-right
@@ -49,20 +49,18 @@ from rasterizer.geometry import grid_directions
 from .aggregation import (
     CostAggregation,
     guided_filter,
-    guided_push_pull,
     guided_upsample,
     linear_push_pull,
-    push_pull,
     pyramid_levels,
 )
 from .config import EncoderConfig
-from .cost_volume import CorrelationMatcher, SweepCostVolume, WindowMatcher, sample_maps, stacked_source
-from .features import LUMA, GreyFeatures, TrainingFreeFeatures
+from .cost_volume import SweepCostVolume, WindowMatcher, sample_maps, stacked_source
+from .features import LUMA, GreyFeatures
 from .fine_sweep import FineSweep
 from .gaussian_head import GaussianHead
 from .layout import clamp_below_floor, fit_planes, plane_prior, with_plane_prior
 from .matches import Matches
-from .readout import DepthReadout, baseline_of, index_to_inverse, plane_step
+from .readout import DepthReadout, index_to_inverse, plane_step
 from .select import select
 from .yin_yang_sampling import YinYangSampler
 
@@ -73,23 +71,17 @@ class OmniSplatEncoder(nn.Module):
     def __init__(self, cfg: EncoderConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        self.parallax = cfg.candidate_spacing == "parallax"  # the candidates' law (export.readout.plane_step)
         wrap = cfg.erp_encoder
         self.num_grids = len(cfg.grids)
         self.full_h, self.full_w = cfg.full_size
         self.feat_h, self.feat_w = cfg.feature_size
         self.sampler = None if cfg.erp_encoder else YinYangSampler(cfg.height, self.full_h, self.full_w)
         match_args = (cfg.zncc_radius, cfg.census_radii, cfg.census_sigma, cfg.zncc_eps, cfg.zncc_weight)
-        if cfg.matcher == "window":
-            self.features = GreyFeatures()
-            matcher = WindowMatcher(*match_args, wrap=wrap)
-        else:
-            self.features = TrainingFreeFeatures(*match_args, wrap=wrap)
-            matcher = CorrelationMatcher()
-        self.cost_volume = SweepCostVolume(self.num_grids, erp_source=wrap, matcher=matcher,
+        self.features = GreyFeatures()
+        self.cost_volume = SweepCostVolume(self.num_grids, erp_source=wrap, matcher=WindowMatcher(*match_args, wrap=wrap),
                                            aggregation=CostAggregation(cfg.agg_radii, cfg.agg_eps, wrap=wrap))
         fill_scale = cfg.peak_margin_scale if cfg.fill_margin_scale is None else cfg.fill_margin_scale
-        self.readout = DepthReadout(cfg.readout, cfg.softargmin_beta, (cfg.peak_margin_scale, fill_scale))
+        self.readout = DepthReadout((cfg.peak_margin_scale, fill_scale))
         self.head = GaussianHead(cfg.grids, self.full_h, self.full_w, cfg.scale_factor,
                                  cfg.ray_scale_ratio, cfg.opacity_min, cfg.opacity_max,
                                  cfg.opacity_gamma, cfg.max_stretch, cfg.scale_factor_confident)
@@ -112,7 +104,7 @@ class OmniSplatEncoder(nn.Module):
             self.fine_levels = pyramid_levels(self.fine_h, self.fine_w)
             self.fine = FineSweep(cfg.grids, cfg.fine_hypotheses, WindowMatcher(*match_args, wrap=wrap),
                                   CostAggregation(cfg.fine_agg_radii, cfg.agg_eps, wrap=wrap),
-                                  DepthReadout("wta", margin_scales=(cfg.peak_margin_scale, fill_scale)),
+                                  DepthReadout(margin_scales=(cfg.peak_margin_scale, fill_scale)),
                                   erp_width=self.fine_w if wrap else 0)
 
     # -- stages ------------------------------------------------------------
@@ -123,7 +115,7 @@ class OmniSplatEncoder(nn.Module):
             return erps.unsqueeze(1)
         return self.sampler(erps)
 
-    def lr_consistency(self, k, inv, warp_grids, rel_rt, inv_depths, b):
+    def lr_consistency(self, k, inv, warp_grids, rel_rt, inv_depths):
         """1 where the A->B and B->A depths agree within ``lr_tol_planes``, else 0.
 
         k, inv: (2, G, 1, h, w) plane index and inverse range per target map.
@@ -149,7 +141,7 @@ class OmniSplatEncoder(nn.Module):
         source = source.unsqueeze(1).expand(2, g_count, 1, hs, ws).reshape(2 * g_count, 1, hs, ws)
         seen = sample_maps(source, loc, self.cfg.erp_encoder).reshape(2, g_count, h, w)
         # one candidate step at the source's inverse range
-        step = plane_step(expected, inv_depths, b, parallax=self.parallax)
+        step = plane_step(expected, inv_depths)
         ok = ((seen - expected).abs() <= self.cfg.lr_tol_planes * step).to(k.dtype)
         return ok.reshape(2, g_count, 1, h, w)
 
@@ -191,7 +183,7 @@ class OmniSplatEncoder(nn.Module):
             return inv
         return clamp_below_floor(planes, inv, rays, c2w, self.cfg.floor_clamp_tol)
 
-    def cascade(self, inv, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes, b):
+    def cascade(self, inv, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes):
         """Coarse inverse range (2G, 1, h, w) -> refined on the fine grid, with that grid's grey guide.
 
         Guided upsampling of the coarse map seeds :class:`FineSweep`; with
@@ -206,12 +198,12 @@ class OmniSplatEncoder(nn.Module):
         grey = F.avg_pool2d(grey_full, cfg.fine_downscale) if cfg.fine_downscale > 1 else grey_full
         seed = guided_upsample(grey_low, inv, grey, cfg.upsample_radius, cfg.upsample_eps, wrap).clamp(min=lo, max=hi)
         # (2G, 1, h, w) one coarse candidate step at each pixel
-        step = plane_step(seed, inv_depths, b, parallax=self.parallax)
+        step = plane_step(seed, inv_depths)
         refined, _, conf_fill = self.fine(seed, grey, self.fine_rays, rel_rt, step * cfg.fine_step, lo, hi)
         if not cfg.fine_fill:
             return refined, grey
         ok = self.fine.lr_consistency(refined, self.fine_rays, rel_rt,
-                                      lambda e: plane_step(e, inv_depths, b, parallax=self.parallax) * cfg.fine_lr_tol)
+                                      lambda e: plane_step(e, inv_depths) * cfg.fine_lr_tol)
         obs = F.interpolate(obs.reshape(2 * g_count, 1, *obs.shape[-2:]), size=size, mode="bilinear",
                             align_corners=False)
         guide = self.fine_plane_guide.unsqueeze(0).expand(2, g_count, 3, *size).reshape(2 * g_count, 3, *size)
@@ -235,11 +227,10 @@ class OmniSplatEncoder(nn.Module):
         cost = self.cost_volume(feats, warp_grids, grey_low)  # (2, G, D, h, w), aggregated
         d_count = cost.shape[2]
         k, conf, conf_fill = self.readout(cost.reshape(2 * g_count, d_count, h, w))  # (2G, 1, h, w)
-        b = baseline_of(c2w)
-        inv = index_to_inverse(k, inv_depths, b)
+        inv = index_to_inverse(k, inv_depths)
 
         ok = self.lr_consistency(k.reshape(2, g_count, 1, h, w), inv.reshape(2, g_count, 1, h, w),
-                                 warp_grids, rel_rt, inv_depths, b)
+                                 warp_grids, rel_rt, inv_depths)
         obs = self.observability(rel_rt, inv_depths)
         reliable = (ok * obs).reshape(2 * g_count, 1, h, w)
         weight = conf * reliable
@@ -250,26 +241,18 @@ class OmniSplatEncoder(nn.Module):
         use_planes = cfg.layout_strength > 0 or cfg.floor_clamp
         planes = fit_planes(self.feat_rays, inv, fill_weight, c2w) if use_planes else None
         value, value_w = self.layout(planes, inv, fill_weight, self.feat_rays, c2w, self.levels)
-        if cfg.fill == "guided":
-            filled = guided_push_pull(value, value_w, grey_low, self.levels, fallback, cfg.fill_eps)
-        elif cfg.fill in ("planar", "planar_guided"):
-            guide = self.plane_guide  # (G, 3, h, w) -> per (view, grid)
-            guide = guide.unsqueeze(0).expand(2, g_count, 3, h, w).reshape(2 * g_count, 3, h, w)
-            if cfg.fill == "planar_guided":
-                guide = torch.cat([guide, grey_low * float(cfg.fill_eps ** -0.5)], dim=1)
-            filled = linear_push_pull(value, value_w, guide, self.levels, fallback)
-        else:
-            filled = push_pull(value, value_w, self.levels, fallback)
+        guide = self.plane_guide  # (G, 3, h, w) -> per (view, grid), with the grey level as a fourth channel
+        guide = guide.unsqueeze(0).expand(2, g_count, 3, h, w).reshape(2 * g_count, 3, h, w)
+        guide = torch.cat([guide, grey_low * float(cfg.fill_eps ** -0.5)], dim=1)
+        filled = linear_push_pull(value, value_w, guide, self.levels, fallback)
         filled = guided_filter(grey_low, filled, 1, cfg.upsample_eps, wrap)
         filled = self.floor_clamp(planes, filled, self.feat_rays, c2w)
 
         size = (self.full_h, self.full_w)
         if self.fine is not None:
-            filled, grey_low = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes, b)
-        if cfg.upsample == "guided" and filled.shape[-2:] != size:
+            filled, grey_low = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes)
+        if filled.shape[-2:] != size:
             inv_full = guided_upsample(grey_low, filled, grey_full, cfg.upsample_radius, cfg.upsample_eps, wrap)
-        elif filled.shape[-2:] != size:
-            inv_full = F.interpolate(filled, size=size, mode="bilinear", align_corners=False)
         else:
             inv_full = filled
         inv_full = self.floor_clamp(planes, inv_full, self.head.rays, c2w)
@@ -281,7 +264,7 @@ class OmniSplatEncoder(nn.Module):
         means, scales, quats, opac, sh_dc = self.head(rng, conf_full, full, c2w, cam_quats)
 
         def tol(expected):  # lr_tol_planes candidate steps at the other view's inverse range
-            return self.cfg.lr_tol_planes * plane_step(expected, inv_depths, b, parallax=self.parallax)
+            return self.cfg.lr_tol_planes * plane_step(expected, inv_depths)
 
         matches = self.matches(rng, conf_full, self.head.rays, rel_rt, tol)
         return means, scales, quats, opac, sh_dc, rng, conf_full, matches

@@ -35,8 +35,7 @@ def dummy_inputs(cfg: EncoderConfig) -> tuple[torch.Tensor, ...]:
     c2w_b = np.eye(4)
     c2w_b[2, 3] = 1.0
     si = sweep_inputs(np.eye(4), c2w_b, near=cfg.near_per_baseline, far=cfg.far_per_baseline,
-                      num_planes=cfg.num_planes, feature_size=cfg.feature_size, erp_encoder=cfg.erp_encoder,
-                     parallax=cfg.candidate_spacing == "parallax")
+                      num_planes=cfg.num_planes, feature_size=cfg.feature_size, erp_encoder=cfg.erp_encoder)
     return (erp(), erp()) + tuple(torch.from_numpy(si[k]) for k in INPUT_NAMES[2:])
 
 
@@ -59,7 +58,6 @@ def metadata(cfg: EncoderConfig) -> dict[str, str]:
         "num_gaussians": str(cfg.num_gaussians),
         "near_per_baseline": repr(cfg.near_per_baseline),
         "far_per_baseline": repr(cfg.far_per_baseline),
-        "candidate_spacing": cfg.candidate_spacing,  # service.encoder feeds the candidates by this law
         "erp_pad": str(ERP_PAD),
         "inputs": json.dumps({
             "erp_a": [1, 3, cfg.height, cfg.width], "erp_b": [1, 3, cfg.height, cfg.width],
@@ -112,11 +110,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--num-planes", type=int, default=None)
     p.add_argument("--downscale", type=int, default=None, help="feature grid = Gaussian grid / downscale")
     p.add_argument("--erp-encoder", action="store_true", help="ablation: sweep on the raw ERP, no Yin-Yang")
-    p.add_argument("--readout", choices=("wta", "softargmin"), default=None)
     args = p.parse_args(argv)
     path = export_model(args.out, height=args.height, width=2 * args.height, num_planes=args.num_planes,
-                        erp_encoder=args.erp_encoder, preset=args.preset, downscale=args.downscale,
-                        readout=args.readout)
+                        erp_encoder=args.erp_encoder, preset=args.preset, downscale=args.downscale)
     meta = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
     print(json.dumps({"path": str(path), "bytes": path.stat().st_size,
                       **{k: meta[k] for k in ("name", "num_planes", "grids", "num_gaussians")}}))

@@ -2,16 +2,11 @@
 
 Cost (N, D, h, w) is a similarity (higher = better) over D candidates
 uniform in inverse range, ``inv_depths`` ascending (far ... near).
-
-* ``wta``: winner-take-all plus parabolic sub-plane refinement from the two
-  neighbouring planes (offset clamped to +-0.5 plane; none at the ends).
-* ``softargmin``: expectation of the plane index under softmax(beta cost).
-
-The result is a fractional plane index k; its inverse range is linear between neighbouring
-candidates (:func:`index_to_inverse`). The candidates are uniform in inverse range, or uniform in the
-parallax angle u = atan(b / r) (b the baseline, :func:`rasterizer.sweep.inverse_depth_candidates`;
-``EncoderConfig.candidate_spacing``), and one plane step in inverse range at a given inverse range is
-:func:`plane_step` for either law.
+Winner-take-all plus parabolic sub-plane refinement from the two
+neighbouring planes (offset clamped to +-0.5 plane; none at the ends)
+gives a fractional plane index k; its inverse range is linear between neighbouring
+candidates (:func:`index_to_inverse`), and one plane step in inverse range is the candidates' constant
+spacing (:func:`plane_step`; :func:`rasterizer.sweep.inverse_depth_candidates`).
 Confidence combines the peak margin (best minus the best plane that is not
 a neighbour of the winner) with a zero for near-plane picks, which the probe
 found to be the outliers that hurt rendering most.
@@ -33,10 +28,8 @@ class DepthReadout(nn.Module):
     a gentler one for the output confidence / opacity.
     """
 
-    def __init__(self, mode: str = "wta", beta: float = 50.0, margin_scales=(0.05,)) -> None:
+    def __init__(self, margin_scales=(0.05,)) -> None:
         super().__init__()
-        self.mode = mode
-        self.beta = float(beta)
         self.margin_scales = tuple(float(m) for m in margin_scales)
 
     def forward(self, cost: torch.Tensor):
@@ -46,38 +39,20 @@ class DepthReadout(nn.Module):
         best = torch.gather(cost, 1, idx)
         lo = torch.gather(cost, 1, (idx - 1).clamp(min=0))
         hi = torch.gather(cost, 1, (idx + 1).clamp(max=d_count - 1))
-        if self.mode == "wta":
-            curv = lo - 2.0 * best + hi
-            inner = (idx > 0) & (idx < d_count - 1) & (curv < -1e-6)
-            offset = 0.5 * (lo - hi) / select(inner, curv, -1.0)
-            offset = select(inner, offset.clamp(-0.5, 0.5), 0.0)
-            k = idx.to(cost.dtype) + offset
-        else:
-            p = torch.softmax(self.beta * cost, dim=1)
-            k = (p * planes).sum(dim=1, keepdim=True)
+        curv = lo - 2.0 * best + hi
+        inner = (idx > 0) & (idx < d_count - 1) & (curv < -1e-6)
+        offset = 0.5 * (lo - hi) / select(inner, curv, -1.0)
+        offset = select(inner, offset.clamp(-0.5, 0.5), 0.0)
+        k = idx.to(cost.dtype) + offset
         far_from_peak = (planes - idx.to(cost.dtype)).abs() > 1.5
         second = select(far_from_peak, cost, -2.0).amax(dim=1, keepdim=True)
         margin = select(idx == d_count - 1, 0.0, (best - second).clamp(min=0.0))
         return (k,) + tuple(1.0 - torch.exp(margin * (-1.0 / m)) for m in self.margin_scales)
 
 
-def baseline_of(c2w: torch.Tensor) -> torch.Tensor:
-    """Scalar distance between the two camera centres of ``c2w`` (2, 4, 4)."""
-    d = c2w[0, :3, 3] - c2w[1, :3, 3]
-    return torch.sqrt((d * d).sum()).clamp(min=1e-12)
-
-
-def _tan_step(inv_depths: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """tan of the parallax step between neighbouring candidates (no Atan in the graph): tan(u1 - u0) with
-    tan u = b inv."""
-    x0, x1 = b * inv_depths[0], b * inv_depths[1]
-    return (x1 - x0) / (1.0 + x0 * x1)
-
-
-def index_to_inverse(k: torch.Tensor, inv_depths: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+def index_to_inverse(k: torch.Tensor, inv_depths: torch.Tensor) -> torch.Tensor:
     """Inverse range (1/scene units) of a fractional plane index k: the candidates at whole k, linear in
-    inverse range between neighbours (exact for uniform inverse range; for parallax spacing at most a few
-    1e-4 of a step from tan(u(k)) / b: steps are ~1 degree)."""
+    inverse range between neighbours."""
     d_count = inv_depths.shape[0]
     i0 = k.floor().clamp(0, d_count - 2)
     lo = inv_depths[i0.to(torch.int64)]
@@ -85,13 +60,7 @@ def index_to_inverse(k: torch.Tensor, inv_depths: torch.Tensor, b: torch.Tensor)
     return lo + (k - i0) * (hi - lo)
 
 
-def plane_step(inv: torch.Tensor, inv_depths: torch.Tensor, b: torch.Tensor, *, parallax: bool) -> torch.Tensor:
-    """One candidate step in inverse range at inverse range ``inv`` (any shape), same shape.
-
-    ``parallax`` False (candidates uniform in inverse range): the constant spacing. True (uniform in the
-    parallax angle): du (1 + (b inv)^2) / b, du the parallax step (its tangent: the steps are about a degree).
-    """
-    if not parallax:
-        return (inv_depths[1] - inv_depths[0]).expand_as(inv)
-    bi = b * inv
-    return _tan_step(inv_depths, b) * (1.0 + bi * bi) / b
+def plane_step(inv: torch.Tensor, inv_depths: torch.Tensor) -> torch.Tensor:
+    """One candidate step in inverse range at inverse range ``inv`` (any shape), same shape: the
+    candidates' constant spacing (uniform in inverse range)."""
+    return (inv_depths[1] - inv_depths[0]).expand_as(inv)

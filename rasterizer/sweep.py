@@ -24,9 +24,7 @@ name            shape                   meaning
 ``rel_rt``      (2, 3, 4)               [R | t] target camera -> source camera.
 ``inv_depths``  (D,)                    candidate inverse ranges (1/m),
                                         ascending: 1/far ... 1/near, uniform
-                                        in inverse range or in the parallax
-                                        angle atan(b / r), as the model's
-                                        ``candidate_spacing`` says
+                                        in inverse range
                                         (:func:`inverse_depth_candidates`).
 ``c2w``         (2, 4, 4)               camera-to-world of A and B (OpenCV).
 ``cam_quats``   (2, 4)                  (w, x, y, z) of the c2w rotations.
@@ -125,10 +123,11 @@ def default_near_far(c2w_a: np.ndarray, c2w_b: np.ndarray, *, near_ratio: float 
 
     Pure proportionality makes the encoder equivariant to a global scale of the scene (poses and
     geometry scaled together give the same planes in units of b, hence the same warp grids and the same
-    images). The default model's candidates are uniform in inverse range from 0.3 b
-    (:func:`inverse_depth_candidates`): a nearer near plane or candidates uniform in the parallax angle
-    spread the 64 planes more evenly over the far room but leave thin near objects (lamps, chair and table
-    legs) between planes, and selections on them lose half their IoU (docs/design.md).
+    images). The candidates are uniform in inverse range from 0.3 b (:func:`inverse_depth_candidates`):
+    their density at the near end keeps thin near objects (lamps, chair and table legs) on planes; a nearer
+    near plane or a spacing uniform in the parallax angle spreads the 64 planes more evenly over the far
+    room but leaves those objects between planes, and selections on them lose half their IoU
+    (docs/design.md).
     """
     if not (0 < near_ratio < far_ratio) or not np.isfinite(far_ratio):
         raise ValueError(f"need 0 < near_ratio < far_ratio < inf, got {near_ratio}, {far_ratio}")
@@ -136,26 +135,18 @@ def default_near_far(c2w_a: np.ndarray, c2w_b: np.ndarray, *, near_ratio: float 
     return float(near_ratio * b), float(far_ratio * b)
 
 
-def inverse_depth_candidates(near: float, far: float, num_planes: int, baseline: float | None = None) -> np.ndarray:
-    """D inverse ranges between 1/far and 1/near, ascending, float32.
+def inverse_depth_candidates(near: float, far: float, num_planes: int) -> np.ndarray:
+    """D inverse ranges between 1/far and 1/near, ascending, float32, uniform in inverse range.
 
-    With ``baseline`` b (what the encoder's graph expects, ``export.readout``): uniform in the parallax
-    angle u = atan(b / r), the angle between the two cameras' rays to a point at range r seen across the
-    baseline. Every step then moves a point by about the same angle in the other view, near or far: uniform
-    inverse range (``baseline`` None) over-samples the near end by 1 + (b / near)^2 and leaves the far end
-    coarse, so a near plane of a small fraction of the baseline would cost many planes. Here it is nearly
-    free: the angle saturates at 90 degrees.
+    The uniform spacing is what the encoder's graph expects (``export.readout``): a plane step is one
+    constant in inverse range. Its density at the near end is what thin near objects need (docs/design.md,
+    "Where the sweep's planes fall").
     """
     if not (0 < near < far) or not np.isfinite(far):
         raise ValueError(f"need 0 < near < far < inf, got near={near}, far={far}")
     if num_planes < 2:
         raise ValueError(f"need at least 2 planes, got {num_planes}")
-    if baseline is None:
-        return np.linspace(1.0 / far, 1.0 / near, num_planes).astype(np.float32)
-    if not baseline > 0:
-        raise ValueError(f"need baseline > 0, got {baseline}")
-    u = np.linspace(np.arctan(baseline / far), np.arctan(baseline / near), num_planes)
-    return (np.tan(u) / baseline).astype(np.float32)
+    return np.linspace(1.0 / far, 1.0 / near, num_planes).astype(np.float32)
 
 
 def relative_pose(c2w_target: np.ndarray, c2w_source: np.ndarray) -> np.ndarray:
@@ -331,18 +322,13 @@ def sweep_inputs(
     num_planes: int,
     feature_size: tuple[int, int],
     erp_encoder: bool = False,
-    parallax: bool = True,
 ) -> dict[str, np.ndarray]:
-    """All pose-dependent graph inputs (module table), keyed by input name.
-
-    ``parallax``: candidates uniform in the parallax angle (what models with metadata
-    ``candidate_spacing = parallax`` expect), else uniform in inverse range.
-    """
+    """All pose-dependent graph inputs (module table), keyed by input name."""
     c2w_a = np.asarray(c2w_a, dtype=np.float64)
     c2w_b = np.asarray(c2w_b, dtype=np.float64)
     if baseline(c2w_a, c2w_b) < MIN_BASELINE:
         raise ValueError("the two camera centres coincide: depth cannot be triangulated")
-    inv = inverse_depth_candidates(near, far, num_planes, baseline(c2w_a, c2w_b) if parallax else None)
+    inv = inverse_depth_candidates(near, far, num_planes)
     h, w = feature_size
     grids = grids_for_mode(erp_encoder)
     rel = np.stack([relative_pose(c2w_a, c2w_b)[:3], relative_pose(c2w_b, c2w_a)[:3]]).astype(np.float32)

@@ -170,8 +170,6 @@ class OnnxEncoder:
         # near_default / far_default in metres for the 1 m design baseline)
         self.near_per_baseline = float(props.get("near_per_baseline", props.get("near_default", NEAR_PER_BASELINE)))
         self.far_per_baseline = float(props.get("far_per_baseline", props.get("far_default", FAR_PER_BASELINE)))
-        # the graph's law for its depth candidates (rasterizer.sweep.inverse_depth_candidates)
-        self.parallax_candidates = props.get("candidate_spacing") == "parallax"
 
     def _to_chw(self, img: np.ndarray) -> np.ndarray:
         """(H, W, 3) uint8 or float in [0, 1] (:func:`_as_image`) -> (1, 3, height, width) float32 in [0, 1]
@@ -249,8 +247,7 @@ class OnnxEncoder:
 
         t = time.perf_counter()
         feeds = sweep_inputs(pa, pb, near=near, far=far, num_planes=self.num_planes,
-                             feature_size=self.feature_size, erp_encoder=self.erp_encoder,
-                             parallax=self.parallax_candidates)
+                             feature_size=self.feature_size, erp_encoder=self.erp_encoder)
         feeds["erp_a"], feeds["erp_b"] = chw
         timings["sweep_inputs"] = time.perf_counter() - t
 

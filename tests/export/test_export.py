@@ -206,23 +206,24 @@ def test_config_rejects_bad_settings():
         make_config("fast", height=100, width=300)
     with pytest.raises(ValueError, match="preset"):
         make_config("nope")
-    with pytest.raises(ValueError, match="readout"):
-        make_config("fast", readout="median")
+    with pytest.raises(ValueError, match="fill_plane_scale"):
+        make_config("fast", fill_plane_scale=0.0)
 
 
-def test_guided_push_pull_fill():
-    """Edge-aware fill: exact where confident, fallback where nothing is, follows grey edges."""
-    from export.aggregation import guided_push_pull, push_pull, pyramid_levels
+def test_grey_guided_fill_follows_edges():
+    """The fill's grey channel: exact where confident, fallback where nothing is, follows grey edges."""
+    from export.aggregation import linear_push_pull, push_pull, pyramid_levels
 
     h, w = 32, 64
+    scale = 0.01 ** -0.5  # the grey channel's scaling for fill_eps 0.01
     guide = torch.full((1, 1, h, w), 0.2)
     guide[..., w // 2:] = 0.8
     value = torch.ones(1, 1, h, w)
     value[..., w // 2:] = 2.0
     fallback = torch.tensor(1.5)
-    full = guided_push_pull(value, torch.ones_like(value), guide, 5, fallback)
+    full = linear_push_pull(value, torch.ones_like(value), guide * scale, 5, fallback)
     torch.testing.assert_close(full, value)
-    empty = guided_push_pull(value, torch.zeros_like(value), guide, 5, fallback)
+    empty = linear_push_pull(value, torch.zeros_like(value), guide * scale, 5, fallback)
     torch.testing.assert_close(empty, torch.full_like(value, 1.5), atol=1e-4, rtol=0)
     # an edge at column 40 with confident samples a few columns either side of it: the
     # unconfident band between them takes the value of the side whose grey level it shares
@@ -235,7 +236,7 @@ def test_guided_push_pull_fill():
     weight[..., edge - 7:edge - 4] = 1.0
     weight[..., edge + 6:edge + 9] = 1.0
     levels = pyramid_levels(h, w)
-    guided = guided_push_pull(value, weight, guide, levels, fallback)
+    guided = linear_push_pull(value, weight, guide * scale, levels, fallback)
     plain = push_pull(value, weight, levels, fallback)
     band = slice(edge - 4, edge + 6)
     err_guided = (guided - value)[..., band].abs().mean()
@@ -258,7 +259,7 @@ def test_solve_spd_matches_numpy():
 
 def test_planar_fill_reproduces_planes():
     """Inverse range of a plane is linear in the ray direction: a sparse fill recovers it."""
-    from export.aggregation import guided_push_pull, linear_push_pull, pyramid_levels
+    from export.aggregation import linear_push_pull, pyramid_levels
     from rasterizer.geometry import grid_directions
 
     h, w = 64, 192
@@ -276,5 +277,5 @@ def test_planar_fill_reproduces_planes():
     torch.testing.assert_close(empty, torch.full_like(value, 0.5), atol=1e-3, rtol=0)
     planar = linear_push_pull(value, weight, torch.cat([guide, grey * 10.0], 1), levels, fallback)
     err_planar = (planar - value).abs().mean()
-    err_grey = (guided_push_pull(value, weight, grey, levels, fallback) - value).abs().mean()
+    err_grey = (linear_push_pull(value, weight, grey * 10.0, levels, fallback) - value).abs().mean()  # grey only
     assert err_planar < 0.01 and err_planar < 0.25 * err_grey

@@ -142,7 +142,7 @@ def test_fine_sweep_refines_a_perturbed_depth():
     rel[1, :, 3] = torch.tensor([0.0, 0.0, 1.0])
     step = 0.02
     fs = FineSweep(("yin", "yang"), j, WindowMatcher(2, (1, 3), 0.015, 0.002, 0.5),
-                   CostAggregation((2,), 1e-2), DepthReadout("wta", margin_scales=(0.2,)))
+                   CostAggregation((2,), 1e-2), DepthReadout(margin_scales=(0.2,)))
     start = inv_true + 1.5 * step
     refined, conf = fs(start, grey, rays, rel, torch.tensor(step), torch.tensor(0.05), torch.tensor(3.0))
     # away from the epipoles (the z axis, where no parallax exists) the truth is recovered
@@ -167,7 +167,7 @@ def test_fine_sweep_slabs_give_the_one_pass_values(monkeypatch, slab_bytes):
     rel[:, :, :3] = torch.eye(3)
     rel[:, 2, 3] = torch.tensor([-1.0, 1.0])
     fs = FineSweep(("yin", "yang"), j, WindowMatcher(2, (1, 3), 0.015, 0.002, 0.5),
-                   CostAggregation((2, 4), 1e-2), DepthReadout("wta", margin_scales=(0.2,)))
+                   CostAggregation((2, 4), 1e-2), DepthReadout(margin_scales=(0.2,)))
     args = (inv, grey, rays, rel, torch.tensor(0.02), torch.tensor(0.05), torch.tensor(3.0))
     monkeypatch.setattr(cost_volume, "SLAB_BYTES", 1 << 40)
     assert cost_volume.slab_size(j, 4 * h * w * 4) == j

@@ -176,41 +176,21 @@ def test_warp_grid_cache_hits_and_evicts():
     sweep.clear_warp_cache()
 
 
-def test_parallax_candidates_are_uniform_in_angle_and_reach_near_surfaces():
-    b = 4.25  # a wide tripod pair: a wall 0.2 m away lies inside a range from 0.05 b
-    near, far = sweep.default_near_far(np.eye(4), _pose([b, 0, 0]), near_ratio=0.05)
-    assert near < 0.3
-    inv = sweep.inverse_depth_candidates(near, far, 64, b).astype(np.float64)
-    assert inv[0] == pytest.approx(1 / far, rel=1e-5) and inv[-1] == pytest.approx(1 / near, rel=1e-5)
-    steps = np.diff(np.arctan(b * inv))
-    assert np.all(steps > 0) and np.ptp(steps) < 1e-4 * steps.mean()
-    assert np.degrees(steps.mean()) < 1.5  # about one feature pixel of the default model per plane
-    # the graph's read-out follows the same law (export.readout)
+def test_inverse_range_candidates_and_their_plane_step():
+    """Candidates uniform in inverse range; the graph's plane step is their spacing at any range and a
+    fractional plane index reads linearly between neighbouring candidates (export.readout)."""
     torch = pytest.importorskip("torch")
     from export.readout import index_to_inverse, plane_step
 
-    k = torch.tensor([0.0, 10.5, 63.0], dtype=torch.float64)
-    got = index_to_inverse(k, torch.from_numpy(inv), torch.tensor(b, dtype=torch.float64)).numpy()
-    assert got[0] == pytest.approx(inv[0], rel=1e-4) and got[2] == pytest.approx(inv[-1], rel=1e-4)
-    assert inv[10] < got[1] < inv[11]
-    step = plane_step(torch.from_numpy(inv[30:31]), torch.from_numpy(inv), torch.tensor(b, dtype=torch.float64),
-                      parallax=True)
-    assert float(step[0]) == pytest.approx(0.5 * (inv[31] - inv[29]), rel=1e-2)
-
-
-def test_inverse_range_candidates_and_their_plane_step():
-    """The default law: candidates uniform in inverse range, and the graph's plane step is their spacing at
-    any range (a parallax-law step would be 1 + (b inv)^2 times too wide near the camera)."""
-    torch = pytest.importorskip("torch")
-    from export.config import EncoderConfig
-    from export.readout import plane_step
-
-    assert EncoderConfig().candidate_spacing == "inverse"
     b = 1.5
     near, far = sweep.default_near_far(np.eye(4), _pose([b, 0, 0]))
     inv = sweep.inverse_depth_candidates(near, far, 64).astype(np.float64)
+    assert inv[0] == pytest.approx(1 / far, rel=1e-5) and inv[-1] == pytest.approx(1 / near, rel=1e-5)
     assert np.ptp(np.diff(inv)) < 1e-4 * np.diff(inv).mean()  # float32 candidates
     at = torch.from_numpy(inv[[0, 30, 63]].reshape(3, 1))
-    step = plane_step(at, torch.from_numpy(inv), torch.tensor(b, dtype=torch.float64), parallax=False)
+    step = plane_step(at, torch.from_numpy(inv))
     assert step.shape == at.shape
     np.testing.assert_allclose(step.numpy().ravel(), inv[1] - inv[0], rtol=1e-9)
+    k = torch.tensor([0.0, 10.5, 63.0], dtype=torch.float64)
+    got = index_to_inverse(k, torch.from_numpy(inv)).numpy()
+    np.testing.assert_allclose(got, [inv[0], 0.5 * (inv[10] + inv[11]), inv[-1]], rtol=1e-12)
