@@ -159,6 +159,10 @@ class OnnxEncoder:
         if rank != WARP_GRIDS_RANK:
             raise ValueError(f"{self.path} was built by an older exporter (its warp_grids input has {rank} dimensions, "
                              f"this runtime feeds {WARP_GRIDS_RANK}): rebuild it with `omnisplat export`")
+        spacing = props.get("candidate_spacing", "inverse")
+        if spacing != "inverse":  # its graph would read this runtime's candidates at the wrong ranges
+            raise ValueError(f"{self.path} expects depth candidates spaced by {spacing!r}; this runtime feeds them "
+                             "uniform in inverse range: rebuild it with `omnisplat export`")
         self._meta = {**props, "sha256": sha256_file(self.path), "path": str(self.path), "threads": int(threads)}
         self.height = int(props["input_height"])
         self.width = int(props["input_width"])

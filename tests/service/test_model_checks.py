@@ -30,3 +30,13 @@ def test_a_model_with_other_inputs_is_refused(tmp_path):
     path = _model(tmp_path / "other.onnx", ("image",), 2)
     with pytest.raises(ValueError, match="not an omnisplat encoder"):
         OnnxEncoder(path)
+
+
+def test_a_model_with_other_depth_candidates_is_refused(tmp_path):
+    """A graph that reads its candidates in another spacing would place every depth wrongly, without a word."""
+    path = _model(tmp_path / "parallax.onnx", INPUT_NAMES, WARP_GRIDS_RANK)
+    model = onnx.load(str(path))
+    onnx.helper.set_model_props(model, {"candidate_spacing": "parallax"})
+    onnx.save(model, str(path))
+    with pytest.raises(ValueError, match=r"spaced by 'parallax'.* rebuild it with `omnisplat export`"):
+        OnnxEncoder(path)
