@@ -10,8 +10,7 @@ view); and the two-pass adaptive near/far (seconds, PSNR, depth AbsRel on
 m3d GT). Sources: the real encoder (the shipped 512x1024 "quality" preset from the
 bench model cache, :func:`bench.models.bench_model`, or ``--model``) and, where a scene has depth, GT-depth
 Gaussians in the same grid layout. Writes compaction.json / compaction.md and, with
-``--readme``, the README's marked compaction block (the shipped default and the other step sets
-against none, per split).
+``--readme``, the README's marked compaction block (the shipped default against none, per split).
 Render timings are the best of RENDER_REPEATS round-robin runs over the variants (noisy on a shared
 machine; the report gives the load average); render contributions are the load-free measure of render cost.
 """
@@ -53,9 +52,7 @@ def _log(msg: str) -> None:
 
 
 def variants(n: int) -> dict[str, CompactionOptions]:
-    """Each step alone, the shipped default, every step on (with and without the smooth merge, and with
-    4x4 blocks),
-    and a 60% count cap with and without the rest."""
+    """Each step alone, the shipped default (also with 4x4 blocks), and a 60% count cap with and without the rest."""
     off = CompactionOptions.off()
     cap = int(0.6 * n)
 
@@ -65,15 +62,10 @@ def variants(n: int) -> dict[str, CompactionOptions]:
     return {
         "none": off,
         "min_opacity": only(min_opacity=1.0 / 255.0),
-        "overlap_split": only(resolve_overlap="split"),
-        "overlap_yin": only(resolve_overlap="yin"),
-        "duplicates": only(merge_duplicates=True),
         "smooth": only(merge_smooth=True),
         "cap60": only(max_count=cap),
-        "all_but_smooth": CompactionOptions(resolve_overlap="split", merge_duplicates=True, merge_smooth=False),
-        "all_steps": CompactionOptions(resolve_overlap="split", merge_duplicates=True),
         "all": CompactionOptions(),
-        "all_smooth4x4": CompactionOptions(resolve_overlap="split", merge_duplicates=True, smooth_levels=2),
+        "all_smooth4x4": CompactionOptions(smooth_levels=2),
         "all+cap60": CompactionOptions(max_count=cap),
     }
 
@@ -334,7 +326,7 @@ def markdown(results: dict) -> str:
         res = e["sources"].get("encoder")
         if res is None:
             continue
-        for name in ("all_but_smooth", "all_steps", "all", "all_smooth4x4"):
+        for name in ("smooth", "all", "all_smooth4x4"):
             v = res["variants"].get(name)
             if v is None:
                 continue
@@ -364,23 +356,21 @@ def markdown(results: dict) -> str:
                              f"{r['far']} | {ps} | {r.get('abs_rel', '')} |")
     lines += ["", "## Notes", "",
               "* Steps: `min_opacity` (encoder opacities are >= 0.15, so 1/255 removes nothing there), "
-              "`resolve_overlap` ('split' = larger domain margin keeps, the renderer's own merge rule; "
-              "'yin' = Yin whole), `merge_duplicates` (other view's pixel at the same range within "
-              "`duplicate_range_tol`, the Gaussian farther from its own camera goes), `merge_smooth` (2x2 blocks "
+              "`merge_smooth` (2x2 blocks "
               "of one grid, all present, texture under a tenth of the grid's contrast, DC colour within "
               "`smooth_colour_tol`, opacity within "
               "`smooth_opacity_tol`, on a plane within `smooth_plane_tol` x range seen at most "
               "`smooth_max_incidence_deg` off its normal -> one moment-matched Gaussian keeping the block's "
-              "optical depth; `all_smooth4x4` = `all_steps` with 4x4 blocks too), `max_count`/`max_bytes` cap. "
-              "'all' = the shipped default (min opacity + smooth merge); 'all_steps' = overlap, duplicates and "
-              "smooth merge; 'all_but_smooth' = overlap and duplicates (the default before encoder 0.5.0).",
+              "optical depth; `all_smooth4x4` = `all` with 4x4 blocks too), `max_count`/`max_bytes` cap. "
+              "'all' = the shipped default (min opacity + smooth merge). Every reference keeps its own copies "
+              "of a surface and both grids' overlap (docs/design.md, Compaction).",
               "* Smooth merge: the merged opacity keeps the block's optical depth (A' Li2(a') = sum A_i Li2(a_i), "
               "footprint areas with half the renderer's low-pass at the grid's pixel size); it saturates at 0.99 "
               "for opaque 2x2 blocks (about 93% coverage between merged Gaussians at the grid's resolution; the "
               "ERP and service renders divide colour by alpha). 4x4 blocks (`smooth_levels` 2) merge only where "
               "one Gaussian keeps the optical depth, widened in-plane to 0.45 of their size against lattice "
               "ripple. The incidence limit is what keeps the PSNR: on zind pano_5 (2x2 blocks, against the "
-              "overlap and duplicate steps alone, encoder 0.3.0 at 32 planes) 75 / 60 / 45 degrees cost -0.12 / "
+              "set without the merge, encoder 0.3.0 at 32 planes) 75 / 60 / 45 degrees cost -0.12 / "
               "-0.09 / -0.00 dB; opacity and colour tolerances mattered much less.",
               "* `min_confidence` (off by default) and the cap punch holes with the training-free encoder: "
               "unconfident pixels are whole regions (walls without texture), not scattered noise.",
@@ -392,11 +382,11 @@ def markdown(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-README_VARIANTS = ("none", "all_but_smooth", "all_steps", "all")
+README_VARIANTS = ("none", "all")
 
 
 def readme_block(results: dict, report_path: str) -> str:
-    """The README's compaction table: per split, no compaction, the shipped default and the other step sets."""
+    """The README's compaction table: per split, no compaction and the shipped default."""
     start, end = readme_markers("compaction")
     lines = [start, "",
              f"Model {results['model']} ({results['num_planes']} planes), render {results['render']}, load average "
@@ -405,8 +395,7 @@ def readme_block(results: dict, report_path: str) -> str:
              "| split | source | variant | Gaussians | fewer % | contributions less % | render s | render less % | "
              f"ΔPSNR dB {COMPOSITING_LABEL[results.get('compositing', 'va')]} (worst target) | compact s |",
              "|---|---|---|---|---|---|---|---|---|---|"]
-    names = {"none": "none", "all_but_smooth": "overlap + duplicates", "all_steps": "overlap + duplicates + smooth",
-             "all": "default (smooth merge)"}
+    names = {"none": "none", "all": "default (smooth merge)"}
     for r in summary_rows(results):
         if r["variant"] in README_VARIANTS:
             lines.append(f"| {r['split']} | {r['source']} | {names[r['variant']]} | {r['count']:,} | {r['fewer_pct']} | "

@@ -34,16 +34,6 @@ class CompactionSettings(BaseModel):
                                description="drop Gaussians less opaque than this (0: keep all)")
     min_confidence: float = Field(_COMPACTION.min_confidence, ge=0.0, le=1.0,
                                   description="drop Gaussians whose match confidence is below this (0: off)")
-    resolve_overlap: Literal["off", "split", "yin"] = Field(
-        _COMPACTION.resolve_overlap, description="where the Yin and Yang grids of one view overlap: keep both "
-        "('off'), split the overlap at the larger domain margin ('split') or keep Yin whole ('yin'); "
-        "'off' renders best against the reference images")
-    merge_duplicates: bool = Field(_COMPACTION.merge_duplicates, description="merge a Gaussian with the other "
-                                   "view's Gaussian on the same surface (fewer Gaussians, lower fidelity)")
-    duplicate_range_tol: float = Field(_COMPACTION.duplicate_range_tol, ge=0.0, le=1.0,
-                                       description="relative range difference that counts as the same surface")
-    duplicate_footprint_ratio: float = Field(_COMPACTION.duplicate_footprint_ratio, ge=1.0, le=1e3,
-                                             description="largest footprint ratio of two duplicates")
     merge_smooth: bool = Field(_COMPACTION.merge_smooth, description="merge smooth 2x2 blocks into one Gaussian")
     smooth_colour_tol: float = Field(_COMPACTION.smooth_colour_tol, ge=0.0, le=1.0,
                                      description="a cap on a merged block's colour range per channel (0..1; 1 = none: "

@@ -1,10 +1,10 @@
 """Two panoramas -> the Gaussians a scene needs: one path for the API and the CLI.
 
 Steps: optional scene-adaptive depth range (:mod:`service.scene_adaptive`),
-the ONNX encoder, compaction (:mod:`rasterizer.compaction`: overlap,
-duplicates, transparent Gaussians, merge of smooth 2x2 blocks, optional
-cap; the scene metadata's ``compaction`` says how many each step removed),
-and a final guard that drops any non-finite Gaussian. Options come as the API's ``options`` JSON
+the ONNX encoder, compaction (:mod:`rasterizer.compaction`: transparent
+Gaussians, merge of smooth 2x2 blocks, optional cap; the scene metadata's
+``compaction`` says how many each step removed), and a final guard that
+drops any non-finite Gaussian. Options come as the API's ``options`` JSON
 object; structured keys ``compaction`` and ``adaptive_range`` hold the
 step options, ``near``/``far``, ``sh_degree`` (view-dependent colour, 1, or one colour per
 Gaussian, 0) and ``rig_cap_deg`` (degrees around each camera's nadir where a tripod capture shows

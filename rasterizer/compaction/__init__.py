@@ -7,31 +7,21 @@ each step switchable in :class:`CompactionOptions`:
 1. ``min_opacity`` / ``min_confidence``: Gaussians too transparent (or too
    unconfident) to show. The renderer already skips alpha < 1/255 per pixel,
    so ``min_opacity = 1/255`` only saves their projection and storage.
-2. ``resolve_overlap``: the ~6% of each view's sphere covered by both Yin and
-   Yang is kept once. ``"split"`` keeps, per direction, the grid whose domain
-   margin is larger (the same rule as the renderer's Yin/Yang merge weight,
-   :func:`rasterizer.yin_yang.blend_weight_yin` >= 0.5); ``"yin"`` keeps all
-   of Yin and Yang only outside the Yin domain.
-3. ``merge_duplicates``: a Gaussian whose centre, seen from the *other*
-   reference, lands on a pixel whose Gaussian lies at the same range (relative
-   tolerance) with a similar footprint is a second sample of the same surface
-   point; the one farther from its own camera (the coarser sample) is
-   dropped, never both (a dropped Gaussian's partner is always kept).
-4. ``merge_smooth``: a 2x2 block of one grid's pixels (with
+2. ``merge_smooth``: a 2x2 block of one grid's pixels (with
    ``smooth_levels`` >= 2 also 4x4 of merged 2x2 blocks, ...) whose
    Gaussians are all still there, nearly the same colour and opacity, and
-   lie on one plane seen at most 45 degrees off its normal is replaced by
-   one moment-matched Gaussian with the block's optical depth
-   (:func:`smooth_merge_blocks`). Flat, evenly coloured walls then need a
+   lie on one plane seen at most ``smooth_max_incidence_deg`` (55) degrees off
+   its normal is replaced by one moment-matched Gaussian with the block's
+   optical depth (:func:`smooth_merge_blocks`). Flat, evenly coloured walls then need a
    quarter of the Gaussians and about half the render contributions.
-5. ``max_count`` / ``max_bytes``: keep the Gaussians with the largest
+3. ``max_count`` / ``max_bytes``: keep the Gaussians with the largest
    opacity x footprint solid angle seen from their own reference.
 
-Steps 1-3 and 5 only drop Gaussians; step 4 makes new ones. The output
+Steps 1 and 3 only drop Gaussians; step 2 makes new ones. The output
 comes in layout order (a merged block at its top-left pixel). An
 environment shell after the pixel-aligned Gaussians (``Provenance.shell``,
 :mod:`rasterizer.shell`) is kept as it is, except for steps 1 (opacity) and
-5 (the cap counts it), and comes last.
+3 (the cap counts it), and comes last.
 
 The layout (which view, grid, row, column each Gaussian came from) is a
 :class:`Provenance`; the encoder's order is [view][grid][row][col].
@@ -41,8 +31,8 @@ from .merge import MIN_OVERLAP, opacity_depth, opacity_for_depth, smooth_merge_b
 from .options import CompactionError, CompactionOptions, ply_bytes_for_count, ply_count_for_bytes
 from .provenance import Provenance
 from .result import compact, compact_index, compact_result
-from .steps import footprint, overlap_keep_mask, owner_grid
+from .steps import footprint
 
 __all__ = ["MIN_OVERLAP", "CompactionError", "CompactionOptions", "Provenance", "compact", "compact_index",
-           "compact_result", "footprint", "opacity_depth", "opacity_for_depth", "overlap_keep_mask", "owner_grid",
-           "ply_bytes_for_count", "ply_count_for_bytes", "smooth_merge_blocks"]
+           "compact_result", "footprint", "opacity_depth", "opacity_for_depth", "ply_bytes_for_count",
+           "ply_count_for_bytes", "smooth_merge_blocks"]

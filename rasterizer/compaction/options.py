@@ -9,7 +9,6 @@ import numpy as np
 from ..gaussians import Gaussians
 from ..ply import ply_bytes
 
-OVERLAP_MODES = ("split", "yin", "off")
 #: Largest block side of the smooth-region merge is 2**MAX_SMOOTH_LEVELS pixels.
 MAX_SMOOTH_LEVELS = 4
 
@@ -24,9 +23,6 @@ class CompactionOptions:
 
     min_opacity: drop opacity below this (0 = off). min_confidence: drop
     confidence below this (0 = off; needs per-Gaussian confidence).
-    resolve_overlap: "split" | "yin" | "off". merge_duplicates: on/off, with
-    duplicate_range_tol (relative range difference that is "the same surface")
-    and duplicate_footprint_ratio (largest footprint ratio that is "similar").
     merge_smooth: on/off, with smooth_levels (1: 2x2 blocks, 2: also 4x4, ...
     up to 2**4; which blocks carry texture is decided scale-free, see
     rasterizer.compaction.merge.texture_ok), smooth_colour_tol (an absolute
@@ -39,13 +35,6 @@ class CompactionOptions:
 
     min_opacity: float = 1.0 / 255.0
     min_confidence: float = 0.0
-    # Off by default: with Gaussians of 0.5 pixel pitches the overlap step cost up to 0.52 dB (zind pano_5)
-    # and the duplicate step 0.66 dB (m3d) at the targets, while the smooth merge alone stays within
-    # 0.02 dB (docs/bench/compaction.md).
-    resolve_overlap: str = "off"
-    merge_duplicates: bool = False
-    duplicate_range_tol: float = 0.05  # 0.1 cost 0.56 dB on m3d; 0.05 stayed within 0.2 dB
-    duplicate_footprint_ratio: float = 4.0
     merge_smooth: bool = True
     # 2x2 blocks only. 2 (also 4x4) left 3-16% fewer Gaussians on the dev scenes, but rendered 1-5 dB
     # further from the uncompacted scene (within 0.03 dB of 1 against the target images).
@@ -62,15 +51,10 @@ class CompactionOptions:
     max_bytes: int | None = None
 
     def __post_init__(self) -> None:
-        if self.resolve_overlap not in OVERLAP_MODES:
-            raise CompactionError(f"resolve_overlap must be one of {OVERLAP_MODES}, got {self.resolve_overlap!r}")
-        for name in ("min_opacity", "min_confidence", "duplicate_range_tol", "smooth_colour_tol",
-                     "smooth_opacity_tol", "smooth_plane_tol"):
+        for name in ("min_opacity", "min_confidence", "smooth_colour_tol", "smooth_opacity_tol", "smooth_plane_tol"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise CompactionError(f"{name} must be a finite number >= 0, got {v!r}")
-        if not (np.isfinite(self.duplicate_footprint_ratio) and self.duplicate_footprint_ratio >= 1):
-            raise CompactionError(f"duplicate_footprint_ratio must be >= 1, got {self.duplicate_footprint_ratio!r}")
         if not (isinstance(self.smooth_levels, (int, np.integer)) and not isinstance(self.smooth_levels, bool)
                 and 1 <= self.smooth_levels <= MAX_SMOOTH_LEVELS):
             raise CompactionError(f"smooth_levels must be an integer in 1..{MAX_SMOOTH_LEVELS}, "
@@ -85,8 +69,7 @@ class CompactionOptions:
     @classmethod
     def off(cls) -> "CompactionOptions":
         """Every step disabled (compact() then returns its input unchanged)."""
-        return cls(min_opacity=0.0, min_confidence=0.0, resolve_overlap="off", merge_duplicates=False,
-                   merge_smooth=False)
+        return cls(min_opacity=0.0, min_confidence=0.0, merge_smooth=False)
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "CompactionOptions":
@@ -96,10 +79,6 @@ class CompactionOptions:
         unknown = sorted(set(d) - names)
         if unknown:
             raise CompactionError(f"unknown compaction option(s) {unknown}; known: {sorted(names)}")
-        if "resolve_overlap" in d and d["resolve_overlap"] in (False, None):
-            d["resolve_overlap"] = "off"
-        elif d.get("resolve_overlap") is True:
-            d["resolve_overlap"] = "split"
         return cls(**d)
 
     def to_dict(self) -> dict:

@@ -12,7 +12,7 @@ from ..shell import shell_layout
 from .merge import SmoothMerge, smooth_merge_blocks
 from .options import CompactionError, CompactionOptions, count_limit
 from .provenance import Provenance
-from .steps import cap_keep_mask, duplicate_drop_mask, overlap_keep_mask
+from .steps import cap_keep_mask
 
 
 @dataclass(frozen=True)
@@ -126,23 +126,6 @@ def _compact_layout(gaussians: Gaussians, provenance: Provenance, opts: Compacti
     step("min_opacity", keep, t0)
 
     t0 = time.perf_counter()
-    if opts.resolve_overlap != "off" and tuple(provenance.grids) == ("yin", "yang"):
-        grids, h, w = tuple(provenance.grids), provenance.height, provenance.width
-        local = flat % (len(grids) * h * w)
-        keep = overlap_keep_mask(grids, h, w, opts.resolve_overlap).reshape(-1)[local]
-        step("resolve_overlap", keep, t0)
-    else:
-        step("resolve_overlap", None, t0)
-
-    t0 = time.perf_counter()
-    if opts.merge_duplicates and provenance.views > 1:
-        drop = duplicate_drop_mask(gaussians, provenance, alive, range_tol=opts.duplicate_range_tol,
-                                   footprint_ratio=opts.duplicate_footprint_ratio)
-        step("merge_duplicates", ~drop, t0)
-    else:
-        step("merge_duplicates", None, t0)
-
-    t0 = time.perf_counter()
     smooth_stats = {"merged": 0, "added": 0, "blocks": {}}
     merged = None
     if opts.merge_smooth:
@@ -239,8 +222,7 @@ def compact(gaussians: Gaussians, provenance: Provenance, options: CompactionOpt
     """The Gaussians a scene needs, and how many each step removed.
 
     Returns (Gaussians in layout order, stats) with stats = ``{"input": N,
-    "output": M, "removed": {"min_opacity", "resolve_overlap",
-    "merge_duplicates", "merge_smooth", "cap"}: counts (merge_smooth: inputs
+    "output": M, "removed": {"min_opacity", "merge_smooth", "cap"}: counts (merge_smooth: inputs
     merged minus merged Gaussians added, so the counts sum to N - M),
     "merge_smooth": {"merged", "added", "blocks": {side: count}}, "seconds":
     per step (and "assemble", building the output), "options": ...}``. Without ``merge_smooth`` the output is a

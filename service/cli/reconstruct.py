@@ -63,12 +63,9 @@ def pipeline_options(args: argparse.Namespace):
     if args.no_compaction:
         compaction = False
     else:
-        for flag, key in (("resolve_overlap", "resolve_overlap"), ("max_gaussians", "max_count"),
-                          ("max_bytes", "max_bytes"), ("min_opacity", "min_opacity")):
+        for flag, key in (("max_gaussians", "max_count"), ("max_bytes", "max_bytes"), ("min_opacity", "min_opacity")):
             if getattr(args, flag) is not None:
                 compaction[key] = getattr(args, flag)
-        if args.merge_duplicates:
-            compaction["merge_duplicates"] = True
         if args.no_merge_smooth:
             compaction["merge_smooth"] = False
     try:
@@ -178,10 +175,6 @@ def add_parser(sub) -> None:
     r.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
     c = r.add_argument_group("leave out what the scene does not need (default: min opacity and the smooth merge)")
     c.add_argument("--no-compaction", action="store_true", help="keep every pixel-aligned Gaussian")
-    c.add_argument("--resolve-overlap", choices=["split", "yin", "off"],
-                   help="Yin/Yang overlap: keep each direction once (split, yin) or keep all (off, default)")
-    c.add_argument("--merge-duplicates", action="store_true",
-                   help="keep one of the two references' copies of a surface point (default: keep both)")
     c.add_argument("--no-merge-smooth", action="store_true",
                    help="keep flat, evenly coloured regions at one Gaussian per pixel (default: merge 2x2 blocks)")
     c.add_argument("--min-opacity", type=float, help="drop Gaussians below this opacity (default 1/255)")

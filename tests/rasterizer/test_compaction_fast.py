@@ -1,4 +1,4 @@
-"""The vectorised smooth merge / duplicate step give what the straightforward per-block formulas give.
+"""The vectorised smooth merge and the count cap's ranking give what the straightforward formulas give.
 
 ``_reference_level1`` is the 2x2 merge as first written (per-member gathers, ``quat_to_rotmat``,
 ``scale_rotation_from_covariance``); the shipped code works on the block-reshaped layout in

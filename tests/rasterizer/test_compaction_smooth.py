@@ -22,7 +22,7 @@ from rasterizer.gaussians import Gaussians
 from rasterizer.render import render
 
 #: Only the merge runs (the other steps are tested in test_compaction.py).
-ONLY_SMOOTH = dict(min_opacity=0.0, resolve_overlap="off", merge_duplicates=False, merge_smooth=True)
+ONLY_SMOOTH = dict(min_opacity=0.0, merge_smooth=True)
 
 
 def wall_scene(h=32, colour=None, rng_fn=None, opacity=0.6, grid="yin", scale=1.0, cos_max=0.5):
