@@ -44,8 +44,8 @@ class CompactionSettings(BaseModel):
                                     description="largest rms distance of a block from its plane, relative to range")
     smooth_max_incidence_deg: float = Field(_COMPACTION.smooth_max_incidence_deg, ge=0.0, le=90.0,
                                             description="largest angle between a block's plane normal and the ray")
-    max_count: int | None = Field(_COMPACTION.max_count, ge=1, description="keep at most this many Gaussians, "
-                                  "the least visible dropped first (null: no cap)")
+    max_count: int | None = Field(_COMPACTION.max_count, ge=1, description="keep at most this many Gaussians: flat blocks "
+                                  "merge further, least textured first, then the least visible are dropped (null: no cap)")
     max_bytes: int | None = Field(_COMPACTION.max_bytes, ge=0, description="keep the PLY within this many bytes "
                                   "(null: no cap)")
 

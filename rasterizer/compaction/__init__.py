@@ -14,8 +14,10 @@ each step switchable in :class:`CompactionOptions`:
    its normal is replaced by one moment-matched Gaussian with the block's
    optical depth (:func:`smooth_merge_blocks`). Flat, evenly coloured walls then need a
    quarter of the Gaussians and about half the render contributions.
-3. ``max_count`` / ``max_bytes``: keep the Gaussians with the largest
-   opacity x footprint solid angle seen from their own reference.
+3. ``max_count`` / ``max_bytes``: first step 2 goes on past its texture
+   test, least textured 2x2 blocks first, until the count fits or no block
+   passes its other tests; then the Gaussians with the largest opacity x
+   footprint solid angle seen from their own reference are kept.
 
 Steps 1 and 3 only drop Gaussians; step 2 makes new ones. The output
 comes in layout order (a merged block at its top-left pixel). An

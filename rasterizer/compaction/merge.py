@@ -137,9 +137,12 @@ def _block_min_max(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _level1_merge(gaussians: Gaussians, prov: Provenance, alive: np.ndarray, colour_tol: float, opacity_tol: float,
-                  plane_tol: float, cos_incidence: float, pitch: float):
+                  plane_tol: float, cos_incidence: float, pitch: float, budget: int | None = None):
     """2x2 blocks that merge: (block ids into the (P, H/2, W/2) block grid, their units, (m, 4) member indices,
     and the (3, P, H, W) DC colour planes and (P, H, W) alive mask of the layout).
+
+    ``budget``: Gaussians the merge should remove (three per block). When the blocks that pass the texture
+    test remove fewer, blocks that pass every other test merge too, least textured first, up to that count.
 
     The colour, opacity and all-alive tests run on the block-reshaped layout
     (no per-pixel gathers); only the blocks passing them are gathered, in
@@ -176,7 +179,9 @@ def _level1_merge(gaussians: Gaussians, prov: Provenance, alive: np.ndarray, col
     ok &= (np.maximum(np.maximum(crange[0], crange[1]), crange[2]) <= np.float32(colour_tol / SH_C0)).reshape(
         ok.shape)  # colour tolerance in DC units
     planes = dct.reshape(3, n_grids, h, w), al.reshape(n_grids, h, w)
-    ok &= texture_ok(*planes, 1, TEXTURE_TOL)
+    t, whole, contrast = block_texture_contrast(*planes, 1)
+    tex_ok = whole & (t <= np.float32(TEXTURE_TOL) * contrast)
+    ok &= tex_ok if budget is None else whole
     blk = np.flatnonzero(ok)
     top = _block_tops(n_grids, h, w)[blk]  # layout position of each candidate's top-left pixel
     plane = top // (h * w)
@@ -193,7 +198,13 @@ def _level1_merge(gaussians: Gaussians, prov: Provenance, alive: np.ndarray, col
     units = _Units(cat(1, (0,)), cat(2, (0, 3)), cat(3, (0, 6)), cat(4, (0, 6)), cat(5, (0, k, 3)), cat(6, (0,)),
                    cmin[:, b].T.astype(np.float64), cmax[:, b].T.astype(np.float64),
                    amin.reshape(-1)[b].astype(np.float64), amax.reshape(-1)[b].astype(np.float64))
-    return b, units, mem[:, sel].T, planes
+    members = mem[:, sel].T
+    if budget is not None:  # each block's arithmetic is its own: the blocks kept merge as they would alone
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = (t / contrast).reshape(-1)[b]
+        take = _least_textured(tex_ok.reshape(-1)[b], np.nan_to_num(ratio, nan=np.inf), -(-budget // 3))
+        b, units, members = b[take], units.take(take), members[take]
+    return b, units, members, planes
 
 
 #: Luma weights (Rec. 601) of the texture test: the eye (and the sharpness metric) sees luma detail most.
@@ -261,21 +272,41 @@ def block_texture(dc: np.ndarray, present: np.ndarray, level: int) -> tuple[np.n
     return _luma(_means2(r)), whole
 
 
-def texture_ok(dc: np.ndarray, present: np.ndarray, level: int, tol: float) -> np.ndarray:
-    """(G, h >> level, w >> level) bool: whole blocks whose :func:`block_texture` is at most ``tol`` x their
-    grid's contrast (the luma-weighted mean |colour - the grid's mean colour| over its present pixels).
-
-    Scale-free: scaling every colour about mid-grey (the DC planes by a factor) scales texture and
-    contrast alike and leaves each decision unchanged. A ramp merges at any steepness, a faint grain
-    on a plain wall is kept where the room's own contrast is faint too.
-    """
+def block_texture_contrast(dc: np.ndarray, present: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(:func:`block_texture`'s texture and whole-block mask, each grid's contrast (G, 1, 1)): the luma-weighted
+    mean |colour - the grid's mean colour| over its present pixels."""
     t, whole = block_texture(dc, present, level)
     p = np.asarray(present, bool)
     n = np.maximum(p.reshape(p.shape[0], -1).sum(axis=1), 1)
     mean = np.where(p, dc, 0).reshape(3, p.shape[0], -1).sum(axis=2) / n  # (3, G)
     dev = np.where(p, np.abs(dc - mean[:, :, None, None]), 0).reshape(3, p.shape[0], -1).sum(axis=2) / n
-    contrast = _luma(dev.astype(np.float32))  # (G,)
-    return whole & (t <= np.float32(tol) * contrast[:, None, None])
+    return t, whole, _luma(dev.astype(np.float32))[:, None, None]
+
+
+def texture_ok(dc: np.ndarray, present: np.ndarray, level: int, tol: float) -> np.ndarray:
+    """(G, h >> level, w >> level) bool: whole blocks whose :func:`block_texture` is at most ``tol`` x their
+    grid's contrast (:func:`block_texture_contrast`).
+
+    Scale-free: scaling every colour about mid-grey (the DC planes by a factor) scales texture and
+    contrast alike and leaves each decision unchanged. A ramp merges at any steepness, a faint grain
+    on a plain wall is kept where the room's own contrast is faint too.
+    """
+    t, whole, contrast = block_texture_contrast(dc, present, level)
+    return whole & (t <= np.float32(tol) * contrast)
+
+
+def _least_textured(tex_ok: np.ndarray, ratio: np.ndarray, blocks: int) -> np.ndarray:
+    """Indices (ascending) of the blocks to merge: every one that passes the texture test, and when they are
+    fewer than ``blocks``, the least textured others (by ``ratio``, texture / contrast) up to that count."""
+    extra = blocks - int(tex_ok.sum())
+    rest = np.flatnonzero(~tex_ok)
+    if extra <= 0 or rest.size == 0:
+        return np.flatnonzero(tex_ok)
+    if extra < rest.size:
+        rest = rest[np.argpartition(ratio[rest], extra - 1)[:extra]]
+    keep = tex_ok.copy()
+    keep[rest] = True
+    return np.flatnonzero(keep)
 
 
 #: Candidate blocks per chunk of :func:`_level1_chunk` (its float64 temporaries then stay in the CPU cache).
@@ -433,7 +464,8 @@ def smooth_merge_blocks(gaussians: Gaussians, prov: Provenance, alive: np.ndarra
                         colour_tol: float = CompactionOptions.smooth_colour_tol,
                         opacity_tol: float = CompactionOptions.smooth_opacity_tol,
                         plane_tol: float = CompactionOptions.smooth_plane_tol,
-                        max_incidence_deg: float = CompactionOptions.smooth_max_incidence_deg) -> SmoothMerge:
+                        max_incidence_deg: float = CompactionOptions.smooth_max_incidence_deg,
+                        budget: int | None = None) -> SmoothMerge:
     """Replace 2x2 (then 4x4, ... up to 2**levels) blocks of one grid's pixels by one Gaussian each.
 
     A block merges when all its pixels are alive, its texture is at most
@@ -452,6 +484,10 @@ def smooth_merge_blocks(gaussians: Gaussians, prov: Provenance, alive: np.ndarra
     Why the incidence limit: on the dev scenes the loss came from floors and
     ceilings seen obliquely (often with wrong, unconfident depth); 45
     degrees kept the merge within 0.03 dB of no merge on every target.
+
+    ``budget`` (a count cap's excess, Gaussians): when the 2x2 blocks that pass the texture test remove
+    fewer, the least textured of those that pass every other test merge too, up to it. Merged blocks keep
+    the coverage where dropping Gaussians would open holes (docs/design.md, Compaction).
     """
     n = len(gaussians)
     n_grids = prov.views * len(prov.grids)
@@ -468,7 +504,7 @@ def smooth_merge_blocks(gaussians: Gaussians, prov: Provenance, alive: np.ndarra
         if level == 1:
             # children: the (m, 4) input indices of each merged block's pixels
             chosen, units, children, planes = _level1_merge(gaussians, prov, alive, colour_tol, opacity_tol,
-                                                            plane_tol, cos_inc, pitch)
+                                                            plane_tol, cos_inc, pitch, budget)
         else:
             ids = np.full(ids_shape[0] * ids_shape[1] * ids_shape[2], -1, dtype=np.int64)
             ids[per_level[-1][0]] = np.arange(per_level[-1][0].size)

@@ -128,10 +128,13 @@ def _compact_layout(gaussians: Gaussians, provenance: Provenance, opts: Compacti
     t0 = time.perf_counter()
     smooth_stats = {"merged": 0, "added": 0, "blocks": {}}
     merged = None
+    limit = count_limit(opts, gaussians.sh.shape[1])
     if opts.merge_smooth:
+        excess = None if limit is None else int(alive.sum()) - limit  # merge before the cap drops
         sm = smooth_merge_blocks(gaussians, provenance, alive, levels=opts.smooth_levels,
                                  colour_tol=opts.smooth_colour_tol, opacity_tol=opts.smooth_opacity_tol,
-                                 plane_tol=opts.smooth_plane_tol, max_incidence_deg=opts.smooth_max_incidence_deg)
+                                 plane_tol=opts.smooth_plane_tol, max_incidence_deg=opts.smooth_max_incidence_deg,
+                                 budget=excess if excess is not None and excess > 0 else None)
         alive &= ~sm.drop
         merged = sm
         smooth_stats = {"merged": int(sm.drop.sum()), "added": len(sm.gaussians),
@@ -148,7 +151,6 @@ def _compact_layout(gaussians: Gaussians, provenance: Provenance, opts: Compacti
     seconds["assemble"] = round(time.perf_counter() - t0, 4)
 
     t0 = time.perf_counter()
-    limit = count_limit(opts, gaussians.sh.shape[1])
     if limit is not None and tail is not None:
         raise CompactionError("a tail is appended only without a count cap")
     removed["cap"] = 0

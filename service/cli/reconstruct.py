@@ -178,7 +178,7 @@ def add_parser(sub) -> None:
     c.add_argument("--no-merge-smooth", action="store_true",
                    help="keep flat, evenly coloured regions at one Gaussian per pixel (default: merge 2x2 blocks)")
     c.add_argument("--min-opacity", type=float, help="drop Gaussians below this opacity (default 1/255)")
-    c.add_argument("--max-gaussians", type=int, help="cap the count (drops the least visible first)")
+    c.add_argument("--max-gaussians", type=int, help="cap the count (merges more flat blocks, then drops the least visible)")
     c.add_argument("--max-bytes", type=int, help="cap the PLY size in bytes")
     c.add_argument("--adaptive-range", action="store_true",
                    help="choose near/far from a coarse pass (slower: two encoder runs)")

@@ -297,3 +297,32 @@ def test_merge_with_cap_and_default_steps_on_two_views():
     assert sum(res.stats["removed"].values()) == len(g) - 200
     np.testing.assert_array_equal(res.gaussians.means[res.block == 1], g.means[res.index])
     res.gaussians.check_finite()
+
+
+def test_a_count_cap_merges_the_least_textured_blocks_before_it_drops():
+    """Under a count cap the merge goes on past the texture test, least textured blocks first, so the cap
+    drops nothing while mergeable blocks remain: a faint grain merges before a strong one, and a ramp as
+    without the cap (merged blocks keep the surface closed where dropped Gaussians would leave holes)."""
+    def colour(d):
+        i, j = np.indices(d.shape[:2])
+        w = d.shape[1]
+        amp = np.where(j < w // 3, 0.0, np.where(j < 2 * w // 3, 0.006, 0.03))
+        grain = np.where((i + j) % 2 == 0, amp, -amp)
+        return (0.5 + 0.15 * d[..., 0] + grain)[..., None] * np.array([1.0, 0.9, 0.8])
+
+    g, prov, _ = wall_scene(h=32, colour=colour, cos_max=0.8)
+    w = prov.width
+
+    def merged_columns(res):
+        return res.provenance.index[res.block == 2] % w
+
+    base = compact_result(g, prov, CompactionOptions(**ONLY_SMOOTH))
+    assert (merged_columns(base) < w // 3 + 1).all()  # only the ramp passes the texture test
+    extra = 30
+    res = compact_result(g, prov, CompactionOptions(**ONLY_SMOOTH, max_count=len(base.gaussians) - 3 * extra))
+    assert res.stats["removed"]["cap"] == 0 and len(res.gaussians) == len(base.gaussians) - 3 * extra
+    cols = merged_columns(res)
+    assert (cols < 2 * w // 3).all()  # the strong grain is left whole
+    assert ((cols >= w // 3) & (cols < 2 * w // 3)).sum() >= extra  # the faint grain merged instead
+    assert set(base.provenance.index[base.block == 2]) <= set(res.provenance.index[res.block == 2])  # and the ramp
+    res.gaussians.check_finite()
