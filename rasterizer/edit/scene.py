@@ -45,12 +45,17 @@ class EditData:
     def to_bytes(self, compress: bool = False) -> bytes:
         """npz: packed matches (:func:`correspondences.pack`), float16 ranges, int32 index, uint8 block.
 
-        Not zlib-compressed by default: every scene creation pays the packing, and ``omnisplat-bench edit``
-        measures both (m3d_bedroom: about twice the bytes, a tenth of the seconds).
+        The ranges are stored in units of a power of two near their median (``range_scale``), so a scene in
+        any unit keeps float16's 3 significant digits without overflowing (65504) or falling to subnormals;
+        a power of two keeps the same float16 digits a metre-scale scene had. Not zlib-compressed by default:
+        every scene creation pays the packing, and ``omnisplat-bench edit`` measures both (m3d_bedroom:
+        about twice the bytes, a tenth of the seconds).
         """
+        scale = _range_scale(self.range_maps)
         buf = io.BytesIO()
         (np.savez_compressed if compress else np.savez)(buf, grids=np.array(self.grids), size=np.array([self.height, self.width]),
-                            range_maps=self.range_maps.astype(np.float16), index=self.index.astype(np.int32),
+                            range_maps=(self.range_maps / scale).astype(np.float16), range_scale=np.float64(scale),
+                            index=self.index.astype(np.int32),
                             block=self.block.astype(np.uint8),
                             **{f"matches_{k}": v for k, v in corr.pack(self.matches).items()})
         return buf.getvalue()
@@ -60,13 +65,26 @@ class EditData:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
             packed = {k[len("matches_"):]: z[k] for k in z.files if k.startswith("matches_")}
             h, w = (int(v) for v in z["size"])
-            return cls(tuple(str(g) for g in z["grids"]), h, w, corr.unpack(packed),
-                       z["range_maps"].astype(np.float32), z["index"].astype(np.int64), z["block"].astype(np.int64))
+            scale = float(z["range_scale"]) if "range_scale" in z.files else 1.0
+            ranges = z["range_maps"].astype(np.float32)
+            if scale != 1.0:
+                ranges *= np.float32(scale)
+            return cls(tuple(str(g) for g in z["grids"]), h, w, corr.unpack(packed), ranges,
+                       z["index"].astype(np.int64), z["block"].astype(np.int64))
 
     def subset(self, keep: np.ndarray) -> "EditData":
         """The same layout for ``gaussians.subset(keep)``."""
         return EditData(self.grids, self.height, self.width, self.matches, self.range_maps,
                         self.index[keep], self.block[keep])
+
+
+def _range_scale(ranges: np.ndarray) -> float:
+    """The power of two nearest the median positive finite range (1 when there is none)."""
+    r = np.asarray(ranges, dtype=np.float32).reshape(-1)
+    pos = r[np.isfinite(r) & (r > 0)]
+    if pos.size == 0:
+        return 1.0
+    return float(2.0 ** np.round(np.log2(float(np.median(pos)))))
 
 
 @dataclass

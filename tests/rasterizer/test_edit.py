@@ -315,3 +315,21 @@ def test_graph_cut_drops_isolated_carried_pixels_but_keeps_colour_edges(shift):
     want[2, 28] = True
     assert np.array_equal(on, np.roll(want, shift, 1))
     assert np.array_equal(off, src)  # without the cut every consistent pull is kept as carried
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 3e4, 1e6])
+def test_edit_data_keeps_ranges_of_a_scene_in_any_unit(scale):
+    """The stored float16 range maps neither overflow (a scene in centimetres or millimetres: ranges past
+    65504) nor fall to subnormals, and a metre-scale scene keeps its float16 digits exactly."""
+    from rasterizer.edit.scene import EditData
+
+    rng = np.random.default_rng(0)
+    ranges = (rng.uniform(0.3, 40.0, size=(2, 2, 8, 24)) * scale).astype(np.float32)
+    ranges[0, 0, 0, :3] = 0.0  # unknown pixels stay 0
+    matches = np.zeros((2, 2, 8, 24, 5), np.float32)
+    data = EditData(("yin", "yang"), 8, 24, matches, ranges, np.arange(10), np.ones(10, np.int64))
+    back = EditData.from_bytes(data.to_bytes()).range_maps
+    assert np.isfinite(back).all() and (back[0, 0, 0, :3] == 0).all()
+    np.testing.assert_allclose(back, ranges, rtol=1e-3)
+    if scale == 1.0:
+        np.testing.assert_array_equal(back, ranges.astype(np.float16).astype(np.float32))
