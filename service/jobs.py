@@ -29,8 +29,10 @@ from typing import Any, Callable
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from rasterizer.splat import RenderLimitError
+
 from .edits import EDIT_ARTIFACT
-from .errors import StoreUnavailable
+from .errors import PayloadTooLarge, StoreUnavailable
 from .job_state import ACTIVE, HEARTBEAT_S, JobFiles
 from .memory import release_memory
 from .references import REFERENCES_ARTIFACT, load_references, references_artifact
@@ -56,7 +58,8 @@ class RefineRequest(BaseModel):
                                                              "on held-out reference pixels")
     height: int = Field(128, ge=16, le=1024, description="Yin/Yang working height h (grids h x 3h per reference)")
     sh_degree: int = Field(0, ge=0, le=1, description="0: colour (SH DC) only; 1: also degree-1 SH")
-    colour_reg: float = Field(2.0, ge=0.0, le=1e4, description="pull toward the initial colours (relative)")
+    colour_reg: float = Field(2.0, gt=0.0, le=1e4, description="pull toward the initial colours (relative; > 0: "
+                              "a Gaussian no reference pixel sees is held by it alone)")
     holdout: float = Field(0.1, ge=0.0, le=0.5, description="fraction of reference pixels held out for early stop")
     patience: int = Field(5, ge=0, le=2000, description="stop after this many steps without held-out gain (0: off)")
     cross_check: bool = Field(True, description="cross-view guard: fit each reference alone and score the other; "
@@ -84,7 +87,13 @@ def refine_scene(store: SceneStore, parent_id: str, result_id: str, params: dict
         report(1.0)
         return store.meta(result_id)
     with store.hold(parent_id):  # the budget never evicts the scene being refined
-        return _refine(store, parent_id, result_id, params, report)
+        try:
+            return _refine(store, parent_id, result_id, params, report)
+        except RenderLimitError:
+            h = int(params["height"])
+            raise PayloadTooLarge(f"refine: at height {h} (Yin and Yang grids {h}x{3 * h} per reference) this scene's "
+                                  "Gaussians cover more pixels than one render may; use a smaller height",
+                                  code="render_too_large") from None
 
 
 def _refine(store: SceneStore, parent_id: str, result_id: str, params: dict, report: Callable[[float], None]) -> dict:

@@ -121,12 +121,32 @@ def test_refine_default_body(client, scene_id):
 
 @pytest.mark.parametrize("body", [
     {"iterations": -1}, {"iterations": 10 ** 6}, {"height": 4}, {"sh_degree": 2}, {"colour_reg": -1},
+    {"colour_reg": 0},  # no pull: the Gaussians no reference pixel sees have no equation (the fit did nothing)
     {"holdout": 0.9}, {"iterations": "many"}, {"unknown_option": 1},
 ])
 def test_refine_rejects_bad_options(client, scene_id, body):
     r = client.post(f"/v1/scenes/{scene_id}/refine", json=body)
     assert r.status_code == 422, (body, r.text)
     assert r.json()["error"]["code"] == "invalid_request"
+
+
+def test_refine_too_large_for_the_render_limit_names_the_height(client, scene_id, live, monkeypatch):
+    """A height the schema accepts can still ask for more footprint pixels than one render may: the job fails
+    with render_too_large and a message that names the height to lower (not the renderer's internals)."""
+    import importlib
+
+    from rasterizer.splat import RenderLimitError
+    from service.errors import PayloadTooLarge
+    from service.jobs import refine_scene
+
+    def too_large(*a, **k):
+        raise RenderLimitError("reduce the image size or the number/size of Gaussians (max_contributions=1)")
+
+    monkeypatch.setattr(importlib.import_module("rasterizer.refine"), "reference_views", too_large)
+    with pytest.raises(PayloadTooLarge, match=r"at height 768 .*use a smaller height") as exc:
+        refine_scene(live.app.state.store, scene_id, "f" * 32, {"height": 768, "iterations": 1, "holdout": 0.1,
+                                                                "sh_degree": 0, "colour_reg": 2.0, "patience": 5})
+    assert exc.value.code == "render_too_large" and "max_contributions" not in exc.value.message
 
 
 def test_unknown_scene_and_job(client):
