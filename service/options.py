@@ -89,12 +89,25 @@ class PipelineSettings(BaseModel):
     compaction: CompactionSettings | Literal[False] = Field(
         default_factory=CompactionSettings, description="compaction steps; false keeps every Gaussian")
     adaptive_range: AdaptiveRangeSettings | bool = Field(
-        default_factory=AdaptiveRangeSettings, description="adaptive depth range; true/false is enabled only")
+        default_factory=AdaptiveRangeSettings, description="adaptive depth range; true/false is enabled only. With "
+        "near/far given, they are the coarse pass's range and the final one comes from its depths")
 
     @model_validator(mode="after")
     def _near_below_far(self) -> "PipelineSettings":
         if self.near is not None and self.far is not None and not self.near < self.far:
             raise ValueError("near must be smaller than far")
+        return self
+
+    @model_validator(mode="after")
+    def _no_option_left_unused(self) -> "PipelineSettings":
+        """Options that another option overrides are refused, not dropped: the request would not be what it says."""
+        if self.min_opacity is None:
+            return self
+        if self.compaction is False:
+            raise ValueError("min_opacity drops Gaussians, which compaction false keeps; give one of them")
+        if "min_opacity" in self.compaction.model_fields_set and self.compaction.min_opacity != self.min_opacity:
+            raise ValueError(f"min_opacity {self.min_opacity:g} and compaction.min_opacity {self.compaction.min_opacity:g} "
+                             "disagree; give one of them")
         return self
 
     @model_validator(mode="after")

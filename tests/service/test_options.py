@@ -62,6 +62,21 @@ def test_caps_that_leave_no_gaussian_are_refused_before_the_work(options, words)
     assert words in message, message
 
 
+@pytest.mark.parametrize("options, words", [
+    ('{"compaction": false, "min_opacity": 0.5}', "compaction false keeps"),
+    ('{"min_opacity": 0.5, "compaction": {"min_opacity": 0.01}}', "disagree"),
+])
+def test_an_option_that_another_overrides_is_refused(options, words):
+    message = refusal(options)
+    assert words in message, message
+
+
+@pytest.mark.parametrize("options", ['{"min_opacity": 0.5, "compaction": {"min_opacity": 0.5}}',
+                                     '{"adaptive_range": false, "near": 0.5}', '{"min_opacity": 0.1}'])
+def test_options_that_agree_are_accepted(options):
+    parse_options(options, None)
+
+
 def test_smallest_byte_cap_keeps_one_gaussian():
     from rasterizer.compaction.options import ply_count_for_bytes
 
