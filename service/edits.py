@@ -30,6 +30,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
 
+from rasterizer.sweep import MAX_SCENE_EXTENT
+
 from .errors import BadInput, NotFound, ServiceError
 from .images import encode
 from .inputs import RenderQuery
@@ -101,8 +103,9 @@ class EditRequest(BaseModel):
         elif self.color is not None:
             raise ValueError(f"color is only for op recolor, not {self.op}")
         if self.op == "translate":
-            if self.offset is None or not all(math.isfinite(c) and abs(c) <= 1e6 for c in self.offset):
-                raise ValueError("translate needs offset = [dx, dy, dz], finite")
+            if self.offset is None or not all(math.isfinite(c) and abs(c) <= MAX_SCENE_EXTENT for c in self.offset):
+                raise ValueError(f"translate needs offset = [dx, dy, dz], each within +-{MAX_SCENE_EXTENT:g} "
+                                 "(the scenes' extent)")
         elif self.offset is not None:
             raise ValueError(f"offset is only for op translate, not {self.op}")
         return self
@@ -354,8 +357,13 @@ def _create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict,
         selected = selected & ~shell
     edited = edit_gaussians(g, selected, op, color=request.get("color"), offset=request.get("offset"))
     if len(edited) == 0:  # a scene without Gaussians has no PLY rows, segments or renders worth storing
+        advice = "select less" if op == "remove" else "select an object (the environment shell is not kept)"
         raise BadInput(f"the {op} edit would leave a scene without any Gaussian (the selection holds "
-                       f"{int(selected.sum())} of {len(g)}); select less", code="empty_scene")
+                       f"{int(selected.sum())} of {len(g)}); {advice}", code="empty_scene")
+    if op == "translate" and not np.abs(edited.means[selected]).max(initial=0.0) <= MAX_SCENE_EXTENT:
+        raise BadInput(f"the translate edit would move Gaussians beyond {MAX_SCENE_EXTENT:g} from the origin, where "
+                       "no camera may render them (earlier translations add up); translate by less",
+                       code="invalid_edit")
     timings = {"edit": time.perf_counter() - t0}
     info = {"op": op, "selection": request["selection"], "num_selected": int(selected.sum())}
     data = _edit_data(store, scene_id)

@@ -125,6 +125,24 @@ def test_bad_selection_and_edit_inputs(client, scene, live):
            "correspondences_missing")
 
 
+def test_translations_stay_within_the_scenes_extent(client, scene):
+    """An offset beyond the extent names the bound; translations that add up past it (where no render camera
+    may go) are refused on the edit that would cross it, not stored."""
+    url = f"/v1/scenes/{scene}"
+    sel = client.post(f"{url}/selections", json={"view": "a", "points": [[0.5, 0.7]]}).json()["id"]
+    msg = _error(client.post(f"{url}/edits", json={"selection": sel, "op": "translate", "offset": [1e7, 0, 0]}),
+                 422, "invalid_request")
+    assert "within +-1e+06" in msg and "finite" not in msg
+    r = client.post(f"{url}/edits", json={"selection": sel, "op": "translate", "offset": [6e5, 0, 0]})
+    assert r.status_code == 201, r.text
+    moved = r.json()["id"]
+    sel2 = client.post(f"/v1/scenes/{moved}/selections", json={"view": "a", "points": [[0.5, 0.7]]})
+    assert sel2.status_code == 201, sel2.text
+    msg = _error(client.post(f"/v1/scenes/{moved}/edits", json={"selection": sel2.json()["id"], "op": "translate",
+                                                                "offset": [6e5, 0, 0]}), 422, "invalid_edit")
+    assert "beyond 1e+06" in msg
+
+
 def test_empty_selection_is_a_clear_422(scene, live, monkeypatch):
     """A prompt whose masks own no Gaussian (forced here) is refused with empty_selection, not stored."""
     from rasterizer.edit import scene as edit_scene
