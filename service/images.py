@@ -299,7 +299,7 @@ def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> 
     try:
         im.load()  # raises on truncated or corrupt data (LOAD_TRUNCATED_IMAGES stays False)
         arr = _rgb8(im if header.orientation == 1 else ImageOps.exif_transpose(im), field)
-    except (PayloadTooLarge, InvalidImage):
+    except (PayloadTooLarge, InvalidImage, BadInput):
         raise
     except Exception as exc:  # noqa: BLE001 - corrupt, truncated, unsupported mode...
         raise InvalidImage(f"{field}: the image data is corrupt or truncated ({_fault(exc)})") from None
@@ -329,8 +329,24 @@ def _rgb8(im: Image.Image, field: str) -> np.ndarray:
                                code="unsupported_image_mode")
         grey = to_uint8(grey)
     else:
+        _check_opaque(im, field)
         return np.asarray(im if im.mode == "RGB" else im.convert("RGB"), dtype=np.uint8)
     return np.repeat(grey[:, :, None], 3, axis=2)
+
+
+def _check_opaque(im: Image.Image, field: str) -> None:
+    """Refuse transparent pixels: the colour stored under them is undefined (often black), and a panorama
+    needs one at every pixel. Alpha 255 everywhere (an opaque RGBA export) passes."""
+    if "A" in im.getbands():
+        alpha = np.asarray(im.getchannel("A"))
+    elif im.mode == "P" and "transparency" in im.info:
+        alpha = np.asarray(im.convert("RGBA").getchannel("A"))
+    else:
+        return
+    clear = int(np.count_nonzero(alpha < 255))
+    if clear:
+        raise BadInput(f"{field}: {clear} pixels ({clear / alpha.size:.1%}) are transparent; a panorama needs a colour "
+                       "at every pixel: flatten it onto a background first", code="transparent_image")
 
 
 MEDIA_TYPES = {"png": "image/png", "jpeg": "image/jpeg"}

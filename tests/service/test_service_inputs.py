@@ -392,6 +392,25 @@ def test_float_tiff_in_unit_range_is_scaled_and_out_of_range_refused():
     assert "[0, 1]" in info.value.message
 
 
+def test_transparent_pixels_are_refused_and_opaque_alpha_passes():
+    """The colour under a transparent pixel is undefined: refused with the share, not used silently."""
+    rng = np.random.default_rng(0)
+    rgba = np.concatenate([rng.integers(0, 255, (64, 128, 3), dtype=np.uint8), np.full((64, 128, 1), 255, np.uint8)], 2)
+    rgb, _ = decode_rgb(_encoded(rgba, "PNG"), "image_a", **LIMITS)  # alpha 255 everywhere: an opaque export
+    np.testing.assert_array_equal(rgb, rgba[..., :3])
+    rgba[48:, :, 3] = 0  # a transparent nadir
+    grey_alpha = np.stack([rgba[..., 0], rgba[..., 3]], axis=2)
+    palette = Image.fromarray(rgba[..., :3]).quantize(16)
+    palette.info["transparency"] = 0
+    buf = io.BytesIO()
+    palette.save(buf, format="PNG", transparency=0)
+    for data in (_encoded(rgba, "PNG"), _encoded(grey_alpha, "PNG"), buf.getvalue()):
+        with pytest.raises(BadInput) as info:
+            decode_rgb(data, "image_b", **LIMITS)
+        assert info.value.status == 422 and info.value.code == "transparent_image"
+        assert info.value.message.startswith("image_b:") and "transparent" in info.value.message
+
+
 def test_bomb_message_quotes_our_limit():
     from PIL import Image as PILImage
 
