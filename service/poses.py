@@ -523,7 +523,11 @@ def refine_poses(erp_a: np.ndarray, erp_b: np.ndarray, c2w_a: np.ndarray, c2w_b:
 def poses_for_scene(erp_a: np.ndarray, erp_b: np.ndarray, poses, opts: PoseOptions,
                     data: tuple = (None, None)) -> tuple[np.ndarray, np.ndarray, dict]:
     """(c2w_a, c2w_b, metadata ``poses`` JSON) for given (:class:`service.inputs.Poses`) or missing (None) poses;
-    ``data``: the two files' bytes when known (their XMP may hold the cameras' tilt)."""
+    ``data``: the two files' bytes when known (their XMP may hold the cameras' tilt). One picture sent twice is
+    refused whatever the poses say: it carries no depth (the estimator refuses it by its matches)."""
+    if erp_a.shape == erp_b.shape and np.array_equal(erp_a, erp_b):
+        raise PoseEstimationFailed("image_a and image_b are the same picture: two captures from different places "
+                                   "differ, and one picture twice carries no depth", code="no_parallax")
     if poses is None:
         c2w_a, c2w_b, support = estimate_poses(erp_a, erp_b, opts, data)
         source = "estimated"

@@ -117,6 +117,20 @@ def test_identical_images_and_zero_baseline_are_refused(room_a):
         estimate_poses(room_a, turned, PoseOptions())
 
 
+def test_one_picture_twice_is_refused_whatever_the_given_poses_say(room_a):
+    from service.inputs import Poses
+    from service.poses import poses_for_scene
+
+    given = Poses("opencv", np.eye(4), _pose(0.0, [1.0, 0.0, 0.0]))
+    with pytest.raises(PoseEstimationFailed, match="same picture") as exc:
+        poses_for_scene(room_a, room_a.copy(), given, PoseOptions())
+    assert exc.value.status == 422 and exc.value.code == "no_parallax"
+    other = room_a.copy()
+    other[0, 0] ^= 1  # any difference: not the same picture
+    c2w_a, c2w_b, _ = poses_for_scene(room_a, other, given, PoseOptions())
+    assert np.array_equal(c2w_b, given.c2w_b)
+
+
 def test_unrelated_and_flat_images_are_refused():
     from service.poses import photometric_score
 
