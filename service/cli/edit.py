@@ -31,7 +31,11 @@ def _edit_store(args: argparse.Namespace):
     from ..config import Settings
     from ..store import SceneStore
 
-    return SceneStore(args.store or Settings().store_dir)
+    path = args.store or Settings().store_dir
+    try:
+        return SceneStore(path)
+    except OSError as exc:  # e.g. --store names a file
+        raise CliError(f"--store {path}: cannot open the scene store: {exc.strerror or exc}") from None
 
 
 def _edit_call(fn, *a):

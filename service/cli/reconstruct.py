@@ -150,7 +150,14 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..encoder import EncoderInputError, OnnxEncoder
 
     t0 = time.perf_counter()
-    encoder = OnnxEncoder(model, threads=args.threads)
+    try:
+        encoder = OnnxEncoder(model, threads=args.threads)
+    except ValueError as exc:  # an ONNX file that is not an omnisplat encoder, or from an older exporter
+        raise CliError(f"--model {model}: {exc}") from None
+    except Exception as exc:  # onnxruntime's own errors: a file that is no ONNX model
+        if not type(exc).__module__.startswith("onnxruntime"):
+            raise
+        raise CliError(f"--model {model}: not a loadable ONNX model ({str(exc).strip()[:300]})") from None
     load_s = time.perf_counter() - t0
     say(f"reconstructing {erp_a.shape[1]}x{erp_a.shape[0]} + {erp_b.shape[1]}x{erp_b.shape[0]} panoramas")
     t0 = time.perf_counter()

@@ -239,6 +239,19 @@ def test_reconstruct_output_that_is_not_a_ply_is_refused_before_any_work(tmp_pat
     assert not (tmp_path / "s.txt").exists()
 
 
+def test_reconstruct_with_a_model_file_that_is_no_onnx_model_is_a_one_line_error(tmp_path, capsys):
+    from tests.service._support import POSES, panorama
+
+    for name, seed in (("a.png", 7), ("b.png", 8)):
+        (tmp_path / name).write_bytes(panorama(seed=seed))
+    (tmp_path / "poses.json").write_text(POSES)
+    (tmp_path / "m.onnx").write_bytes(b"not a model")  # was an onnxruntime InvalidProtobuf traceback
+    assert cli.main(["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--poses", str(tmp_path / "poses.json"),
+                     "--model", str(tmp_path / "m.onnx"), "--no-build", "-o", str(tmp_path / "s.ply")]) == 2
+    err = capsys.readouterr().err
+    assert "--model" in err and "not a loadable ONNX model" in err and "Traceback" not in err
+
+
 def test_reconstruct_that_leaves_no_gaussian_is_refused_as_the_api_refuses_it(tmp_path, capsys, model_path):
     """--min-opacity 0.999999 wrote a 0-Gaussian PLY with exit status 0; the API answers 422 empty_scene."""
     from tests.service._support import POSES, panorama
@@ -378,6 +391,15 @@ def test_render_pose_file_with_an_unknown_key_is_refused(tmp_path, capsys):
     (tmp_path / "pose.json").write_text('{"convension": "opengl", "c2w": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}')
     assert cli.main(["render", "x.ply", "--pose", str(tmp_path / "pose.json")]) == 2
     assert "convension" in capsys.readouterr().err
+
+
+def test_select_and_edit_with_a_store_that_is_a_file_is_a_one_line_error(tmp_path, capsys):
+    (tmp_path / "store").write_text("not a folder")  # was a NotADirectoryError traceback
+    for argv in (["select", "0" * 32, "--view", "a", "--point", "0.5,0.5"],
+                 ["edit", "0" * 32, "--selection", "0" * 32, "--op", "remove"]):
+        assert cli.main([argv[0], "--store", str(tmp_path / "store"), *argv[1:]]) == 2
+        err = capsys.readouterr().err
+        assert "--store" in err and "scene store" in err and "Traceback" not in err
 
 
 @pytest.mark.parametrize("argv, says", [
