@@ -84,8 +84,15 @@ def pipeline_options(args: argparse.Namespace):
                                           "adaptive_range": args.adaptive_range, "sh_degree": args.sh_degree,
                                           "rig_cap_deg": args.rig_cap_deg})
     except ValueError as exc:
-        raise CliError(as_flags(str(exc), ("near", "far", "adaptive_range", "sh_degree", "rig_cap_deg"),
-                                prefix="options.", renamed=OPTION_FLAGS)) from None
+        raise CliError(option_message(as_flags(str(exc), ("near", "far", "adaptive_range", "sh_degree", "rig_cap_deg"),
+                                               prefix="options.", renamed=OPTION_FLAGS))) from None
+
+
+def option_message(message: str) -> str:
+    """An API message about the ``options`` object in the CLI's words: no ``options:`` prefix (the CLI has
+    no such object), ``near=`` / ``far=`` as the flags ``--near`` / ``--far``."""
+    message = message.removeprefix("options: ")
+    return message.replace("near=", "--near ").replace("far=", "--far ")
 
 
 #: the API's compaction options whose flag has another name or place (``options.compaction.max_count``)
@@ -141,6 +148,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     except ServiceError as exc:
         raise CliError(exc.message) from None
     poses_s = time.perf_counter() - t0
+    from ..inputs import check_sweep_range
+
+    try:  # the API's 422 for a near/far that does not fit these cameras, before the model loads
+        check_sweep_range(c2w_a, c2w_b, {"near": args.near, "far": args.far})
+    except ServiceError as exc:
+        raise CliError(option_message(exc.message)) from None
     settings = Settings(**({"model_path": args.model} if args.model else {}))
     try:
         model = ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build)
@@ -164,7 +177,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     try:
         rec = build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options)
     except EncoderInputError as exc:
-        raise CliError(str(exc)) from None
+        raise CliError(option_message(str(exc))) from None
     from ..scenes import check_not_empty
 
     try:  # the API's 422 empty_scene: no PLY without a Gaussian is written

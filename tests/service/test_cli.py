@@ -239,6 +239,19 @@ def test_reconstruct_output_that_is_not_a_ply_is_refused_before_any_work(tmp_pat
     assert not (tmp_path / "s.txt").exists()
 
 
+def test_reconstruct_checks_near_far_against_the_cameras_before_the_model(tmp_path, capsys):
+    """The API's 422 (check_sweep_range); the CLI's message names --far, not 'options: far='."""
+    from tests.service._support import POSES, panorama
+
+    for name, seed in (("a.png", 7), ("b.png", 8)):
+        (tmp_path / name).write_bytes(panorama(seed=seed))
+    (tmp_path / "poses.json").write_text(POSES)
+    assert cli.main(["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--poses", str(tmp_path / "poses.json"),
+                     "--far", "1e9", "--model", str(tmp_path / "none.onnx"), "--no-build"]) == 2
+    err = capsys.readouterr().err
+    assert "--far 1e+09 is beyond" in err and "options" not in err and "does not exist" not in err
+
+
 def test_reconstruct_with_a_model_file_that_is_no_onnx_model_is_a_one_line_error(tmp_path, capsys):
     from tests.service._support import POSES, panorama
 
