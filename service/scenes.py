@@ -29,7 +29,7 @@ from .inputs import Poses, RenderQuery, check_sweep_range
 from .limits import render_cost
 from .memory import release_memory
 from .model_files import build_code_hash
-from .pipeline import PipelineOptions, build_scene
+from .pipeline import PipelineOptions, SceneBuild, build_scene
 from .poses import PoseOptions, poses_for_scene
 from .references import REFERENCES_ARTIFACT, load_references, references_bytes
 from .runtime import ModelRuntime
@@ -97,6 +97,14 @@ def check_free_space(store: SceneStore, need_bytes: int) -> None:
                                "a new scene may need; no work was done")
 
 
+def check_not_empty(build: SceneBuild) -> None:
+    """422 ``empty_scene`` when no Gaussian survived the reconstruction (the API's POST and the CLI's reconstruct)."""
+    if len(build.gaussians) == 0:
+        raise BadInput("the reconstruction is empty: no Gaussian survived (near/far, poses or images "
+                       f"leave nothing to triangulate; sweep range {build.info.get('near')}..{build.info.get('far')})",
+                       code="empty_scene")
+
+
 def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_a: bytes, image_b: bytes,
                  poses: Poses | None, options: dict, pipeline_options: PipelineOptions,
                  pose_options: PoseOptions, limits: UploadLimits) -> tuple[dict, dict[str, float]]:
@@ -124,11 +132,8 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     timings["resample"] += stages.pop("resample", 0.0)  # the encoder's own, after the one above
     timings.update(stages)
     timings.setdefault("reconstruct", time.perf_counter() - t0)
+    check_not_empty(build)
     gaussians = build.gaussians
-    if len(gaussians) == 0:
-        raise BadInput("the reconstruction is empty: no Gaussian survived (near/far, poses or images "
-                       f"leave nothing to triangulate; sweep range {build.info.get('near')}..{build.info.get('far')})",
-                       code="empty_scene")
 
     meta = {
         "model": {k: runtime.metadata.get(k) for k in ("name", "version", "sha256")},

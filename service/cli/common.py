@@ -25,12 +25,60 @@ def forward_import(load, hint: str):
         raise CliError(f"not available: needs {exc.name!r}, which is not installed ({hint})") from None
 
 
-def as_flags(message: str, names, prefix: str = "") -> str:
+def as_flags(message: str, names, prefix: str = "", *, renamed: dict[str, str] | None = None) -> str:
     """An API error message with each parameter ``prefix + name + ":"`` written as the CLI's flag ``--name:``
-    (underscores as dashes), so that the user reads the option they typed."""
-    for name in names:
-        message = message.replace(f"{prefix}{name}:", f"--{name.replace('_', '-')}:")
+    (underscores as dashes), so that the user reads the option they typed; ``renamed`` maps the API names
+    whose flag has another name (``{"compaction.max_count": "max-gaussians"}``) to it."""
+    pairs = [(name, name) for name in names] + list((renamed or {}).items())
+    for name, flag in sorted(pairs, key=lambda p: -len(p[0])):  # longest first: "x.max_count" before "max_count"
+        message = message.replace(f"{prefix}{name}:", f"--{flag.replace('_', '-')}:")
     return message
+
+
+def check_suffix(path: str | Path, flag: str, suffixes: tuple[str, ...], what: str) -> str:
+    """``path``'s lower-case suffix, one of ``suffixes``; else a CliError naming ``flag`` (the file's format
+    follows its name, as the API's ``format`` does its content type)."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in suffixes:
+        names = ", ".join(suffixes[:-1]) + (" or " if len(suffixes) > 1 else "") + suffixes[-1]
+        raise CliError(f"{flag} {path}: the name must end in {names} ({what})")
+    return suffix
+
+
+#: PLY properties of each :class:`rasterizer.gaussians.Gaussians` field, as a user reads them in the file
+PLY_FIELDS = {"means": "x, y, z", "scales": "scale_0..2", "quats": "rot_0..3", "opacities": "opacity",
+              "sh": "f_dc_0..2 / f_rest_*"}
+
+
+def read_gaussians(path: str | Path):
+    """The Gaussians of a PLY file, as the service keeps a scene's: rows holding NaN or Inf (or a scale
+    whose exp overflows float32) are dropped, as the API's pipeline and PLY writer drop them, and said on
+    stderr with the first such row; an unreadable file or one without any Gaussian is a CliError naming it."""
+    import numpy as np
+
+    from rasterizer.ply import finite_rows, read_ply
+
+    try:
+        g = read_ply(path)
+    except (OSError, ValueError, IndexError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        if isinstance(exc, IndexError):
+            reason = "malformed PLY header (a format, element or property line lacks its fields)"
+        raise CliError(f"cannot read {path}: {reason}") from None
+    n = len(g)
+    ok = finite_rows(g)
+    if not ok.all():
+        row = int(np.flatnonzero(~ok)[0])
+        field = next(f for f in PLY_FIELDS if not np.isfinite(getattr(g, f)[row]).all())
+        g = g.subset(ok)
+        if len(g):
+            say(f"{path}: dropped {n - len(g)} of {n} Gaussians holding NaN or Inf, as the service does "
+                f"(the first: row {row}, {PLY_FIELDS[field]})")
+    if len(g) == 0:
+        raise CliError(f"{path}: the PLY holds no Gaussians"
+                       + (f" with finite values (all {n} rows hold NaN or Inf, e.g. row {row}: {PLY_FIELDS[field]})"
+                          if n else ""))
+    return g
 
 
 def read_panorama(path: str | Path):

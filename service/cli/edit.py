@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from .common import CliError
+from .common import CliError, as_flags
 
 
 def _triple(text: str, name: str) -> list[float]:
@@ -31,7 +31,11 @@ def _edit_store(args: argparse.Namespace):
     from ..config import Settings
     from ..store import SceneStore
 
-    return SceneStore(args.store or Settings().store_dir)
+    path = args.store or Settings().store_dir
+    try:
+        return SceneStore(path)
+    except OSError as exc:  # e.g. --store names a file
+        raise CliError(f"--store {path}: cannot open the scene store: {exc.strerror or exc}") from None
 
 
 def _edit_call(fn, *a):
@@ -49,8 +53,14 @@ def _edit_call(fn, *a):
     return 0
 
 
+#: the flag (without its dashes) of each key of the API's bodies (POST .../selections and .../edits)
+BODY_FLAGS = {"points": "point", "negative": "negative", "view": "view", "segment": "segment",
+              "selection": "selection", "op": "op", "color": "color", "offset": "offset"}
+
+
 def _checked(model, request: dict, what: str) -> dict:
-    """``request`` validated by the API's body model (:class:`service.edits.SelectionRequest` / ``EditRequest``)."""
+    """``request`` validated by the API's body model (:class:`service.edits.SelectionRequest` / ``EditRequest``);
+    an error names the flags (``--point``), not the body's keys (``select.points``)."""
     from pydantic import ValidationError
 
     from ..options import describe_error
@@ -58,7 +68,7 @@ def _checked(model, request: dict, what: str) -> dict:
     try:
         model.model_validate(request)
     except ValidationError as exc:
-        raise CliError(describe_error(exc, prefix=what)) from None
+        raise CliError(as_flags(describe_error(exc, prefix=what), (), prefix=f"{what}.", renamed=BODY_FLAGS)) from None
     return request
 
 
@@ -68,16 +78,20 @@ def cmd_select(args: argparse.Namespace) -> int:
 
     if args.segment is not None:
         request = {"segment": args.segment}
+        if args.view is not None or args.point or args.negative:  # the API's 422 for a segment with points
+            raise CliError("--segment: give either --segment or --view with --point, not both")
     else:
         if not args.point:
             raise CliError("give --point u,v (one or more) or --segment N")
+        if args.view is None:  # the API's 422 for a selection without its view
+            raise CliError("--view: give the reference the points lie on, a or b")
         request = {"view": args.view, "points": [_point(p) for p in args.point],
                    "negative": [_point(p) for p in args.negative or []]}
-        try:  # the API's check (POST .../selections)
-            for name in ("points", "negative"):
+        for name in ("points", "negative"):
+            try:  # the API's check (POST .../selections)
                 edits.check_points(request[name], name)
-        except ServiceError as exc:
-            raise CliError(exc.message) from None
+            except ServiceError as exc:
+                raise CliError(f"--{BODY_FLAGS[name]}: {exc.message}") from None
     _checked(edits.SelectionRequest, request, "select")
     return _edit_call(edits.create_selection, _edit_store(args), args.scene, request)
 
@@ -98,7 +112,7 @@ def add_parsers(sub) -> None:
     e = sub.add_parser("select", help="select an object (points on a reference, or a segment) of a stored scene")
     e.add_argument("scene", help="scene id in the store")
     e.add_argument("--store", type=Path, help="scene store folder (default ~/.omnisplat/scenes)")
-    e.add_argument("--view", choices=["a", "b"], default="a")
+    e.add_argument("--view", choices=["a", "b"], help="the reference the points lie on (required with --point)")
     e.add_argument("--point", action="append", help="u,v in [0, 1] on that reference's ERP (repeatable)")
     e.add_argument("--negative", action="append", help="u,v of a negative point (repeatable)")
     e.add_argument("--segment", type=int, help="take a whole automatic segment instead")

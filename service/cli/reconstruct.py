@@ -7,7 +7,11 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError, as_flags, read_panorama, say
+from .common import CliError, as_flags, check_suffix, read_panorama, say
+
+#: the layout of a scene folder's scene.json (rasterizer.scene_folder), as an error message shows it
+SCENE_LAYOUT = ('{"convention": "opencv"|"opengl", "frames": [{"name": N, "image": FILE, "c2w": 4x4}, ...], '
+                '"splits": [{"references": [N, N], "targets": [N, ...]}, ...]}')
 
 
 def load_pair(args: argparse.Namespace):
@@ -26,8 +30,15 @@ def load_pair(args: argparse.Namespace):
             raise CliError(f"{inputs[0]} is not a scene folder (no scene.json); pass a folder or two images")
         try:
             scene = load_scene(inputs[0])
-        except (PoseError, ValueError, KeyError) as exc:
+        except (PoseError, ValueError) as exc:
             raise CliError(f"{inputs[0]}: {exc}") from None
+        except OSError as exc:
+            raise CliError(f"cannot read {inputs[0] / 'scene.json'}: {exc.strerror or exc}") from None
+        except (KeyError, TypeError, AttributeError) as exc:  # a JSON value of another shape than the layout's
+            what = f"lacks the key {exc}" if isinstance(exc, KeyError) else f"holds a value of the wrong type ({exc})"
+            raise CliError(f"{inputs[0] / 'scene.json'}: {what}; expected {SCENE_LAYOUT}") from None
+        if args.split < 0:
+            raise CliError(f"--split: must be 0 or more, got {args.split}")
         if args.refs:
             refs = tuple(args.refs.split(","))
         elif scene.splits:
@@ -73,7 +84,31 @@ def pipeline_options(args: argparse.Namespace):
                                           "adaptive_range": args.adaptive_range, "sh_degree": args.sh_degree,
                                           "rig_cap_deg": args.rig_cap_deg})
     except ValueError as exc:
-        raise CliError(str(exc)) from None
+        raise CliError(option_message(as_flags(str(exc), ("near", "far", "adaptive_range", "sh_degree", "rig_cap_deg"),
+                                               prefix="options.", renamed=OPTION_FLAGS))) from None
+
+
+def option_message(message: str) -> str:
+    """An API message about the ``options`` object in the CLI's words: no ``options:`` prefix (the CLI has
+    no such object), ``near=`` / ``far=`` as the flags ``--near`` / ``--far``."""
+    message = message.removeprefix("options: ")
+    return message.replace("near=", "--near ").replace("far=", "--far ")
+
+
+#: the API's compaction options whose flag has another name or place (``options.compaction.max_count``)
+OPTION_FLAGS = {"compaction.max_count": "max-gaussians", "compaction.max_bytes": "max-bytes",
+                "compaction.min_opacity": "min-opacity"}
+
+#: compaction steps (``info["compaction"]["removed"]``) and the flags that set them
+STEP_FLAGS = {"min_opacity": "--min-opacity", "cap": "--max-gaussians / --max-bytes"}
+
+
+def empty_hint(info: dict) -> str:
+    """What an empty reconstruction's compaction removed, in the flags that set it ('' if nothing)."""
+    stats = info.get("compaction") or {}
+    removed = stats.get("removed") or {}
+    parts = [f"{flag} removed {removed[step]}" for step, flag in STEP_FLAGS.items() if removed.get(step)]
+    return f"; of the {stats.get('input')} Gaussians the encoder gave, " + ", ".join(parts) if parts else ""
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -86,6 +121,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     for flag, name in (("-o", args.output), ("--json", args.json)):
         if name is not None and Path(name).is_dir():
             raise CliError(f"{flag} {name} is a folder; give a file name")
+    check_suffix(args.output, "--output", (".ply",), "a Gaussian PLY")
     erp_a, erp_b, c2w_a, c2w_b, source = load_pair(args)  # bad inputs fail before any model build
     options = pipeline_options(args)
     from ..errors import ServiceError
@@ -112,6 +148,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     except ServiceError as exc:
         raise CliError(exc.message) from None
     poses_s = time.perf_counter() - t0
+    from ..inputs import check_sweep_range
+
+    try:  # the API's 422 for a near/far that does not fit these cameras, before the model loads
+        check_sweep_range(c2w_a, c2w_b, {"near": args.near, "far": args.far})
+    except ServiceError as exc:
+        raise CliError(option_message(exc.message)) from None
     settings = Settings(**({"model_path": args.model} if args.model else {}))
     try:
         model = ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build)
@@ -121,14 +163,27 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..encoder import EncoderInputError, OnnxEncoder
 
     t0 = time.perf_counter()
-    encoder = OnnxEncoder(model, threads=args.threads)
+    try:
+        encoder = OnnxEncoder(model, threads=args.threads)
+    except ValueError as exc:  # an ONNX file that is not an omnisplat encoder, or from an older exporter
+        raise CliError(f"--model {model}: {exc}") from None
+    except Exception as exc:  # onnxruntime's own errors: a file that is no ONNX model
+        if not type(exc).__module__.startswith("onnxruntime"):
+            raise
+        raise CliError(f"--model {model}: not a loadable ONNX model ({str(exc).strip()[:300]})") from None
     load_s = time.perf_counter() - t0
     say(f"reconstructing {erp_a.shape[1]}x{erp_a.shape[0]} + {erp_b.shape[1]}x{erp_b.shape[0]} panoramas")
     t0 = time.perf_counter()
     try:
         rec = build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options)
     except EncoderInputError as exc:
-        raise CliError(str(exc)) from None
+        raise CliError(option_message(str(exc))) from None
+    from ..scenes import check_not_empty
+
+    try:  # the API's 422 empty_scene: no PLY without a Gaussian is written
+        check_not_empty(rec)
+    except ServiceError as exc:
+        raise CliError(exc.message + empty_hint(rec.info)) from None
     total = time.perf_counter() - t0
     out = Path(args.output)
     try:

@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError, as_flags
+from .common import CliError, as_flags, check_suffix, read_gaussians
 from .reconstruct import load_pair
 
 
@@ -15,8 +15,9 @@ def cmd_refine(args: argparse.Namespace) -> int:
     """Colours of a PLY refined on its two references (L1 fit, cross-view guard); JSON summary to stdout."""
     from pydantic import ValidationError
 
-    from rasterizer.ply import read_ply, write_ply
+    from rasterizer.ply import write_ply
     from rasterizer.refine import RefineOptions, reference_views, refine
+    from rasterizer.splat import RenderLimitError
 
     from ..jobs import RefineRequest
     from ..options import describe_error
@@ -28,19 +29,23 @@ def cmd_refine(args: argparse.Namespace) -> int:
         RefineRequest.model_validate(params)
     except ValidationError as exc:
         raise CliError(as_flags(describe_error(exc, prefix="refine"), params, prefix="refine.")) from None
-    try:
-        g = read_ply(args.ply)
-    except (OSError, ValueError) as exc:
-        raise CliError(f"cannot read {args.ply}: {exc}") from None
+    check_suffix(args.out, "--out", (".ply",), "a Gaussian PLY")
+    if args.out.is_dir():
+        raise CliError(f"--out {args.out} is a folder; give a file name")
+    g = read_gaussians(args.ply)
     erp_a, erp_b, c2w_a, c2w_b, desc = load_pair(args)
     if c2w_a is None:
         raise CliError("refine needs the references' poses: give --poses FILE.json with two images, or a scene folder")
     t0 = time.perf_counter()
-    views = reference_views(g, [erp_a, erp_b], [c2w_a, c2w_b], height=args.height, holdout=args.holdout)
-    t_fp = time.perf_counter() - t0
     opts = RefineOptions(iterations=args.iterations, sh_degree=args.sh_degree, colour_reg=args.colour_reg,
                          patience=args.patience, cross_check=not args.no_cross_check)
-    res = refine(g, views, opts)
+    try:  # the footprints of the 2 x 2 Yin/Yang grids (h x 3h each) scale with --height squared
+        views = reference_views(g, [erp_a, erp_b], [c2w_a, c2w_b], height=args.height, holdout=args.holdout)
+        t_fp = time.perf_counter() - t0
+        res = refine(g, views, opts)
+    except RenderLimitError as exc:  # the API's job fails with render_too_large
+        raise CliError(f"--height {args.height}: the reference views of these {len(g)} Gaussians are too large for "
+                       f"the renderer ({exc}); give a smaller --height") from None
     try:
         write_ply(args.out, res.gaussians)
     except OSError as exc:

@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError, as_flags, read_panorama, say
+from .common import CliError, as_flags, check_suffix, read_gaussians, read_panorama, say
 
 
 def _pose_from_args(args: argparse.Namespace):
@@ -58,17 +58,16 @@ def _rig_layer_from_args(args: argparse.Namespace):
 
 def cmd_render(args: argparse.Namespace) -> int:
     c2w = _pose_from_args(args)
-    from rasterizer.ply import read_ply
     from rasterizer.render import render, to_uint8
+    from rasterizer.splat import RenderLimitError
 
     from ..config import Settings
     from ..errors import ServiceError
     from ..images import encode
     from ..inputs import check_render_query
 
-    fmt = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg"}.get(Path(args.output).suffix.lower())
-    if fmt is None:
-        raise CliError(f"--output {args.output}: the name must end in .png, .jpg or .jpeg (the image format)")
+    fmt = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg"}[check_suffix(args.output, "--output", (".png", ".jpg", ".jpeg"),
+                                                                         "the image format")]
     # as the API renders (the same query and its limits): plain compositing unless --compositing va
     settings = Settings()
     try:
@@ -78,15 +77,16 @@ def cmd_render(args: argparse.Namespace) -> int:
                                    compositing=args.compositing)
     except ServiceError as exc:
         raise CliError(as_flags(exc.message, ("width", "height", "fov_deg"))) from None
-    try:
-        gaussians = read_ply(args.ply)
-    except (OSError, ValueError) as exc:
-        raise CliError(f"cannot read {args.ply}: {exc}") from None
+    gaussians = read_gaussians(args.ply)
     kwargs = query.render_kwargs(normalize=args.compositing == "va")
     layer = _rig_layer_from_args(args)
     say(f"rendering {len(gaussians)} Gaussians, {args.projection} {args.width} px wide")
     t0 = time.perf_counter()
-    out = render(gaussians, c2w, **kwargs)
+    try:
+        out = render(gaussians, c2w, **kwargs)
+    except RenderLimitError as exc:  # the API's 413 render_too_large
+        raise CliError(f"--width {args.width}: this view of {len(gaussians)} Gaussians is too large for the renderer "
+                       f"({exc}); give a smaller --width") from None
     colour = out.colour
     if layer is not None:
         from rasterizer.camera import camera_directions

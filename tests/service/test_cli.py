@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rasterizer.ply import read_ply, write_ply
 from service import cli
 from service.cli import export as cli_export
 from service.cli.reconstruct import pipeline_options
@@ -208,12 +209,77 @@ def test_reconstruct_compaction_flags_map_to_options():
     full = pipeline_options(parser.parse_args(["reconstruct", "scene"]))
     assert full.sh_degree == 1
     assert pipeline_options(parser.parse_args(["reconstruct", "scene", "--sh-degree", "0"])).sh_degree == 0
-    with pytest.raises(cli.CliError, match="sh_degree"):
+    with pytest.raises(cli.CliError, match="--sh-degree"):
         pipeline_options(parser.parse_args(["reconstruct", "scene", "--sh-degree", "2"]))
     assert full.rig_cap_deg is None  # automatic (rasterizer.rig.resolve_rig_cap)
     assert pipeline_options(parser.parse_args(["reconstruct", "scene", "--rig-cap-deg", "20"])).rig_cap_deg == 20.0
-    with pytest.raises(cli.CliError, match="rig_cap_deg"):
+    with pytest.raises(cli.CliError, match="--rig-cap-deg"):
         pipeline_options(parser.parse_args(["reconstruct", "scene", "--rig-cap-deg", "50"]))
+
+
+@pytest.mark.parametrize("flags, says", [
+    (["--max-gaussians", "0"], "--max-gaussians: "),  # was "options.compaction.max_count: ..."
+    (["--max-bytes", "-5"], "--max-bytes: "),
+    (["--min-opacity", "1"], "--min-opacity: "),
+    (["--near", "-1"], "--near: "),
+    (["--sh-degree", "2"], "--sh-degree: "),
+])
+def test_reconstruct_option_errors_name_the_flags(flags, says):
+    with pytest.raises(cli.CliError) as info:
+        pipeline_options(cli.build_parser().parse_args(["reconstruct", "scene", *flags]))
+    assert str(info.value).startswith(says) and "options." not in str(info.value)
+
+
+def test_reconstruct_output_that_is_not_a_ply_is_refused_before_any_work(tmp_path, capsys):
+    argv = ["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "-o", str(tmp_path / "s.txt"),
+            "--no-build", "--model", str(tmp_path / "none.onnx")]
+    assert cli.main(argv) == 2  # a PLY was written under the name s.txt
+    err = capsys.readouterr().err
+    assert "s.txt" in err and ".ply" in err and "Traceback" not in err
+    assert not (tmp_path / "s.txt").exists()
+
+
+def test_reconstruct_checks_near_far_against_the_cameras_before_the_model(tmp_path, capsys):
+    """The API's 422 (check_sweep_range); the CLI's message names --far, not 'options: far='."""
+    from tests.service._support import POSES, panorama
+
+    for name, seed in (("a.png", 7), ("b.png", 8)):
+        (tmp_path / name).write_bytes(panorama(seed=seed))
+    (tmp_path / "poses.json").write_text(POSES)
+    assert cli.main(["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--poses", str(tmp_path / "poses.json"),
+                     "--far", "1e9", "--model", str(tmp_path / "none.onnx"), "--no-build"]) == 2
+    err = capsys.readouterr().err
+    assert "--far 1e+09 is beyond" in err and "options" not in err and "does not exist" not in err
+
+
+def test_reconstruct_with_a_model_file_that_is_no_onnx_model_is_a_one_line_error(tmp_path, capsys):
+    from tests.service._support import POSES, panorama
+
+    for name, seed in (("a.png", 7), ("b.png", 8)):
+        (tmp_path / name).write_bytes(panorama(seed=seed))
+    (tmp_path / "poses.json").write_text(POSES)
+    (tmp_path / "m.onnx").write_bytes(b"not a model")  # was an onnxruntime InvalidProtobuf traceback
+    assert cli.main(["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--poses", str(tmp_path / "poses.json"),
+                     "--model", str(tmp_path / "m.onnx"), "--no-build", "-o", str(tmp_path / "s.ply")]) == 2
+    err = capsys.readouterr().err
+    assert "--model" in err and "not a loadable ONNX model" in err and "Traceback" not in err
+
+
+def test_reconstruct_that_leaves_no_gaussian_is_refused_as_the_api_refuses_it(tmp_path, capsys, model_path):
+    """--min-opacity 0.999999 wrote a 0-Gaussian PLY with exit status 0; the API answers 422 empty_scene."""
+    from tests.service._support import POSES, panorama
+
+    for name, seed in (("a.png", 61), ("b.png", 62)):
+        (tmp_path / name).write_bytes(panorama(seed=seed))
+    (tmp_path / "poses.json").write_text(POSES)
+    argv = ["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--poses", str(tmp_path / "poses.json"),
+            "--model", str(model_path), "--no-build", "-o", str(tmp_path / "s.ply"), "--json", str(tmp_path / "s.json")]
+    assert cli.main([*argv, "--min-opacity", "0.999999"]) == 2
+    err = capsys.readouterr().err
+    assert "reconstruction is empty" in err and "--min-opacity removed" in err and "Traceback" not in err
+    assert not (tmp_path / "s.ply").exists() and not (tmp_path / "s.json").exists()
+    assert cli.main(argv) == 0  # the same inputs with the default compaction
+    assert len(read_ply(tmp_path / "s.ply")) > 0
 
 
 def test_render_argument_errors(tmp_path, capsys):
@@ -246,15 +312,117 @@ def test_render_checks_its_query_as_the_api_does_before_reading_the_ply(tmp_path
     assert says in err and "Traceback" not in err
 
 
+def ply_with_nan(path: Path, n: int, rows) -> None:
+    """A PLY of ``n`` valid Gaussians (tests.rasterizer toy scene) whose x is NaN in ``rows``."""
+    from rasterizer.ply import ply_bytes, ply_header, property_names
+    from tests.rasterizer._support import toy_scene
+
+    g = toy_scene(3, n=n)
+    data = bytearray(ply_bytes(g))
+    body = np.frombuffer(data, dtype="<f4", offset=len(ply_header(n, g.sh.shape[1])))
+    body.reshape(n, len(property_names(g.sh.shape[1])))[list(rows), 0] = np.nan
+    path.write_bytes(bytes(data))
+
+
+def render_argv(tmp_path: Path, ply: str) -> list[str]:
+    return ["render", str(tmp_path / ply), "--c2w", IDENTITY_ARG, "--width", "64", "-o", str(tmp_path / "view.png")]
+
+
+def test_render_refuses_a_ply_without_gaussians(tmp_path, capsys):
+    """A 0-Gaussian PLY rendered an all-black PNG with exit status 0."""
+    from rasterizer.gaussians import Gaussians
+
+    write_ply(tmp_path / "empty.ply", Gaussians.empty(1))
+    assert cli.main(render_argv(tmp_path, "empty.ply")) == 2
+    err = capsys.readouterr().err
+    assert "empty.ply: the PLY holds no Gaussians" in err and "Traceback" not in err
+    assert not (tmp_path / "view.png").exists()
+    ply_with_nan(tmp_path / "nan.ply", 4, range(4))
+    assert cli.main(render_argv(tmp_path, "nan.ply")) == 2
+    err = capsys.readouterr().err
+    assert "holds no Gaussians with finite values" in err and "row 0" in err and not (tmp_path / "view.png").exists()
+
+
+def test_render_drops_the_rows_holding_nan_as_the_service_does_and_says_so(tmp_path, capsys):
+    """One NaN row was a GaussiansError traceback; the service's pipeline and PLY writer drop such rows."""
+    ply_with_nan(tmp_path / "nan.ply", 50, [7, 20])
+    assert cli.main(render_argv(tmp_path, "nan.ply")) == 0
+    err = capsys.readouterr().err
+    assert "dropped 2 of 50 Gaussians holding NaN or Inf" in err and "row 7, x, y, z" in err
+    assert "rendering 48 Gaussians" in err and "Traceback" not in err
+    from PIL import Image
+
+    assert np.asarray(Image.open(tmp_path / "view.png")).max() > 0
+
+
+@pytest.mark.parametrize("header", [
+    b"ply\nformat\nend_header\n",
+    b"ply\nformat binary_little_endian 1.0\nelement vertex\nend_header\n",
+    b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float\nend_header\n",
+])
+def test_render_of_a_ply_with_a_short_header_line_is_a_one_line_error(tmp_path, capsys, header):
+    (tmp_path / "bad.ply").write_bytes(header)  # each was an IndexError traceback
+    assert cli.main(render_argv(tmp_path, "bad.ply")) == 2
+    err = capsys.readouterr().err
+    assert "cannot read" in err and "malformed PLY header" in err and "Traceback" not in err
+
+
+def test_render_too_large_for_the_renderer_names_width(tmp_path, capsys, monkeypatch):
+    """The rasterizer's RenderLimitError (the API's 413 render_too_large) is a one-line error naming --width."""
+    import importlib
+
+    from rasterizer.splat import RenderLimitError
+
+    def too_large(*a, **k):
+        raise RenderLimitError("image 64x32 with 50 Gaussians exceeds the 64-bit sort key")
+
+    ply_with_nan(tmp_path / "g.ply", 50, [])
+    monkeypatch.setattr(importlib.import_module("rasterizer.render"), "render", too_large)  # the module, not the function
+    assert cli.main(render_argv(tmp_path, "g.ply")) == 2
+    err = capsys.readouterr().err
+    assert "--width 64:" in err and "smaller --width" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("text, says", [
+    ("[]", "wrong type"),  # each was a TypeError / AttributeError / KeyError traceback or a bare "'image'"
+    ('{"frames": 5}', "wrong type"),
+    ('{"frames": [{"name": "a"}]}', "lacks the key 'image'"),
+    ('{"frames": [{"name": "a", "image": 5, "c2w": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}', "wrong type"),
+])
+def test_malformed_scene_json_is_a_one_line_error(tmp_path, capsys, text, says):
+    (tmp_path / "scene.json").write_text(text)
+    for argv in (["reconstruct", str(tmp_path), "--no-build", "--model", str(tmp_path / "none.onnx")],
+                 ["refine", str(tmp_path / "in.ply"), str(tmp_path), "--out", str(tmp_path / "o.ply")]):
+        if argv[0] == "refine":
+            ply_with_nan(tmp_path / "in.ply", 10, [])
+        assert cli.main(argv) == 2
+        err = capsys.readouterr().err
+        assert "scene.json" in err and says in err and "Traceback" not in err
+
+
 def test_render_pose_file_with_an_unknown_key_is_refused(tmp_path, capsys):
     (tmp_path / "pose.json").write_text('{"convension": "opengl", "c2w": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}')
     assert cli.main(["render", "x.ply", "--pose", str(tmp_path / "pose.json")]) == 2
     assert "convension" in capsys.readouterr().err
 
 
+def test_select_and_edit_with_a_store_that_is_a_file_is_a_one_line_error(tmp_path, capsys):
+    (tmp_path / "store").write_text("not a folder")  # was a NotADirectoryError traceback
+    for argv in (["select", "0" * 32, "--view", "a", "--point", "0.5,0.5"],
+                 ["edit", "0" * 32, "--selection", "0" * 32, "--op", "remove"]):
+        assert cli.main([argv[0], "--store", str(tmp_path / "store"), *argv[1:]]) == 2
+        err = capsys.readouterr().err
+        assert "--store" in err and "scene store" in err and "Traceback" not in err
+
+
 @pytest.mark.parametrize("argv, says", [
     (["select", "../../etc", "--view", "a", "--point", "0.5,0.5"], "invalid_scene_id"),  # was a traceback
-    (["select", "0" * 32, "--view", "a", "--point", "0.5,0.5", "--negative", "1.5,0.5"], "negative[0] = [1.5, 0.5]"),
+    (["select", "0" * 32, "--view", "a", "--point", "0.5,0.5", "--negative", "1.5,0.5"],
+     "--negative: negative[0] = [1.5, 0.5]"),
+    (["select", "0" * 32, "--point", "0.5,0.5"], "--view: give the reference"),  # took view a; the API's 422
+    (["select", "0" * 32, "--view", "b", "--segment", "3"], "--segment: give either"),  # --view was ignored
+    (["select", "0" * 32, "--view", "a", *["--point", "0.5,0.5"] * 65], "--point: List should have at most 64"),
+    (["select", "0" * 32, "--segment", "-1"], "--segment: Input should be greater"),  # was "select.segment: ..."
     (["edit", "../x", "--selection", "0" * 32, "--op", "keep"], "invalid_scene_id"),
     (["edit", "0" * 32, "--selection", "0" * 32, "--op", "remove", "--color", "1,0,0"], "only for op recolor"),  # ignored
     (["edit", "0" * 32, "--selection", "0" * 32, "--op", "recolor", "--color", "2,0,0"], "each in [0, 1]"),

@@ -72,3 +72,59 @@ def test_refine_cli_needs_poses_and_a_writable_output(tmp_path, capsys):
     assert main([str(tmp_path / "in.ply"), *images, "--poses", str(tmp_path / "poses.json"), "--iterations", "1",
                  "--height", "16", "--out", str(tmp_path / "no" / "such" / "o.ply")]) == 2  # was a traceback
     assert "cannot write" in capsys.readouterr().err
+
+
+def references(tmp_path):
+    """Two black 64x32 references and their poses file: the arguments after the PLY."""
+    img = np.zeros((32, 64, 3), np.uint8)
+    for name in ("a.png", "b.png"):
+        Image.fromarray(img).save(tmp_path / name)
+    moved = np.eye(4)
+    moved[0, 3] = 0.3
+    (tmp_path / "poses.json").write_text(json.dumps({"c2w": [np.eye(4).tolist(), moved.tolist()]}))
+    return [str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--poses", str(tmp_path / "poses.json")]
+
+
+def test_refine_cli_refuses_a_ply_without_gaussians(tmp_path, capsys):
+    """A 0-Gaussian PLY was 'refined' into another with exit status 0."""
+    from rasterizer.gaussians import Gaussians
+
+    write_ply(tmp_path / "empty.ply", Gaussians.empty(0))
+    assert main([str(tmp_path / "empty.ply"), *references(tmp_path), "--out", str(tmp_path / "o.ply"),
+                 "--iterations", "1", "--height", "16"]) == 2
+    err = capsys.readouterr().err
+    assert "the PLY holds no Gaussians" in err and "Traceback" not in err and not (tmp_path / "o.ply").exists()
+
+
+def test_refine_cli_output_that_is_not_a_ply_is_refused_before_any_work(tmp_path, capsys):
+    """--out r.png wrote a PLY under that name."""
+    assert main([str(tmp_path / "missing.ply"), *references(tmp_path), "--out", str(tmp_path / "r.png")]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "r.png" in err and ".ply" in err and "missing.ply" not in err
+
+
+def test_refine_cli_height_too_large_for_the_scene_names_height(tmp_path, capsys):
+    """--height 1024 (within the API's bounds) ended in a RenderLimitError traceback; the API's job fails
+    with render_too_large. Room-sized Gaussians around the cameras fill every pixel of the Yin/Yang grids."""
+    g = toy_scene(4, n=400)
+    write_ply(tmp_path / "big.ply", g.with_(scales=np.full_like(g.scales, 5.0)))
+    assert main([str(tmp_path / "big.ply"), *references(tmp_path), "--out", str(tmp_path / "o.ply"),
+                 "--iterations", "1", "--height", "1024", "--no-cross-check"]) == 2
+    err = capsys.readouterr().err
+    assert "--height 1024:" in err and "max_contributions=" in err and "smaller --height" in err
+    assert "Traceback" not in err and not (tmp_path / "o.ply").exists()
+
+
+def test_refine_cli_drops_rows_holding_nan_and_says_so(tmp_path, capsys):
+    from rasterizer.ply import ply_bytes, ply_header, property_names
+
+    g = toy_scene(4, n=60)
+    data = bytearray(ply_bytes(g))
+    body = np.frombuffer(data, dtype="<f4", offset=len(ply_header(len(g), g.sh.shape[1])))
+    body.reshape(len(g), len(property_names(g.sh.shape[1])))[3, 10] = np.inf  # scale_0
+    (tmp_path / "in.ply").write_bytes(bytes(data))
+    assert main([str(tmp_path / "in.ply"), *references(tmp_path), "--out", str(tmp_path / "o.ply"),
+                 "--iterations", "1", "--height", "16"]) == 0  # was a GaussiansError traceback
+    captured = capsys.readouterr()
+    assert "dropped 1 of 60 Gaussians holding NaN or Inf" in captured.err and "row 3, scale_0..2" in captured.err
+    assert json.loads(captured.out)["num_gaussians"] == 59 == len(read_ply(tmp_path / "o.ply"))

@@ -169,14 +169,14 @@ def test_empty_selection_is_a_clear_422(scene, live, monkeypatch):
 def test_cli_select_and_edit(scene, live, capsys):
     from service.cli import main
 
-    assert main(["select", scene, "--store", str(live.store), "--point", "0.95,0.5"]) == 0
+    assert main(["select", scene, "--store", str(live.store), "--view", "a", "--point", "0.95,0.5"]) == 0
     sel = json.loads(capsys.readouterr().out)
     assert sel["num_gaussians"] > 0
     assert main(["edit", scene, "--store", str(live.store), "--selection", sel["id"], "--op", "recolor",
                  "--color", "0,0.5,1"]) == 0
     new = json.loads(capsys.readouterr().out)
     assert new["parent"] == scene and new["edit"]["op"] == "recolor"
-    assert main(["select", scene, "--store", str(live.store), "--point", "1.5,0.5"]) == 2
+    assert main(["select", scene, "--store", str(live.store), "--view", "a", "--point", "1.5,0.5"]) == 2
     assert "[0, 1]" in capsys.readouterr().err
     assert main(["edit", scene, "--store", str(live.store), "--selection", "0" * 32, "--op", "remove"]) == 2
     assert "selection_not_found" in capsys.readouterr().err
