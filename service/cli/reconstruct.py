@@ -72,6 +72,10 @@ def pipeline_options(args: argparse.Namespace):
 
     compaction: dict | bool = {}
     if args.no_compaction:
+        unused = [f"--{flag.replace('_', '-')}" for flag in ("max_gaussians", "max_bytes", "min_opacity", "no_merge_smooth")
+                  if getattr(args, flag) not in (None, False)]
+        if unused:  # refused, not dropped, as the API refuses options that another overrides
+            raise CliError(f"--no-compaction keeps every Gaussian; {', '.join(unused)} would do nothing with it")
         compaction = False
     else:
         for flag, key in (("max_gaussians", "max_count"), ("max_bytes", "max_bytes"), ("min_opacity", "min_opacity")):

@@ -204,6 +204,8 @@ def test_reconstruct_compaction_flags_map_to_options():
     assert default.merge_smooth is True and default.smooth_levels == 1
     assert opts("--no-merge-smooth").merge_smooth is False
     assert opts("--no-compaction").merge_smooth is False
+    with pytest.raises(cli.CliError, match="--min-opacity, --no-merge-smooth would do nothing"):  # not dropped
+        opts("--no-compaction", "--min-opacity", "0.5", "--no-merge-smooth")
     with pytest.raises(SystemExit):  # an experiment's switch, not a CLI option
         opts("--smooth-levels", "2")
     full = pipeline_options(parser.parse_args(["reconstruct", "scene"]))
