@@ -255,8 +255,9 @@ def as_c2w(matrix, convention: str = "opencv", *, tol: float = 1e-3) -> np.ndarr
     """
     try:
         m = np.asarray(matrix, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise PoseError(f"pose is not a numeric matrix: {exc}") from None
+    except (TypeError, ValueError):
+        raise PoseError("pose is not a numeric 4x4 or 3x4 matrix (rows of different lengths, or entries that are "
+                        "not numbers)") from None
     if m.shape == (3, 4):
         m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
     if m.shape != (4, 4):

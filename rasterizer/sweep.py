@@ -75,6 +75,16 @@ class SweepRangeError(ValueError):
     """Cameras or a sweep range the encoder cannot resolve (too far, too small, too wide)."""
 
 
+def distinct_numbers(value: float, limit: float) -> tuple[str, str]:
+    """``value`` and ``limit`` printed with the fewest significant digits (3 or more) that tell them apart,
+    so that a message about a value just beyond its limit does not print the same number twice."""
+    for digits in range(3, 18):
+        shown = f"{value:.{digits}g}", f"{limit:.{digits}g}"
+        if shown[0] != shown[1]:
+            return shown
+    return repr(float(value)), repr(float(limit))
+
+
 def check_scene_scale(c2w_a: np.ndarray, c2w_b: np.ndarray, near: float | None = None,
                       far: float | None = None) -> None:
     """Raise :class:`SweepRangeError` when float32 Gaussians could not represent the scene.
@@ -87,8 +97,10 @@ def check_scene_scale(c2w_a: np.ndarray, c2w_b: np.ndarray, near: float | None =
     b = baseline(c2w_a, c2w_b)
     reach = float(np.abs(centres).max())
     if not (np.isfinite(reach) and reach <= MAX_SCENE_EXTENT and b <= MAX_SCENE_EXTENT):
-        raise SweepRangeError(f"camera positions must lie within {MAX_SCENE_EXTENT:g} of the origin "
-                              f"(got {reach:.3g}, baseline {b:.3g})")
+        limit = distinct_numbers(reach if not reach <= MAX_SCENE_EXTENT else b, MAX_SCENE_EXTENT)[1]
+        raise SweepRangeError(f"camera positions and the baseline must lie within {limit} of the origin "
+                              f"(got {distinct_numbers(reach, MAX_SCENE_EXTENT)[0]}, "
+                              f"baseline {distinct_numbers(b, MAX_SCENE_EXTENT)[0]})")
     step = float(np.spacing(np.float32(reach + FAR_PER_BASELINE * b)))
     if step > POSITION_RESOLUTION * b:
         raise SweepRangeError(f"the cameras are {reach:.3g} from the origin but only {b:.3g} apart: float32 "
@@ -97,8 +109,9 @@ def check_scene_scale(c2w_a: np.ndarray, c2w_b: np.ndarray, near: float | None =
     if near is not None and not near >= MIN_NEAR_PER_BASELINE * b:
         raise SweepRangeError(f"near={near:.3g} is below {MIN_NEAR_PER_BASELINE:g} x the baseline ({b:.3g})")
     if far is not None and not far <= min(MAX_FAR_PER_BASELINE * b, MAX_SCENE_EXTENT):
-        raise SweepRangeError(f"far={far:.3g} is beyond {MAX_FAR_PER_BASELINE:g} x the baseline ({b:.3g}) "
-                              f"or {MAX_SCENE_EXTENT:g}")
+        shown_far, limit = distinct_numbers(far, min(MAX_FAR_PER_BASELINE * b, MAX_SCENE_EXTENT))
+        raise SweepRangeError(f"far={shown_far} is beyond {limit}: at most {MAX_FAR_PER_BASELINE:g} x the baseline "
+                              f"({b:.3g}) and {MAX_SCENE_EXTENT:g}")
 
 
 def grids_for_mode(erp_encoder: bool) -> tuple[str, ...]:

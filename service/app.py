@@ -24,6 +24,7 @@ from . import __version__
 from .access import AccessGuard, Admission
 from .config import Settings, get_settings
 from .errors import install_error_handlers
+from .http_cache import HEAD_SCOPE_KEY
 from .job_state import JobFiles, identity
 from .jobs import REFINE_QUEUE, JobRegistry
 from .limits import BodySizeLimit, WorkGate
@@ -44,7 +45,8 @@ the CPU); novel views rendered by a numpy rasterizer. Poses are camera-to-world,
 class HeadAsGet:
     """ASGI middleware: a ``HEAD`` request runs as the ``GET`` of its path and the body is dropped (RFC 9110
     section 9.3.2: the same status and headers as the GET, ``Content-Length`` included). FastAPI registers GET
-    routes without HEAD; here every GET route, the probes included, answers HEAD."""
+    routes without HEAD; here every GET route, the probes included, answers HEAD. The GET's scope carries
+    :data:`~service.http_cache.HEAD_SCOPE_KEY`, so that a route whose body is costly to make can skip it."""
 
     def __init__(self, app) -> None:
         self.app = app
@@ -59,7 +61,7 @@ class HeadAsGet:
                 message = {**message, "body": b""}
             await send(message)
 
-        await self.app({**scope, "method": "GET"}, receive, no_body)
+        await self.app({**scope, "method": "GET", HEAD_SCOPE_KEY: True}, receive, no_body)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

@@ -61,10 +61,46 @@ def single_query_values(request: Request) -> None:
         seen.add(name)
 
 
+def _query_names(dependant) -> list[str]:
+    """The query parameters a route declares (its own and its dependencies'), in declaration order."""
+    names = [param.alias for param in dependant.query_params]
+    for sub in dependant.dependencies:
+        names += [name for name in _query_names(sub) if name not in names]
+    return names
+
+
+def known_query_parameters(request: Request) -> None:
+    """422 ``unknown_query_parameter`` when the query names a parameter the route does not take.
+
+    A misspelt parameter (``fov=30`` for ``fov_deg``, ``fromat``, ``Width``) would otherwise be dropped
+    without a word and the answer made with the default. The accepted names are the route's declared
+    query parameters (its signature: one source of truth, the OpenAPI document lists the same).
+    """
+    route = request.scope.get("route")
+    accepted = _query_names(route.dependant) if route is not None else []
+    unknown = [name for name in request.query_params.keys() if name not in accepted]
+    if unknown:
+        takes = (f"this request takes {', '.join(accepted)}" if accepted
+                 else "this request takes no query parameters")
+        raise BadInput(f"unknown query parameter {unknown[0][:40]!r}; {takes}", code="unknown_query_parameter")
+
+
+def _is_json(content_type: str) -> bool:
+    media = content_type.split(";", 1)[0].strip().lower()
+    return media == "application/json" or (media.startswith("application/") and media.endswith("+json"))
+
+
 async def unique_body_keys(request: Request) -> None:
-    """422 when the JSON body names a key twice: the body's model would silently keep the last value."""
+    """415 when a body is not sent as JSON (the route would answer that the body is not an object: its
+    ``Content-Type`` makes it unread); 422 when the JSON body names a key twice: the body's model would
+    silently keep the last value."""
     body = await request.body()  # Starlette caches it for the route's own body parameter
     if body:
+        content_type = request.headers.get("content-type", "")
+        if not _is_json(content_type):
+            got = f"Content-Type {content_type[:60]!r}" if content_type else "no Content-Type"
+            raise BadInput(f"request body: must be a JSON object sent with Content-Type: application/json "
+                           f"(got {got})", code="unsupported_media_type", status=415)
         check_unique_keys(body)
 
 
@@ -76,8 +112,9 @@ ReadyRuntimeDep = Annotated[ModelRuntime, Depends(_ready_runtime)]
 InferenceGateDep = Annotated[WorkGate, Depends(_inference_gate)]
 RenderGateDep = Annotated[WorkGate, Depends(_render_gate)]
 HeavyRenderGateDep = Annotated[WorkGate, Depends(_heavy_render_gate)]
-#: router-level dependency of the routes that read query parameters
+#: router-level dependencies of the routes that read query parameters (and of those that take none)
 SingleQueryValues = Depends(single_query_values)
+KnownQueryParameters = Depends(known_query_parameters)
 #: route dependency of the routes that take a JSON body
 UniqueBodyKeys = Depends(unique_body_keys)
 SceneId = Annotated[str, Path(pattern=SCENE_ID_PATTERN, description="32 lower-case hex digits",

@@ -238,10 +238,12 @@ class OnnxEncoder:
         pa[:3, 3] -= origin
         pb[:3, 3] -= origin
         n_def, f_def = default_near_far(pa, pb, near_ratio=self.near_per_baseline, far_ratio=self.far_per_baseline)
+        automatic = [name for name, value in (("near", near), ("far", far)) if value is None]
         near = n_def if near is None else float(near)
         far = f_def if far is None else float(far)
         if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
-            raise EncoderInputError(f"need 0 < near < far, finite; got near={near}, far={far}")
+            which = f" ({' and '.join(automatic)}: automatic for this baseline, {b:.3g})" if automatic else ""
+            raise EncoderInputError(f"need 0 < near < far, finite; got near={near:g}, far={far:g}{which}")
 
         t = time.perf_counter()
         chw = [self._to_chw(im) for im in (img_a, img_b)]

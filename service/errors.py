@@ -121,6 +121,13 @@ _STATUS_CODES = {400: "bad_request", 404: "not_found", 405: "method_not_allowed"
                  415: "unsupported_media_type", 422: "invalid_request", 503: "unavailable"}
 
 
+def _json_kind(value) -> str:
+    """What a JSON body holds, in JSON's words (a body that is not an object)."""
+    kinds = ((bool, "true or false"), (list, "an array"), (str, "a string"), ((int, float), "a number"),
+             (bytes, "a body that is not JSON"))
+    return next((name for kind, name in kinds if isinstance(value, kind)), "null" if value is None else "no object")
+
+
 def _validation_message(exc: RequestValidationError) -> str:
     parts = []
     for err in exc.errors()[:5]:
@@ -130,6 +137,9 @@ def _validation_message(exc: RequestValidationError) -> str:
             parts.append(f"body: not valid JSON at character {where}" + (f" ({reason})" if reason else ""))
             continue
         loc = ".".join(str(p) for p in err.get("loc", ()) if p not in ("body", "query", "path"))
+        if not loc and err.get("type") in ("model_attributes_type", "dict_type", "model_type"):
+            parts.append(f"request body: expected a JSON object, got {_json_kind(err.get('input'))}")
+            continue
         msg = str(err.get("msg", "invalid"))
         if "Expected UploadFile" in msg:  # a form field where a file was expected (the library's words)
             msg = "expected a file (a form part with a filename), got a text field"

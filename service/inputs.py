@@ -15,7 +15,17 @@ import numpy as np
 from pydantic import ValidationError
 
 from rasterizer.geometry import PoseError, as_c2w
-from rasterizer.sweep import MAX_SCENE_EXTENT, MIN_BASELINE, SweepRangeError, check_scene_scale
+from rasterizer.sweep import (
+    FAR_PER_BASELINE,
+    MAX_SCENE_EXTENT,
+    MIN_BASELINE,
+    NEAR_PER_BASELINE,
+    SweepRangeError,
+    baseline,
+    check_scene_scale,
+    default_near_far,
+    distinct_numbers,
+)
 
 from .errors import BadInput
 from .options import SceneOptions, describe_error
@@ -78,6 +88,14 @@ def check_unique_keys(text: str | bytes) -> None:
         pass
 
 
+def without_bom(text: str | bytes) -> str | bytes:
+    """``text`` without a leading UTF-8 byte order mark (editors on Windows write one): every JSON input takes it,
+    as JSON request bodies do."""
+    if isinstance(text, bytes):
+        return text[3:] if text.startswith(b"\xef\xbb\xbf") else text
+    return text[1:] if text.startswith("\ufeff") else text
+
+
 def _json_object(text: str | bytes, field: str) -> Any:
     try:
         return json.loads(text, parse_constant=_reject_constant, parse_int=_bounded_int, object_pairs_hook=_unique_keys)
@@ -109,6 +127,7 @@ def parse_poses(text: str | bytes | None) -> Poses | None:
 
     None for no poses (absent, empty, or ``"c2w": null``): the service estimates them.
     """
+    text = None if text is None else without_bom(text)
     if text is None or not text.strip():
         return None
     obj = _json_object(text, "poses")
@@ -132,6 +151,14 @@ def parse_poses(text: str | bytes | None) -> Poses | None:
         if not (isinstance(m, list) and all(isinstance(r, list) for r in m)
                 and all(isinstance(v, (int, float)) and not isinstance(v, bool) for r in m for v in r)):
             raise BadInput(f"poses.c2w[{name}]: expected a 4x4 or 3x4 list of numbers", code="invalid_pose")
+        if len(m) not in (3, 4):
+            raise BadInput(f"poses.c2w[{name}]: expected 4 rows (4x4) or 3 rows (3x4), got {len(m)}",
+                           code="invalid_pose")
+        ragged = [(i, len(r)) for i, r in enumerate(m) if len(r) != 4]
+        if ragged:
+            row, count = ragged[0]
+            raise BadInput(f"poses.c2w[{name}]: row {row + 1} has {count} numbers; every row of a 4x4 or 3x4 "
+                           "matrix has 4", code="invalid_pose")
         try:
             out.append(as_c2w(m, convention))
         except PoseError as exc:
@@ -155,14 +182,47 @@ def check_scale_options(poses_given: bool, pose_options: PoseOptions) -> None:
         raise BadInput(f"options.{given[0]}: sets the scale of estimated poses only; these poses are given and "
                        "carry their own scale (leave the option out, or scale the c2w translations)",
                        code="invalid_options")
+    if pose_options.baseline is not None and not pose_options.baseline >= MIN_BASELINE:
+        raise BadInput(f"options.baseline: {pose_options.baseline:g} is shorter than the {MIN_BASELINE:g} needed to "
+                       "triangulate depth (the baseline is the distance between the two cameras, in metres)",
+                       code="invalid_options")
 
 
-def check_sweep_range(c2w_a: np.ndarray, c2w_b: np.ndarray, options: dict) -> None:
-    """422 when ``options`` near/far do not fit the cameras (see :func:`rasterizer.sweep.check_scene_scale`)."""
+def check_estimated_scale(c2w_a: np.ndarray, c2w_b: np.ndarray, pose_options: PoseOptions) -> None:
+    """422 naming the option when ``camera_height`` scaled the estimated poses to a baseline too short to
+    triangulate (the encoder would only say that the cameras coincide)."""
+    b = baseline(c2w_a, c2w_b)
+    if not b >= MIN_BASELINE:
+        given = (f"options.camera_height={pose_options.camera_height:g} scales the estimated poses to"
+                 if pose_options.camera_height is not None else "the estimated poses have")
+        raise BadInput(f"{given} a baseline of {b:.3g}, shorter than the {MIN_BASELINE:g} needed to triangulate "
+                       "depth (camera_height is in metres above the floor)", code="invalid_options")
+
+
+def check_sweep_range(c2w_a: np.ndarray, c2w_b: np.ndarray, options: dict,
+                      per_baseline: tuple[float, float] = (NEAR_PER_BASELINE, FAR_PER_BASELINE)) -> None:
+    """422 when ``options`` near/far do not fit the cameras (see :func:`rasterizer.sweep.check_scene_scale`),
+    or when one of them is given and does not lie on its side of the other's automatic value
+    (``per_baseline``: the model's near and far per unit of baseline)."""
+    near, far = options.get("near"), options.get("far")
     try:
-        check_scene_scale(c2w_a, c2w_b, options.get("near"), options.get("far"))
+        check_scene_scale(c2w_a, c2w_b, near, far)
     except SweepRangeError as exc:
         raise BadInput(f"options: {exc}", code="invalid_options") from None
+    if (near is None) == (far is None):  # both given: SceneOptions checked near < far; none: automatic
+        return
+    auto_near, auto_far = default_near_far(c2w_a, c2w_b, near_ratio=per_baseline[0], far_ratio=per_baseline[1])
+    b = baseline(c2w_a, c2w_b)
+    if near is not None and not near < auto_far:
+        shown, limit = distinct_numbers(near, auto_far)
+        raise BadInput(f"options.near={shown} must be smaller than far; no far is given and the automatic far for "
+                       f"this scene is {limit} ({per_baseline[1]:g} x the baseline {b:.3g}): give a larger far too",
+                       code="invalid_options")
+    if far is not None and not far > auto_near:
+        shown, limit = distinct_numbers(far, auto_near)
+        raise BadInput(f"options.far={shown} must be larger than near; no near is given and the automatic near for "
+                       f"this scene is {limit} ({per_baseline[0]:g} x the baseline {b:.3g}): give a smaller near too",
+                       code="invalid_options")
 
 
 def parse_options(text: str | bytes | None, accepted: set[str] | None = None,
@@ -173,6 +233,7 @@ def parse_options(text: str | bytes | None, accepted: set[str] | None = None,
     keys, finite numbers; near < far); ``accepted`` restricts the top-level keys further (None: every
     option). The object itself is returned as sent: scene ids are hashed from it.
     """
+    text = without_bom(text) if isinstance(text, (str, bytes)) else text
     if text is None or (isinstance(text, (str, bytes)) and not text.strip()):
         return {}, PipelineOptions.from_dict({}), PoseOptions()
     obj = _json_object(text, "options")
@@ -258,8 +319,9 @@ def check_render_query(c2w: str | np.ndarray, projection: str, width: int, heigh
     pose = c2w if isinstance(c2w, np.ndarray) else parse_c2w_query(c2w)
     reach = float(np.abs(pose[:3, 3]).max())
     if not reach <= MAX_SCENE_EXTENT:  # as the scenes' own cameras: float32 positions beyond cannot resolve a room
-        raise BadInput(f"c2w: the camera lies {reach:.3g} from the origin; render cameras, as the scenes' cameras, "
-                       f"must lie within {MAX_SCENE_EXTENT:g} of it", code="invalid_pose")
+        shown, limit = distinct_numbers(reach, MAX_SCENE_EXTENT)
+        raise BadInput(f"c2w: the camera lies {shown} from the origin; render cameras, as the scenes' cameras, "
+                       f"must lie within {limit} of it", code="invalid_pose")
     if compositing not in COMPOSITINGS:
         raise BadInput(f"compositing: expected plain or va, got {compositing!r}", code="invalid_render_query")
     if projection not in ("erp", "perspective", "yin", "yang"):

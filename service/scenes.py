@@ -25,7 +25,7 @@ from .edits import edit_artifacts
 from .encoder import unit_image_at_size
 from .errors import BadInput, PayloadTooLarge, ServiceError, StoreUnavailable
 from .images import check_header, decode_rgb, encode
-from .inputs import Poses, RenderQuery, check_sweep_range
+from .inputs import Poses, RenderQuery, check_estimated_scale, check_sweep_range
 from .limits import render_cost
 from .memory import release_memory
 from .model_files import build_code_hash
@@ -121,7 +121,8 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
                                                (image_a, image_b))  # features at full resolution; XMP tilt
     timings["poses"] = time.perf_counter() - t0
     if poses is None:
-        check_sweep_range(c2w_a, c2w_b, options)
+        check_estimated_scale(c2w_a, c2w_b, pose_options)
+        check_sweep_range(c2w_a, c2w_b, options, sweep_per_baseline(runtime))
     t0 = time.perf_counter()
     height = runtime.encoder.height
     erp_a, erp_b = map_threads(_at_model_size, (erp_a, erp_b), (height, height))  # resampled once, here
@@ -155,6 +156,11 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     stored = store.put(scene_id, gaussians, meta, artifacts=references)
     timings["store"] = time.perf_counter() - t0
     return stored, timings
+
+
+def sweep_per_baseline(runtime: ModelRuntime) -> tuple[float, float]:
+    """The loaded model's automatic near and far per unit of baseline (:func:`rasterizer.sweep.default_near_far`)."""
+    return runtime.encoder.near_per_baseline, runtime.encoder.far_per_baseline
 
 
 def check_render_cost(store: SceneStore, scene_id: str, query: RenderQuery, max_cost: float) -> float:

@@ -10,7 +10,15 @@ from fastapi import APIRouter, Body, Path, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from .. import edits as work
-from ..deps import RenderGateDep, SceneId, SettingsDep, SingleQueryValues, StoreDep, UniqueBodyKeys
+from ..deps import (
+    KnownQueryParameters,
+    RenderGateDep,
+    SceneId,
+    SettingsDep,
+    SingleQueryValues,
+    StoreDep,
+    UniqueBodyKeys,
+)
 from ..edits import EditRequest, SelectionRequest
 from ..errors import BadInput, NotFound
 from ..inputs import DEFAULT_RENDER_WIDTH, Projection, check_render_query
@@ -18,7 +26,7 @@ from ..scenes import storing
 from ..schemas import SceneCreated, error_responses
 from ..store import SCENE_ID_PATTERN
 
-router = APIRouter(prefix="/v1/scenes", tags=["edit"], dependencies=[SingleQueryValues])
+router = APIRouter(prefix="/v1/scenes", tags=["edit"], dependencies=[KnownQueryParameters, SingleQueryValues])
 
 
 class SelectionCreated(BaseModel):
@@ -57,7 +65,7 @@ def _require(store, scene_id: str) -> None:
 
 @router.post("/{scene_id}/selections", status_code=201, response_model=SelectionCreated, dependencies=[UniqueBodyKeys],
              summary="Select an object from points (or a segment) in both references",
-             responses=error_responses(400, 404, 409, 422, 507))
+             responses=error_responses(400, 404, 409, 415, 422, 507))
 async def create_selection(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, response: Response,
                            body: Annotated[SelectionRequest, Body()]) -> SelectionCreated:
     work.check_points(body.points or [], "points")
@@ -97,7 +105,7 @@ async def segments(request: Request, scene_id: SceneId, store: StoreDep, setting
 
 @router.post("/{scene_id}/edits", status_code=201, response_model=SceneCreated, dependencies=[UniqueBodyKeys],
              summary="Edit the selected Gaussians; the result is a new scene (idempotent id)",
-             responses=error_responses(400, 404, 409, 422, 507))
+             responses=error_responses(400, 404, 409, 415, 422, 507))
 async def create_edit(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, response: Response,
                       body: Annotated[EditRequest, Body()]) -> SceneCreated:
     _require(store, scene_id)

@@ -19,7 +19,7 @@ from fastapi import APIRouter, Body, Path, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from .. import jobs as work
-from ..deps import SceneId, StoreDep, UniqueBodyKeys
+from ..deps import KnownQueryParameters, SceneId, SingleQueryValues, StoreDep, UniqueBodyKeys
 from ..errors import Busy, NotFound
 from ..jobs import RefineRequest
 from ..limits import WorkGate
@@ -27,7 +27,7 @@ from ..references import ReferencesMissing, has_references
 from ..schemas import error_responses
 from ..store import SCENE_ID_PATTERN
 
-router = APIRouter(tags=["jobs"])
+router = APIRouter(tags=["jobs"], dependencies=[KnownQueryParameters, SingleQueryValues])
 
 class JobStatus(BaseModel):
     model_config = ConfigDict(extra="allow")
@@ -50,7 +50,7 @@ def _gate(request: Request) -> WorkGate:
 
 @router.post("/v1/scenes/{scene_id}/refine", status_code=202, response_model=JobStatus, dependencies=[UniqueBodyKeys],
              summary="Refine the colours on the reference views; runs as a job",
-             responses=error_responses(404, 409, 422, 503))
+             responses=error_responses(404, 409, 415, 422, 503))
 async def refine_scene(scene_id: SceneId, request: Request, response: Response, store: StoreDep,
                        body: Annotated[RefineRequest | None, Body()] = None) -> JobStatus:
     params = (body or RefineRequest()).model_dump()

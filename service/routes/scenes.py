@@ -14,6 +14,7 @@ from .. import scenes as work
 from ..deps import (
     HeavyRenderGateDep,
     InferenceGateDep,
+    KnownQueryParameters,
     MetricsDep,
     ReadyRuntimeDep,
     RenderGateDep,
@@ -23,6 +24,7 @@ from ..deps import (
     StoreDep,
 )
 from ..errors import BadInput, NotFound
+from ..http_cache import NOT_MODIFIED, cache_headers, is_head, not_modified
 from ..images import MEDIA_TYPES
 from ..inputs import (
     DEFAULT_FOV_DEG,
@@ -30,6 +32,7 @@ from ..inputs import (
     Compositing,
     ImageFormat,
     Projection,
+    RenderQuery,
     check_render_query,
     check_scale_options,
     check_sweep_range,
@@ -40,7 +43,7 @@ from ..memory import trimmed
 from ..options import options_json_schema, options_markdown
 from ..schemas import SceneCreated, SceneMeta, error_responses
 
-router = APIRouter(prefix="/v1/scenes", tags=["scenes"], dependencies=[SingleQueryValues])
+router = APIRouter(prefix="/v1/scenes", tags=["scenes"], dependencies=[KnownQueryParameters, SingleQueryValues])
 
 _IDENTITY = "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1"
 _POSES_EXAMPLE = json.dumps({"convention": "opencv", "c2w": [
@@ -49,7 +52,6 @@ _POSES_EXAMPLE = json.dumps({"convention": "opencv", "c2w": [
 _OPTIONS_DOC = ("optional JSON object (schema `SceneOptions`, strict types: a wrong type or an unknown key is a "
                 "422), e.g. `{\"near\": 0.5, \"far\": 20, \"sh_degree\": 0}`. Every key:\n\n" + options_markdown())
 _OPTIONS_SCHEMA = {"contentMediaType": "application/json", "contentSchema": options_json_schema()}
-_IMMUTABLE = "public, max-age=31536000, immutable"
 _COMPOSITING_DOC = ("`plain` (default): front-to-back alpha compositing over a black background, what every "
                     "3DGS viewer shows of `gaussians.ply`. `va`: colour divided by accumulated alpha (V/A, the "
                     "OmniSplat paper's normalisation), which fills thinly covered pixels with the surface colour "
@@ -100,7 +102,7 @@ async def create_scene(
     parsed_options, pipeline_options, pose_options = parse_options(options)
     check_scale_options(parsed_poses is not None, pose_options)
     if parsed_poses is not None:  # estimated poses are checked once estimated
-        check_sweep_range(parsed_poses.c2w_a, parsed_poses.c2w_b, parsed_options)
+        check_sweep_range(parsed_poses.c2w_a, parsed_poses.c2w_b, parsed_options, work.sweep_per_baseline(runtime))
     data_a, data_b = await image_a.read(), await image_b.read()
     limits = work.UploadLimits(settings.max_image_pixels, settings.min_image_height)
     await anyio.to_thread.run_sync(work.precheck_uploads, data_a, data_b, limits)
@@ -125,10 +127,11 @@ _IMAGE_CONTENT = {t: {"schema": {"type": "string", "format": "binary"}} for t in
 
 @router.get(
     "/{scene_id}/render", response_class=Response, summary="Render a novel view",
-    responses={200: {"content": _IMAGE_CONTENT, "description": "the rendered image"},
+    responses={200: {"content": _IMAGE_CONTENT, "description": "the rendered image"}, 304: NOT_MODIFIED,
                **error_responses(400, 404, 413, 422, 503)},
 )
 async def render_scene(
+    request: Request,
     scene_id: SceneId,
     store: StoreDep,
     settings: SettingsDep,
@@ -152,36 +155,49 @@ async def render_scene(
                                max_width=settings.max_render_width, max_pixels=settings.max_render_pixels,
                                compositing=compositing, rig=rig)
     _require_scene(store, scene_id)
+    etag = _render_etag(scene_id, query)  # the render is a function of the scene and the query: no render for a 304
+    if (unchanged := not_modified(request, etag)) is not None:
+        return unchanged
     cost = work.check_render_cost(store, scene_id, query, settings.max_render_cost)
     if cost > settings.heavy_render_cost:  # big renders queue with reconstructions: their peaks never add
         gate = heavy_gate
     data, timings = await gate.run(trimmed, work.render_scene, store, scene_id, query)
     metrics.observe_stages({f"render_{k}": v for k, v in timings.items()})
-    etag = hashlib.sha256(f"{scene_id}|{query.c2w.round(9).tolist()}|{projection}|{width}|{height}|"
-                          f"{query.fov_deg}|{format}|{compositing}|{rig}".encode()).hexdigest()[:32]
     return Response(data, media_type=MEDIA_TYPES[format],
-                    headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{etag}"',
+                    headers={**cache_headers(etag),
                              "Server-Timing": ", ".join(f"{k};dur={v * 1000:.1f}" for k, v in timings.items())})
+
+
+def _render_etag(scene_id: str, query: RenderQuery) -> str:
+    """The quoted ETag of a render: a hash of the scene id (itself a content hash) and the checked query."""
+    key = (f"{scene_id}|{query.c2w.round(9).tolist()}|{query.projection}|{query.width}|{query.height}|"
+           f"{query.fov_deg}|{query.format}|{query.compositing}|{query.rig}")
+    return '"' + hashlib.sha256(key.encode()).hexdigest()[:32] + '"'
 
 
 @router.get(
     "/{scene_id}/gaussians.ply", response_class=StreamingResponse, summary="The Gaussians as a 3DGS PLY",
     responses={200: {"content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
                      "description": "binary little-endian INRIA 3DGS PLY in the input world frame"},
-               **error_responses(400, 404, 422, 503)},
+               304: NOT_MODIFIED, **error_responses(400, 404, 422, 503)},
 )
-async def scene_ply(scene_id: SceneId, store: StoreDep, gate: RenderGateDep) -> StreamingResponse:
+async def scene_ply(request: Request, scene_id: SceneId, store: StoreDep, gate: RenderGateDep) -> Response:
     _require_scene(store, scene_id)
+    etag = f'"{scene_id}-ply"'  # the scene id is a content hash: its PLY never changes
+    if (unchanged := not_modified(request, etag)) is not None:
+        return unchanged
     size, blocks = await gate.run(work.ply_stream, store, scene_id)
+    headers = {**cache_headers(etag), "Content-Length": str(size),
+               "Content-Disposition": f'attachment; filename="{scene_id}.ply"'}
+    if is_head(request):  # the same headers; the body (tens of MB) is not made only to be dropped
+        blocks.close()
+        return Response(headers=headers, media_type="application/octet-stream")
 
     async def chunks():  # made from the stored arrays block by block, in a worker thread
         while (block := await anyio.to_thread.run_sync(next, blocks, None)) is not None:
             yield block
 
-    return StreamingResponse(chunks(), media_type="application/octet-stream",
-                             headers={"Cache-Control": _IMMUTABLE, "ETag": f'"{scene_id}-ply"',
-                                      "Content-Length": str(size),
-                                      "Content-Disposition": f'attachment; filename="{scene_id}.ply"'})
+    return StreamingResponse(chunks(), media_type="application/octet-stream", headers=headers)
 
 
 @router.get("/{scene_id}", response_model=SceneMeta, summary="Scene metadata",

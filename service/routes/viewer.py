@@ -30,12 +30,12 @@ from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 
 from ..access import KEY_COOKIE, DuplicateKey, query_key
-from ..deps import SceneId, SettingsDep, StoreDep
+from ..deps import KnownQueryParameters, SceneId, SettingsDep, SingleQueryValues, StoreDep
 from ..errors import BadInput, NotFound, ServiceError
 from ..inputs import DEFAULT_FOV_DEG
 from ..schemas import error_responses
 
-router = APIRouter(tags=["viewer"])
+router = APIRouter(tags=["viewer"], dependencies=[KnownQueryParameters, SingleQueryValues])
 log = logging.getLogger("omnisplat.service")
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -104,8 +104,9 @@ def _page(scene_id: str, meta: dict) -> str:
                 "npm packages, no CDN) on the scene's `gaussians.ply`, camera at reference A, black "
                 "background (the same as the render API's default plain compositing). Orbit with the mouse, "
                 "fly with W/A/S/D/Q/E. The query may place the camera: `c2w` (16 or 12 numbers, row-major, "
-                "OpenCV), `fov_deg` (horizontal), `width`, `height` (canvas pixels). 503 `viewer_unavailable` "
-                "when the npm packages are not installed (`npm ci`).",
+                "OpenCV), `fov_deg` (horizontal), `width`, `height` (canvas pixels), `bare=1` (no info panel); "
+                "any other parameter is a 422. 503 `viewer_unavailable` when the npm packages are not installed "
+                "(`npm ci`).",
     responses={200: {"content": {"text/html": {}}, "description": "the viewer page"},
                303: {"description": "with `key`: this URL without it, and a cookie holding the key"},
                **error_responses(400, 404, 422, 503)},
@@ -115,7 +116,18 @@ async def viewer_page(request: Request, scene_id: SceneId, store: StoreDep, sett
                                                                      "browser cannot send a header, so the answer "
                                                                      "is a 303 to this URL without it that sets a "
                                                                      "same-site cookie")] = None,
+                      c2w: Annotated[str | None, Query(description="the page's camera: 16 or 12 comma-separated "
+                                                                   "numbers, row-major, OpenCV camera-to-world "
+                                                                   "(read by the page; default reference A)")] = None,
+                      fov_deg: Annotated[str | None, Query(description="horizontal field of view, degrees "
+                                                                       "(read by the page)")] = None,
+                      width: Annotated[str | None, Query(description="canvas width, pixels (read by the page)")] = None,
+                      height: Annotated[str | None, Query(description="canvas height, pixels (read by the page)")
+                                        ] = None,
+                      bare: Annotated[str | None, Query(description="`1`: the canvas alone, without the info panel "
+                                                                    "(read by the page)")] = None,
                       ) -> Response:
+    del c2w, fov_deg, width, height, bare  # declared so that the query check accepts them; the page's script reads them
     try:
         key = query_key(request.scope).decode("utf-8", "replace") if key is not None else None
     except DuplicateKey as exc:

@@ -1,0 +1,254 @@
+"""Regression tests of the API audit: query parameters a route would drop, conditional requests on the
+immutable responses (render, PLY), and messages that named library internals or misled."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from tests.service._support import IDENTITY, POSES, LiveServer, make_settings, new_scene, panorama, stored_scene_count
+
+PERSPECTIVE = [("c2w", IDENTITY), ("projection", "perspective"), ("width", "32")]
+ERP = [("c2w", IDENTITY), ("width", "64")]
+
+
+@pytest.fixture(scope="module")
+def live(model_path, tmp_path_factory):
+    with LiveServer(make_settings(model_path, tmp_path_factory.mktemp("store"), max_render_width=512,
+                                  max_render_pixels=512 * 256)) as server:
+        yield server
+
+
+@pytest.fixture(scope="module")
+def scene(client) -> str:
+    return new_scene(client, seed=81, shift=4)
+
+
+@pytest.fixture(scope="module")
+def selection(client, scene) -> str:
+    r = client.post(f"/v1/scenes/{scene}/selections", json={"view": "a", "points": [[0.5, 0.6]]})
+    assert r.status_code == 201, r.text
+    return r.json()["id"]
+
+
+# -- unknown query parameters ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("path, params, extra, accepted", [
+    ("render", PERSPECTIVE, ("fov", "30"), "fov_deg"),  # the parameter is fov_deg
+    ("render", ERP, ("fromat", "jpeg"), "format"),
+    ("render", ERP, ("Width", "32"), "width"),
+    ("MASK", [("view", "a"), ("width", "64")], ("format", "jpeg"), "view"),  # a mask is always a PNG
+    ("MASK", [("view", "a"), ("width", "64")], ("compositing", "va"), "view"),
+    ("MASK", ERP, ("rig", "true"), "c2w"),
+    ("segments", [("view", "a"), ("width", "64")], ("format", "jpeg"), "view"),
+    ("gaussians.ply", [], ("format", "ply"), "no query parameters"),
+    ("", [], ("verbose", "1"), "no query parameters"),
+    ("viewer", [], ("fov", "60"), "fov_deg"),
+])
+def test_unknown_query_parameter_is_422_naming_it_and_the_accepted_ones(client, scene, selection, path, params,
+                                                                         extra, accepted):
+    """A misspelt parameter was dropped: fov=30 rendered the default 90 degrees, fromat=jpeg a PNG."""
+    path = f"selections/{selection}/mask" if path == "MASK" else path
+    url = f"/v1/scenes/{scene}/{path}".rstrip("/")
+    if path != "viewer":  # the viewer page needs the npm packages; the query is checked before
+        assert client.get(url, params=params).status_code == 200
+    r = client.get(url, params=params + [extra])
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["code"] == "unknown_query_parameter" and repr(extra[0]) in err["message"], err
+    assert accepted in err["message"], err
+
+
+def test_unknown_query_parameter_on_jobs_and_post_routes_is_422(client, scene):
+    r = client.get(f"/v1/jobs/{'0' * 32}", params={"wait": "1"})
+    assert r.status_code == 422 and r.json()["error"]["code"] == "unknown_query_parameter", r.text
+    r = client.post(f"/v1/scenes/{scene}/refine", params={"iterations": "5"}, json={"iterations": 1})
+    assert r.status_code == 422 and "'iterations'" in r.json()["error"]["message"], r.text
+
+
+def test_viewer_takes_its_documented_query(client, scene):
+    """The page's script reads c2w, fov_deg, width and height: they are accepted, not refused as unknown."""
+    r = client.get(f"/v1/scenes/{scene}/viewer", params={"c2w": IDENTITY, "fov_deg": "60", "width": "640",
+                                                          "height": "480"})
+    assert r.status_code in (200, 503), r.text  # 503: the npm packages are not installed here
+    assert r.status_code == 200 or r.json()["error"]["code"] == "viewer_unavailable"
+
+
+# -- conditional requests -------------------------------------------------------------------------------
+
+def _etag_variants(etag: str) -> list[str]:
+    return [etag, f"W/{etag}", f'"nope", {etag}', f'W/"x",W/{etag}', "*"]
+
+
+@pytest.mark.parametrize("path, params", [("render", ERP), ("render", PERSPECTIVE + [("format", "jpeg")]),
+                                          ("gaussians.ply", [])])
+def test_if_none_match_is_304_without_a_body(client, scene, path, params):
+    url = f"/v1/scenes/{scene}/{path}"
+    full = client.get(url, params=params)
+    assert full.status_code == 200 and full.headers["accept-ranges"] == "none"
+    etag = full.headers["etag"]
+    for value in _etag_variants(etag):
+        r = client.get(url, params=params, headers={"If-None-Match": value})
+        assert r.status_code == 304, (value, r.status_code)
+        assert r.content == b"" and r.headers["etag"] == etag
+        assert r.headers["cache-control"] == full.headers["cache-control"]
+    for value in ('"other"', 'W/"other", "nope"', etag[:-2] + '"'):
+        r = client.get(url, params=params, headers={"If-None-Match": value})
+        assert r.status_code == 200 and r.content == full.content, value
+
+
+def test_render_304_does_not_render(client, live, scene, monkeypatch):
+    etag = client.get(f"/v1/scenes/{scene}/render", params=ERP).headers["etag"]
+    from service import scenes as work
+
+    def no_render(*args, **kwargs):
+        raise AssertionError("rendered for a 304")
+
+    monkeypatch.setattr(work, "render_scene", no_render)
+    r = client.get(f"/v1/scenes/{scene}/render", params=ERP, headers={"If-None-Match": etag})
+    assert r.status_code == 304
+    other = client.get(f"/v1/scenes/{scene}/render", params=[("c2w", IDENTITY), ("width", "32")],
+                       headers={"If-None-Match": etag})
+    assert other.status_code == 500  # another view: its ETag differs, so it renders (here: the stub)
+
+
+def test_if_none_match_on_an_unknown_scene_is_404(client):
+    r = client.get(f"/v1/scenes/{'0' * 32}/gaussians.ply", headers={"If-None-Match": "*"})
+    assert r.status_code == 404
+
+
+def test_head_of_the_ply_sends_its_length_without_making_it(client, scene, monkeypatch):
+    get = client.get(f"/v1/scenes/{scene}/gaussians.ply")
+    from service import scenes as work
+
+    made = []
+    real = work.ply_stream
+
+    def counting(store, scene_id):
+        size, blocks = real(store, scene_id)
+
+        def counted():
+            for block in blocks:
+                made.append(len(block))
+                yield block
+        return size, counted()
+
+    monkeypatch.setattr(work, "ply_stream", counting)
+    head = client.head(f"/v1/scenes/{scene}/gaussians.ply")
+    assert head.status_code == 200 and head.content == b""
+    assert head.headers["content-length"] == get.headers["content-length"] == str(len(get.content))
+    assert head.headers["etag"] == get.headers["etag"] and made == []
+
+
+# -- messages -------------------------------------------------------------------------------------------
+
+def _post(client, poses=POSES, options=None, seed=90):
+    data = {"poses": poses} if poses is not None else {}
+    if options is not None:
+        data["options"] = options
+    return client.post("/v1/scenes", files={"image_a": ("a.png", panorama(seed=seed)),
+                                            "image_b": ("b.png", panorama(seed=seed, shift=4))}, data=data)
+
+
+def test_ragged_pose_row_names_the_matrix_and_row(client, live):
+    before = stored_scene_count(live.settings.store_dir)
+    c2w = json.loads(POSES)["c2w"]
+    c2w[1][2] = c2w[1][2][:3]
+    r = _post(client, poses=json.dumps({"c2w": c2w}))
+    assert r.status_code == 422, r.text
+    msg = r.json()["error"]["message"]
+    assert "c2w[B]" in msg and "row 3" in msg and "3 numbers" in msg, msg
+    assert "inhomogeneous" not in msg and "sequence" not in msg
+    assert stored_scene_count(live.settings.store_dir) == before
+
+
+@pytest.mark.parametrize("path, body", [("selections", '{"view": "a", "points": [[0.5, 0.6]]}'),
+                                        ("edits", '{"selection": "%s", "op": "remove"}' % ("0" * 32)),
+                                        ("refine", '{"iterations": 1}')])
+@pytest.mark.parametrize("content_type", ["text/plain", None, "application/x-www-form-urlencoded"])
+def test_json_body_without_json_content_type_is_415_saying_so(client, scene, path, body, content_type):
+    headers = {"Content-Type": content_type} if content_type else {}
+    r = client.post(f"/v1/scenes/{scene}/{path}", content=body.encode(), headers=headers)
+    assert r.status_code == 415, r.text
+    err = r.json()["error"]
+    assert err["code"] == "unsupported_media_type" and "Content-Type: application/json" in err["message"], err
+    assert "dictionary" not in err["message"]
+
+
+def test_json_body_that_is_not_an_object_says_so(client, scene):
+    r = client.post(f"/v1/scenes/{scene}/selections", json=[[0.5, 0.6]])
+    assert r.status_code == 422, r.text
+    msg = r.json()["error"]["message"]
+    assert "JSON object" in msg and "dictionary" not in msg, msg
+
+
+@pytest.mark.parametrize("field", ["poses", "options"])
+def test_json_form_fields_may_start_with_a_bom(client, field):
+    options = '{"sh_degree": 0}'
+    plain = _post(client, options=options, seed=92)
+    assert plain.status_code == 201, plain.text
+    bom = "\ufeff"
+    r = _post(client, poses=bom + POSES if field == "poses" else POSES,
+              options=bom + options if field == "options" else options, seed=92)
+    assert r.status_code == 201, r.text
+    assert r.json()["id"] == plain.json()["id"]
+
+
+def test_render_camera_just_beyond_the_limit_prints_two_different_numbers(client, scene):
+    c2w = np.eye(4)
+    c2w[0, 3] = 1_000_001.0
+    r = client.get(f"/v1/scenes/{scene}/render", params={"c2w": ",".join(map(str, c2w.ravel())), "width": "64"})
+    assert r.status_code == 422, r.text
+    msg = r.json()["error"]["message"]
+    assert "1000001" in msg and "1000000" in msg, msg
+
+
+def test_scene_scale_message_prints_two_different_numbers():
+    from rasterizer.sweep import SweepRangeError, check_scene_scale
+
+    a, b = np.eye(4), np.eye(4)
+    a[0, 3], b[0, 3] = 1_000_001.0, 1_000_000.5
+    with pytest.raises(SweepRangeError) as err:
+        check_scene_scale(a, b)
+    assert "1000001" in str(err.value) and "1000000" in str(err.value), err.value
+
+
+def test_near_without_far_names_the_automatic_far(client, live):
+    """POSES are 0.5 apart: the automatic far is 20 x 0.5 = 10."""
+    before = stored_scene_count(live.settings.store_dir)
+    r = _post(client, options='{"near": 30}', seed=94)
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["code"] == "invalid_options" and "automatic far" in err["message"] and "10" in err["message"], err
+    r = _post(client, options='{"far": 0.1}', seed=94)
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["code"] == "invalid_options" and "automatic near" in err["message"] and "0.15" in err["message"], err
+    assert stored_scene_count(live.settings.store_dir) == before
+
+
+def test_baseline_option_below_the_minimum_names_the_option(client):
+    r = _post(client, poses=None, options='{"baseline": 1e-05}', seed=95)
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["code"] == "invalid_options" and err["message"].startswith("options.baseline"), err
+    assert "1e-05" in err["message"] and "coincide" not in err["message"]
+
+
+def test_camera_height_that_scales_the_cameras_together_names_the_option(client, monkeypatch):
+    """The estimate is scaled by camera_height; a tiny height gave the encoder's "the camera centres coincide"."""
+    from service import scenes as work
+
+    def tiny_estimate(erp_a, erp_b, poses, opts, data):
+        b = np.eye(4)
+        b[0, 3] = 2e-10
+        return np.eye(4), b, {"source": "estimated"}
+
+    monkeypatch.setattr(work, "poses_for_scene", tiny_estimate)
+    r = _post(client, poses=None, options='{"camera_height": 1e-09}', seed=96)
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["code"] == "invalid_options" and "options.camera_height=1e-09" in err["message"], err
+    assert "baseline of 2e-10" in err["message"], err
