@@ -175,13 +175,16 @@ def parse_poses(text: str | bytes | None) -> Poses | None:
 
 
 def check_scale_options(poses_given: bool, pose_options: PoseOptions) -> None:
-    """422 when ``camera_height`` or ``baseline`` come with given poses: they scale estimated poses only,
-    and given poses carry their own scale, so the option would be ignored without a word."""
+    """422 when ``camera_height`` or ``baseline`` come with given poses (they scale estimated poses only, and
+    given poses carry their own scale) or ``refine_poses`` without them: the option would be ignored without a word."""
     given = [k for k in ("camera_height", "baseline") if getattr(pose_options, k) is not None]
     if poses_given and given:
         raise BadInput(f"options.{given[0]}: sets the scale of estimated poses only; these poses are given and "
                        "carry their own scale (leave the option out, or scale the c2w translations)",
                        code="invalid_options")
+    if not poses_given and pose_options.refine_poses:
+        raise BadInput("options.refine_poses: refines given poses; without poses they are estimated from the images "
+                       "(leave the option out, or send poses)", code="invalid_options")
     if pose_options.baseline is not None and not pose_options.baseline >= MIN_BASELINE:
         raise BadInput(f"options.baseline: {pose_options.baseline:g} is shorter than the {MIN_BASELINE:g} needed to "
                        "triangulate depth (the baseline is the distance between the two cameras, in metres)",

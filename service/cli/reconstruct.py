@@ -137,7 +137,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
                                              "refine_poses": args.refine_poses})
         check_scale_options(c2w_a is not None, pose_options)
     except ServiceError as exc:
-        raise CliError(as_flags(exc.message, ("camera_height", "baseline"), prefix="options.")) from None
+        raise CliError(as_flags(exc.message, ("camera_height", "baseline", "refine_poses"), prefix="options.")) from None
     for name, img in (("image A", erp_a), ("image B", erp_b)):
         if img.shape[1] != 2 * img.shape[0]:
             raise CliError(f"{name} is {img.shape[1]}x{img.shape[0]}; an ERP panorama must be exactly 2:1")

@@ -182,6 +182,11 @@ def test_reconstruct_scale_flags_with_given_poses_are_refused(tmp_path, capsys):
                          str(tmp_path / "poses.json"), flag, "2", "--no-build", "--model", str(tmp_path / "none.onnx")]) == 2
         err = capsys.readouterr().err
         assert flag in err and "given" in err
+    # and --refine-poses refines given poses only: without --poses it was ignored the same way
+    assert cli.main(["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--refine-poses", "--no-build",
+                     "--model", str(tmp_path / "none.onnx")]) == 2
+    err = capsys.readouterr().err
+    assert "--refine-poses" in err and "without poses" in err
 
 
 @pytest.mark.parametrize("flag", ["-o", "--json"])

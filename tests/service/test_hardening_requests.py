@@ -71,6 +71,20 @@ def test_scale_options_with_given_poses_are_422_not_ignored(client, live, option
     assert stored_scene_count(live.settings.store_dir) == before
 
 
+def test_refine_poses_without_poses_is_422_not_ignored():
+    """Without poses they are estimated; refine_poses refines given ones, so the scene was the plain one under a
+    new id. The API and the CLI share this check."""
+    from service.errors import BadInput
+    from service.inputs import check_scale_options
+    from service.poses import PoseOptions
+
+    with pytest.raises(BadInput) as err:
+        check_scale_options(False, PoseOptions(refine_poses=True))
+    assert err.value.status == 422 and err.value.code == "invalid_options"
+    assert err.value.message.startswith("options.refine_poses")
+    check_scale_options(True, PoseOptions(refine_poses=True))  # with poses: what the option is for
+
+
 @pytest.mark.parametrize("path, body", [
     ("selections", {"segment": True}), ("selections", {"segment": 1.0}), ("selections", {"segment": "1"}),
     ("selections", {"view": "a", "points": [["0.5", 0.5]]}), ("selections", {"view": "a", "points": [[True, 0.5]]}),
