@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from tests.service._support import IDENTITY, POSES, LiveServer, make_settings, new_scene, panorama, stored_scene_count
+from tests.service._support import IDENTITY, POSES, edit_server, new_scene, panorama, stored_scene_count
 
 PERSPECTIVE = [("c2w", IDENTITY), ("projection", "perspective"), ("width", "32")]
 ERP = [("c2w", IDENTITY), ("width", "64")]
@@ -16,8 +16,7 @@ ERP = [("c2w", IDENTITY), ("width", "64")]
 
 @pytest.fixture(scope="module")
 def live(model_path, tmp_path_factory):
-    with LiveServer(make_settings(model_path, tmp_path_factory.mktemp("store"), max_render_width=512,
-                                  max_render_pixels=512 * 256)) as server:
+    with edit_server(model_path, tmp_path_factory.mktemp("store")) as server:  # renders up to 512 x 256
         yield server
 
 

@@ -14,15 +14,14 @@ from PIL import Image, ImageOps
 
 from service.errors import BadInput
 from service.images import check_header, decode_rgb
-from tests.service._support import IDENTITY, POSES, LiveServer, make_settings, new_scene, panorama, stored_scene_count
+from tests.service._support import IDENTITY, POSES, edit_server, new_scene, panorama, stored_scene_count
 
 MOVED = ",".join(str(v) for v in np.array([[1, 0, 0, 0.2], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]).ravel())
 
 
 @pytest.fixture(scope="module")
 def live(model_path, tmp_path_factory):
-    with LiveServer(make_settings(model_path, tmp_path_factory.mktemp("store"), max_render_width=512,
-                                  max_render_pixels=512 * 256)) as server:
+    with edit_server(model_path, tmp_path_factory.mktemp("store")) as server:  # renders up to 512 x 256
         yield server
 
 
