@@ -180,7 +180,7 @@ def _level1_merge(gaussians: Gaussians, prov: Provenance, alive: np.ndarray, col
         ok.shape)  # colour tolerance in DC units
     planes = dct.reshape(3, n_grids, h, w), al.reshape(n_grids, h, w)
     t, whole, contrast = block_texture_contrast(*planes, 1)
-    tex_ok = whole & (t <= np.float32(TEXTURE_TOL) * contrast)
+    tex_ok = _texture_passes(t, whole, contrast, TEXTURE_TOL)
     ok &= tex_ok if budget is None else whole
     blk = np.flatnonzero(ok)
     top = _block_tops(n_grids, h, w)[blk]  # layout position of each candidate's top-left pixel
@@ -291,8 +291,12 @@ def texture_ok(dc: np.ndarray, present: np.ndarray, level: int, tol: float) -> n
     contrast alike and leaves each decision unchanged. A ramp merges at any steepness, a faint grain
     on a plain wall is kept where the room's own contrast is faint too.
     """
-    t, whole, contrast = block_texture_contrast(dc, present, level)
-    return whole & (t <= np.float32(tol) * contrast)
+    return _texture_passes(*block_texture_contrast(dc, present, level), tol)
+
+
+def _texture_passes(texture: np.ndarray, whole: np.ndarray, contrast: np.ndarray, tol: float) -> np.ndarray:
+    """:func:`texture_ok`'s test on :func:`block_texture_contrast`'s parts."""
+    return whole & (texture <= np.float32(tol) * contrast)
 
 
 def _least_textured(tex_ok: np.ndarray, ratio: np.ndarray, blocks: int) -> np.ndarray:
