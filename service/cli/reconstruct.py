@@ -66,23 +66,24 @@ def load_pair(args: argparse.Namespace):
     raise CliError("reconstruct takes a scene folder, or two images (with --poses, or poses are estimated)")
 
 
+#: reconstruct's compaction flags (argparse dests) and the API's ``options.compaction`` keys they set
+COMPACTION_FLAGS = (("max_gaussians", "max_count"), ("max_bytes", "max_bytes"), ("min_opacity", "min_opacity"))
+
+
 def pipeline_options(args: argparse.Namespace):
     """The API's options object, from reconstruct's flags (validated here, before any work)."""
     from ..pipeline import PipelineOptions
 
-    compaction: dict | bool = {}
+    compaction: dict | bool = {key: getattr(args, flag) for flag, key in COMPACTION_FLAGS
+                               if getattr(args, flag) is not None}
+    if args.no_merge_smooth:
+        compaction["merge_smooth"] = False
     if args.no_compaction:
-        unused = [f"--{flag.replace('_', '-')}" for flag in ("max_gaussians", "max_bytes", "min_opacity", "no_merge_smooth")
-                  if getattr(args, flag) not in (None, False)]
-        if unused:  # refused, not dropped, as the API refuses options that another overrides
+        if compaction:  # refused, not dropped, as the API refuses options that another overrides
+            unused = [f"--{flag.replace('_', '-')}" for flag, key in (*COMPACTION_FLAGS, ("no_merge_smooth", "merge_smooth"))
+                      if key in compaction]
             raise CliError(f"--no-compaction keeps every Gaussian; {', '.join(unused)} would do nothing with it")
         compaction = False
-    else:
-        for flag, key in (("max_gaussians", "max_count"), ("max_bytes", "max_bytes"), ("min_opacity", "min_opacity")):
-            if getattr(args, flag) is not None:
-                compaction[key] = getattr(args, flag)
-        if args.no_merge_smooth:
-            compaction["merge_smooth"] = False
     try:
         return PipelineOptions.from_dict({"near": args.near, "far": args.far, "compaction": compaction,
                                           "adaptive_range": args.adaptive_range, "sh_degree": args.sh_degree,
