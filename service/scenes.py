@@ -18,7 +18,7 @@ import numpy as np
 
 from rasterizer.camera import DEFAULT_NEAR, camera_directions
 from rasterizer.render import to_uint8
-from rasterizer.rig import NoRigError, overlay_rig, require_rig_layer
+from rasterizer.rig import NoRigError, RigLayer, overlay_rig, require_rig_layer
 from rasterizer.threads import map_threads
 
 from .edits import edit_artifacts
@@ -175,22 +175,33 @@ def check_render_cost(store: SceneStore, scene_id: str, query: RenderQuery, max_
     return cost
 
 
-def render_scene(store: SceneStore, scene_id: str, query: RenderQuery) -> tuple[bytes, dict[str, float]]:
-    """Render one view of a stored scene to PNG/JPEG bytes; never returns NaN pixels."""
+def render_rig_layer(store: SceneStore, scene_id: str, query: RenderQuery) -> RigLayer | None:
+    """The rig layer a ``rig=true`` render composites (None for ``rig=false``); 422 ``no_rig`` when the
+    references show none, 409 when they were not kept. Checked before a 304 or a HEAD, which render nothing."""
+    if not query.rig:
+        return None
+    images, _ = load_references(store, scene_id)
+    try:
+        return require_rig_layer(*images)
+    except NoRigError as exc:
+        raise BadInput(f"rig=true: {exc}; render without rig", code="no_rig") from None
+
+
+def render_scene(store: SceneStore, scene_id: str, query: RenderQuery,
+                 layer: RigLayer | None = None) -> tuple[bytes, dict[str, float]]:
+    """Render one view of a stored scene to PNG/JPEG bytes; never returns NaN pixels.
+
+    layer: :func:`render_rig_layer`'s answer for this query when the caller already has it.
+    """
     from rasterizer.render import render  # renderer owner's module; numpy only
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
+    if layer is None:  # before the render: a scene without a rig fails fast
+        layer = render_rig_layer(store, scene_id, query)
     gaussians = store.gaussians(scene_id)
     meta = store.meta(scene_id)
     sweep_near = (meta.get("info") or {}).get("near")
-    layer = None
-    if query.rig:  # before the render: a scene without a rig fails fast
-        images, _ = load_references(store, scene_id)
-        try:
-            layer = require_rig_layer(*images)
-        except NoRigError as exc:
-            raise BadInput(f"rig=true: {exc}; render without rig", code="no_rig") from None
     timings["load"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     # plain (default): what every 3DGS viewer shows of the PLY; va: the paper's colour / alpha

@@ -155,13 +155,19 @@ async def render_scene(
                                max_width=settings.max_render_width, max_pixels=settings.max_render_pixels,
                                compositing=compositing, rig=rig)
     _require_scene(store, scene_id)
-    etag = _render_etag(scene_id, query)  # the render is a function of the scene and the query: no render for a 304
+    # every refusal comes before the 304 and the HEAD, which answer for a render without making it
+    cost = work.check_render_cost(store, scene_id, query, settings.max_render_cost)
+    layer = await gate.run(work.render_rig_layer, store, scene_id, query) if query.rig else None
+    etag = _render_etag(scene_id, query)  # the render is a function of the scene and the query
     if (unchanged := not_modified(request, etag)) is not None:
         return unchanged
-    cost = work.check_render_cost(store, scene_id, query, settings.max_render_cost)
+    if is_head(request):  # RFC 9110 9.3.2: Content-Length, known only once the image is encoded, is left out
+        head = Response(media_type=MEDIA_TYPES[format], headers=cache_headers(etag))
+        del head.headers["content-length"]
+        return head
     if cost > settings.heavy_render_cost:  # big renders queue with reconstructions: their peaks never add
         gate = heavy_gate
-    data, timings = await gate.run(trimmed, work.render_scene, store, scene_id, query)
+    data, timings = await gate.run(trimmed, work.render_scene, store, scene_id, query, layer)
     metrics.observe_stages({f"render_{k}": v for k, v in timings.items()})
     return Response(data, media_type=MEDIA_TYPES[format],
                     headers={**cache_headers(etag),

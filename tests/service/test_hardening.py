@@ -161,6 +161,14 @@ def test_render_cost_limit_is_413_before_rendering(guarded, scene):
         assert c.get(f"/v1/scenes/{scene}/render", params={"c2w": IDENTITY, "width": 16}).status_code == 200
 
 
+@pytest.mark.parametrize("method, headers", [("HEAD", {}), ("GET", {"If-None-Match": "*"})])
+def test_render_cost_limit_holds_for_head_and_conditional_requests(guarded, scene, method, headers):
+    """Neither renders, so a HEAD answered 200 and ``If-None-Match: *`` 304 where the GET is a 413."""
+    with guarded.client() as c:
+        r = c.request(method, f"/v1/scenes/{scene}/render", params={"c2w": IDENTITY, "width": 512}, headers=headers)
+        assert r.status_code == 413, (method, r.status_code)
+
+
 def test_heavy_renders_take_the_reconstruction_slot(guarded, scene, monkeypatch):
     state = guarded.app.state
     assert state.heavy_render_gate.limiter is state.inference_gate.limiter

@@ -113,6 +113,23 @@ def test_render_304_does_not_render(client, live, scene, monkeypatch):
     assert other.status_code == 500  # another view: its ETag differs, so it renders (here: the stub)
 
 
+def test_head_of_a_render_answers_its_headers_without_rendering(client, scene, monkeypatch):
+    get = client.get(f"/v1/scenes/{scene}/render", params=PERSPECTIVE + [("format", "jpeg")])
+    from service import scenes as work
+
+    def no_render(*args, **kwargs):
+        raise AssertionError("rendered for a HEAD")
+
+    monkeypatch.setattr(work, "render_scene", no_render)
+    head = client.head(f"/v1/scenes/{scene}/render", params=PERSPECTIVE + [("format", "jpeg")])
+    assert head.status_code == 200 and head.content == b""
+    for name in ("etag", "content-type", "cache-control"):
+        assert head.headers[name] == get.headers[name], name
+    assert "content-length" not in head.headers  # known only once the image is encoded (RFC 9110 9.3.2)
+    bad = client.head(f"/v1/scenes/{scene}/render", params=[("c2w", "1,2,3"), ("width", "32")])
+    assert bad.status_code == 422  # the checks of the GET come first
+
+
 def test_if_none_match_on_an_unknown_scene_is_404(client):
     r = client.get(f"/v1/scenes/{'0' * 32}/gaussians.ply", headers={"If-None-Match": "*"})
     assert r.status_code == 404

@@ -92,6 +92,17 @@ def test_rig_render_of_a_scene_without_a_rig_is_422(served):
     assert client.get(f"/v1/scenes/{bare}/render", params={"c2w": IDENTITY, "width": 64}).status_code == 200
 
 
+@pytest.mark.parametrize("method, headers", [("HEAD", {}), ("GET", {"If-None-Match": "*"})])
+def test_rig_check_holds_for_head_and_conditional_requests(served, method, headers):
+    """Neither renders; both answered 200 / 304 for a rig the scene does not have."""
+    client, rigged, bare, _ = served
+    params = {"c2w": IDENTITY, "width": 64, "rig": "true"}
+    r = client.request(method, f"/v1/scenes/{bare}/render", params=params, headers=headers)
+    assert r.status_code == 422, (method, r.status_code)
+    ok = client.request(method, f"/v1/scenes/{rigged}/render", params=params, headers=headers)
+    assert ok.status_code == (200 if method == "HEAD" else 304)
+
+
 def test_openapi_documents_rig(served):
     client = served[0]
     params = client.get("/openapi.json").json()["paths"]["/v1/scenes/{scene_id}/render"]["get"]["parameters"]
