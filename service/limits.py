@@ -24,7 +24,7 @@ import anyio
 import anyio.to_thread
 from python_multipart.multipart import MultipartParseError, MultipartParser, MultipartState, parse_options_header
 
-from .errors import Busy, error_body, translate
+from .errors import Busy, PayloadTooLarge, error_body, translate
 
 T = TypeVar("T")
 
@@ -45,6 +45,17 @@ def render_cost(height: int, width: int, n_gaussians: int) -> float:
     ``heavy_render_cost`` (the reconstruction slot beyond) of the settings.
     """
     return float(height) * float(width) * (max(int(n_gaussians), 0) + RENDER_PIXEL_GAUSSIANS)
+
+
+def check_render_budget(height: int, width: int, n_gaussians: int, max_cost: float) -> float:
+    """The :func:`render_cost` of a ``width`` x ``height`` render of ``n_gaussians``; 413 ``render_too_large``
+    beyond ``max_cost``, with the most pixels this scene may have."""
+    cost = render_cost(height, width, n_gaussians)
+    if cost > max_cost:
+        raise PayloadTooLarge(f"a {width}x{height} render of this scene's {n_gaussians} Gaussians exceeds the render "
+                              f"budget ({cost:.3g} > {max_cost:.3g} pixel-Gaussians); ask for at most "
+                              f"{int(max_cost // render_cost(1, 1, n_gaussians))} pixels", code="render_too_large")
+    return cost
 
 
 #: longest time, and most bytes (in multiples of the limit), spent discarding an oversize

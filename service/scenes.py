@@ -23,10 +23,10 @@ from rasterizer.threads import map_threads
 
 from .edits import edit_artifacts
 from .encoder import unit_image_at_size
-from .errors import BadInput, PayloadTooLarge, ServiceError, StoreUnavailable
+from .errors import BadInput, ServiceError, StoreUnavailable
 from .images import check_header, decode_rgb, encode
 from .inputs import Poses, RenderQuery, check_estimated_scale, check_sweep_range
-from .limits import render_cost
+from .limits import check_render_budget
 from .memory import release_memory
 from .model_files import build_code_hash
 from .pipeline import PipelineOptions, SceneBuild, build_scene
@@ -166,13 +166,7 @@ def sweep_per_baseline(runtime: ModelRuntime) -> tuple[float, float]:
 def check_render_cost(store: SceneStore, scene_id: str, query: RenderQuery, max_cost: float) -> float:
     """The render's :func:`~service.limits.render_cost` (pixel-Gaussians); 413 beyond ``max_cost``."""
     h, w = query.output_size()
-    n = int(store.meta(scene_id).get("num_gaussians") or 0)
-    cost = render_cost(h, w, n)
-    if cost > max_cost:
-        raise PayloadTooLarge(f"a {w}x{h} render of this scene's {n} Gaussians exceeds the render budget "
-                              f"({cost:.3g} > {max_cost:.3g} pixel-Gaussians); ask for at most "
-                              f"{int(max_cost // render_cost(1, 1, n))} pixels", code="render_too_large")
-    return cost
+    return check_render_budget(h, w, int(store.meta(scene_id).get("num_gaussians") or 0), max_cost)
 
 
 def render_rig_layer(store: SceneStore, scene_id: str, query: RenderQuery) -> RigLayer | None:

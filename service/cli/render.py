@@ -65,6 +65,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from ..errors import ServiceError
     from ..images import encode
     from ..inputs import check_render_query
+    from ..limits import check_render_budget
 
     fmt = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg"}[check_suffix(args.output, "--output", (".png", ".jpg", ".jpeg"),
                                                                          "the image format")]
@@ -78,6 +79,12 @@ def cmd_render(args: argparse.Namespace) -> int:
     except ServiceError as exc:
         raise CliError(as_flags(exc.message, ("width", "height", "fov_deg"))) from None
     gaussians = read_gaussians(args.ply)
+    h, w = query.output_size()
+    try:  # the API's render budget: its time and memory grow with pixels x Gaussians
+        check_render_budget(h, w, len(gaussians), settings.max_render_cost)
+    except ServiceError as exc:
+        flags = "--width" if args.projection != "perspective" else "--width and --height"
+        raise CliError(f"{flags}: {exc.message}") from None
     kwargs = query.render_kwargs(normalize=args.compositing == "va")
     layer = _rig_layer_from_args(args)
     say(f"rendering {len(gaussians)} Gaussians, {args.projection} {args.width} px wide")

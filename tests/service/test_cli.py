@@ -390,6 +390,18 @@ def test_render_too_large_for_the_renderer_names_width(tmp_path, capsys, monkeyp
     assert "--width 64:" in err and "smaller --width" in err and "Traceback" not in err
 
 
+def test_render_beyond_the_render_budget_is_a_one_line_error(tmp_path, capsys, monkeypatch):
+    """The CLI rendered whatever it was asked, where the API answers 413 render_too_large."""
+    ply_with_nan(tmp_path / "g.ply", 50, [])
+    monkeypatch.setenv("OMNISPLAT_MAX_RENDER_COST", "1e8")  # a 64x32 view of 50 Gaussians costs about 3.1e8
+    assert cli.main(render_argv(tmp_path, "g.ply")) == 2
+    err = capsys.readouterr().err
+    assert "--width: a 64x32 render of this scene's 50 Gaussians exceeds the render budget" in err
+    assert "Traceback" not in err and not (tmp_path / "view.png").exists()
+    monkeypatch.setenv("OMNISPLAT_MAX_RENDER_COST", "1e9")
+    assert cli.main(render_argv(tmp_path, "g.ply")) == 0
+
+
 @pytest.mark.parametrize("text, says", [
     ("[]", "wrong type"),  # each was a TypeError / AttributeError / KeyError traceback or a bare "'image'"
     ('{"frames": 5}', "wrong type"),
