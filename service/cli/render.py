@@ -59,7 +59,7 @@ def _rig_layer_from_args(args: argparse.Namespace):
 def cmd_render(args: argparse.Namespace) -> int:
     c2w = _pose_from_args(args)
     from rasterizer.render import render, to_uint8
-    from rasterizer.splat import RenderLimitError
+    from rasterizer.splat import ALPHA_MIN, RenderLimitError
 
     from ..config import Settings
     from ..errors import ServiceError
@@ -95,6 +95,9 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise CliError(f"--width {args.width}: this view of {len(gaussians)} Gaussians is too large for the renderer "
                        f"({exc}); give a smaller --width") from None
     colour = out.colour
+    if not (out.alpha >= ALPHA_MIN).any():  # an all-black image is a valid render, not a silent one
+        say(f"the view shows none of the {len(gaussians)} Gaussians (every pixel's alpha is under 1/255): "
+            "they lie outside it, behind the camera or too far to cover a pixel; check --c2w / --pose")
     if layer is not None:
         from rasterizer.camera import camera_directions
         from rasterizer.rig import overlay_rig

@@ -402,6 +402,18 @@ def test_render_beyond_the_render_budget_is_a_one_line_error(tmp_path, capsys, m
     assert cli.main(render_argv(tmp_path, "g.ply")) == 0
 
 
+def test_render_that_shows_no_gaussian_says_so(tmp_path, capsys):
+    """A camera looking away from every Gaussian wrote an all-black image without a word."""
+    ply_with_nan(tmp_path / "g.ply", 50, [])
+    argv = render_argv(tmp_path, "g.ply")
+    assert cli.main(argv) == 0
+    assert "shows none of the" not in capsys.readouterr().err
+    away = ["--c2w", "1,0,0,50,0,1,0,0,0,0,1,0,0,0,0,1", "--projection", "perspective"]  # the room is to its left
+    assert cli.main(argv[:2] + away + argv[4:]) == 0
+    err = capsys.readouterr().err
+    assert "the view shows none of the 50 Gaussians" in err and (tmp_path / "view.png").exists()
+
+
 @pytest.mark.parametrize("text, says", [
     ("[]", "wrong type"),  # each was a TypeError / AttributeError / KeyError traceback or a bare "'image'"
     ('{"frames": 5}', "wrong type"),
