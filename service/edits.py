@@ -28,7 +28,7 @@ from collections.abc import Iterator
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, ValidationInfo, field_validator, model_validator
 
 from rasterizer.sweep import MAX_SCENE_EXTENT
 
@@ -92,23 +92,32 @@ class EditRequest(BaseModel):
 
     selection: str = Field(pattern=SCENE_ID_PATTERN, description="id from POST .../selections")
     op: Literal["remove", "keep", "recolor", "translate"]
-    color: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(None, description="recolor: RGB in [0, 1]")
-    offset: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(None, description="translate: world units")
+    color: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(None, description="recolor: RGB in [0, 1]",
+                                                                        validate_default=True)
+    offset: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(None, description="translate: world units",
+                                                                         validate_default=True)
 
-    @model_validator(mode="after")
-    def _args(self):
-        if self.op == "recolor":
-            if self.color is None or not all(math.isfinite(c) and 0.0 <= c <= 1.0 for c in self.color):
-                raise ValueError("recolor needs color = [r, g, b] with each in [0, 1]")
-        elif self.color is not None:
-            raise ValueError(f"color is only for op recolor, not {self.op}")
-        if self.op == "translate":
-            if self.offset is None or not all(math.isfinite(c) and abs(c) <= MAX_SCENE_EXTENT for c in self.offset):
-                raise ValueError(f"translate needs offset = [dx, dy, dz], each within +-{MAX_SCENE_EXTENT:g} "
-                                 "(the scenes' extent)")
-        elif self.offset is not None:
-            raise ValueError(f"offset is only for op translate, not {self.op}")
-        return self
+    # field validators (``op`` is checked first): an error names the key it is about, so the CLI can name its flag
+    @field_validator("color")
+    @classmethod
+    def _color(cls, color, info: ValidationInfo):
+        op = info.data.get("op")
+        if op == "recolor" and (color is None or not all(math.isfinite(c) and 0.0 <= c <= 1.0 for c in color)):
+            raise ValueError("the recolor op needs r, g, b, each in [0, 1]")
+        if op not in (None, "recolor") and color is not None:
+            raise ValueError(f"only for the recolor op, not {op}")
+        return color
+
+    @field_validator("offset")
+    @classmethod
+    def _offset(cls, offset, info: ValidationInfo):
+        op = info.data.get("op")
+        if op == "translate" and (offset is None or not all(math.isfinite(c) and abs(c) <= MAX_SCENE_EXTENT
+                                                            for c in offset)):
+            raise ValueError(f"the translate op needs dx, dy, dz, each within +-{MAX_SCENE_EXTENT:g} (the scenes' extent)")
+        if op not in (None, "translate") and offset is not None:
+            raise ValueError(f"only for the translate op, not {op}")
+        return offset
 
 
 class CorrespondencesMissing(ServiceError):

@@ -140,7 +140,7 @@ def _validation_message(exc: RequestValidationError) -> str:
         if not loc and err.get("type") in ("model_attributes_type", "dict_type", "model_type"):
             parts.append(f"request body: expected a JSON object, got {_json_kind(err.get('input'))}")
             continue
-        msg = str(err.get("msg", "invalid"))
+        msg = str(err.get("msg", "invalid")).removeprefix("Value error, ")  # a validator's own words
         if "Expected UploadFile" in msg:  # a form field where a file was expected (the library's words)
             msg = "expected a file (a form part with a filename), got a text field"
         elif err.get("type") == "string_type" and isinstance(err.get("input"), StarletteUploadFile):

@@ -455,10 +455,12 @@ def test_select_and_edit_with_a_store_that_is_a_file_is_a_one_line_error(tmp_pat
     (["select", "0" * 32, "--view", "a", *["--point", "0.5,0.5"] * 65], "--point: List should have at most 64"),
     (["select", "0" * 32, "--segment", "-1"], "--segment: Input should be greater"),  # was "select.segment: ..."
     (["edit", "../x", "--selection", "0" * 32, "--op", "keep"], "invalid_scene_id"),
-    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "remove", "--color", "1,0,0"], "only for op recolor"),  # ignored
-    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "recolor", "--color", "2,0,0"], "each in [0, 1]"),
-    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "keep", "--offset", "1,0,0"], "only for op translate"),
-    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "translate", "--offset", "1e7,0,0"], "within +-1e+06"),
+    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "remove", "--color", "1,0,0"],
+     "--color: only for the recolor op, not remove"),  # was ignored, then named the API's body keys
+    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "recolor", "--color", "2,0,0"], "--color: the recolor op needs r, g, b"),
+    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "keep", "--offset", "1,0,0"], "--offset: only for the translate op"),
+    (["edit", "0" * 32, "--selection", "0" * 32, "--op", "translate", "--offset", "1e7,0,0"],
+     "--offset: the translate op needs dx, dy, dz, each within +-1e+06"),
 ])
 def test_select_and_edit_errors_are_one_line_as_the_api_words_them(tmp_path, capsys, argv, says):
     assert cli.main([argv[0], "--store", str(tmp_path / "store"), *argv[1:]]) == 2
