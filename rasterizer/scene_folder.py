@@ -58,10 +58,12 @@ def load_image(path: str | Path) -> np.ndarray:
 def load_scene(root: str | Path) -> SceneFolder:
     """Parse ``root/scene.json``; poses are converted to OpenCV c2w and validated."""
     root = Path(root)
-    meta = json.loads((root / "scene.json").read_text())
+    meta = json.loads((root / "scene.json").read_text(encoding="utf-8-sig"))  # a byte order mark is no error
     convention = meta.get("convention", "opencv")
     frames = {}
     for f in meta["frames"]:
+        if f["name"] in frames:  # the second would replace the first without a word
+            raise ValueError(f"{root}: the frame name {f['name']!r} appears twice")
         depth = f.get("depth")
         frames[f["name"]] = Frame(
             name=f["name"],

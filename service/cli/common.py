@@ -10,6 +10,11 @@ class CliError(Exception):
     """A user-facing error: printed as one line, exit status 2."""
 
 
+#: what a missing ``--model`` (or OMNISPLAT_MODEL_PATH) file's error adds
+MODEL_HINT = ("; only the default model (no --model) is built when missing: check the path, or build this one "
+              "with `omnisplat export PATH.onnx`")
+
+
 def say(msg: str) -> None:
     """One progress line on stderr (stdout carries the commands' JSON)."""
     print(f"[omnisplat] {msg}", file=sys.stderr, flush=True)
@@ -43,6 +48,44 @@ def check_suffix(path: str | Path, flag: str, suffixes: tuple[str, ...], what: s
         names = ", ".join(suffixes[:-1]) + (" or " if len(suffixes) > 1 else "") + suffixes[-1]
         raise CliError(f"{flag} {path}: the name must end in {names} ({what})")
     return suffix
+
+
+def check_output(path: str | Path, flag: str, suffixes: tuple[str, ...], what: str, inputs=()) -> str:
+    """``path``'s suffix (:func:`check_suffix`) once the output is known to be writable, before any work:
+    a CliError naming ``flag`` for an empty name, a folder, a path under a file, a folder this user cannot
+    write in (probed with a temporary file), or one of the command's ``inputs`` (paths, None skipped), which
+    the output would overwrite."""
+    if not str(path).strip():
+        raise CliError(f"{flag}: give a file name")
+    out = Path(path)
+    if out.is_dir():
+        raise CliError(f"{flag} {path} is a folder; give a file name")
+    suffix = check_suffix(path, flag, suffixes, what)
+    if out.exists() and any(p is not None and Path(p).exists() and Path(p).samefile(out) for p in inputs):
+        raise CliError(f"{flag} {path} is one of the command's inputs; give another file name")
+    folder = out.absolute().parent
+    while not folder.exists():  # the folders the command will make
+        folder = folder.parent
+    if not folder.is_dir():
+        raise CliError(f"{flag} {path}: {folder} is a file, not a folder")
+    import tempfile
+
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".omnisplat-probe-"):
+            pass
+    except OSError as exc:
+        raise CliError(f"{flag} {path}: cannot write in {folder}: {exc.strerror or exc}") from None
+    return suffix
+
+
+def write_output(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path``, making its folders; an OSError is a CliError naming the file."""
+    out = Path(path)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_bytes(data)
+    except OSError as exc:
+        raise CliError(f"cannot write {out}: {exc.strerror or exc}") from None
 
 
 #: PLY properties of each :class:`rasterizer.gaussians.Gaussians` field, as a user reads them in the file

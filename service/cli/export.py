@@ -10,7 +10,7 @@ import argparse
 import json
 from pathlib import Path
 
-from .common import CliError, forward_import
+from .common import CliError, check_output, forward_import
 
 HINT = "the export extra: pip install -e '.[export]' (torch)"
 
@@ -23,6 +23,9 @@ def load_export_model():
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    check_output(args.out, "out", (".onnx",), "an ONNX model")
+    if args.downscale is not None and args.downscale < 1:
+        raise CliError(f"--downscale: must be 1 or more, got {args.downscale}")
     export_model = forward_import(load_export_model, HINT)
     import onnx
 

@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError, as_flags, check_suffix, read_panorama, say
+from .common import MODEL_HINT, CliError, as_flags, check_output, read_panorama, say, write_output
 
 #: the layout of a scene folder's scene.json (rasterizer.scene_folder), as an error message shows it
 SCENE_LAYOUT = ('{"convention": "opencv"|"opengl", "frames": [{"name": N, "image": FILE, "c2w": 4x4}, ...], '
@@ -37,12 +37,13 @@ def load_pair(args: argparse.Namespace):
         except (KeyError, TypeError, AttributeError) as exc:  # a JSON value of another shape than the layout's
             what = f"lacks the key {exc}" if isinstance(exc, KeyError) else f"holds a value of the wrong type ({exc})"
             raise CliError(f"{inputs[0] / 'scene.json'}: {what}; expected {SCENE_LAYOUT}") from None
-        if args.split < 0:
-            raise CliError(f"--split: must be 0 or more, got {args.split}")
+        if args.split < 0 or (not args.refs and args.split and args.split >= len(scene.splits)):
+            have = f"splits 0-{len(scene.splits) - 1}" if scene.splits else "no splits (its first two frames are used)"
+            raise CliError(f"--split {args.split}: {inputs[0]} has {have}")
         if args.refs:
             refs = tuple(args.refs.split(","))
         elif scene.splits:
-            refs = scene.splits[min(args.split, len(scene.splits) - 1)].references
+            refs = scene.splits[args.split].references
         else:
             refs = tuple(list(scene.frames)[:2])
         if len(refs) != 2 or any(r not in scene.frames for r in refs):
@@ -123,10 +124,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..model_files import ModelUnavailable, ensure_model
     from ..pipeline import build_scene
 
-    for flag, name in (("-o", args.output), ("--json", args.json)):
-        if name is not None and Path(name).is_dir():
-            raise CliError(f"{flag} {name} is a folder; give a file name")
-    check_suffix(args.output, "--output", (".ply",), "a Gaussian PLY")
+    inputs = [*args.inputs, args.poses, *(Path(p) / "scene.json" for p in args.inputs if Path(p).is_dir())]
+    check_output(args.output, "-o", (".ply",), "a Gaussian PLY", inputs)
+    if args.json is not None:
+        check_output(args.json, "--json", (".json",), "the summary", inputs)
     erp_a, erp_b, c2w_a, c2w_b, source = load_pair(args)  # bad inputs fail before any model build
     options = pipeline_options(args)
     from ..errors import ServiceError
@@ -160,10 +161,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     except ServiceError as exc:
         raise CliError(option_message(exc.message)) from None
     settings = Settings(**({"model_path": args.model} if args.model else {}))
-    try:
-        model = ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build)
+    try:  # only the default model is built: a named one that is missing is a typo, not a request to build
+        model = ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build and settings.model_path is None)
     except ModelUnavailable as exc:
-        raise CliError(str(exc)) from None
+        raise CliError(str(exc) + MODEL_HINT * (settings.model_path is not None)) from None
     say(f"loading model {model}")
     from ..encoder import EncoderInputError, OnnxEncoder
 
@@ -206,10 +207,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     })
     text = json.dumps(summary, indent=2)
     if args.json:
-        try:
-            Path(args.json).write_text(text + "\n")
-        except OSError as exc:
-            raise CliError(f"cannot write {args.json}: {exc.strerror or exc}") from None
+        write_output(args.json, (text + "\n").encode())
     print(text)
     say(f"wrote {len(rec.gaussians)} Gaussians to {out} in {total:.2f} s")
     return 0
@@ -227,7 +225,7 @@ def add_parser(sub) -> None:
     r.add_argument("--split", type=int, default=0, help="scene folder: which split's references (default 0)")
     r.add_argument("--refs", help="scene folder: two frame names, e.g. 00,02 (overrides --split)")
     r.add_argument("-o", "--output", default="scene.ply", help="output PLY (default scene.ply)")
-    r.add_argument("--json", help="also write the summary JSON to this file")
+    r.add_argument("--json", help="also write the summary JSON to this .json file")
     r.add_argument("--model", type=Path, help="ONNX model (default: the one `serve` uses, built if missing)")
     r.add_argument("--no-build", action="store_true", help="fail instead of building a missing model")
     r.add_argument("--near", type=float, help="nearest depth in metres (default from the baseline)")

@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError, as_flags, check_suffix, read_gaussians
+from .common import CliError, as_flags, check_output, read_gaussians
 from .reconstruct import load_pair
 
 
@@ -29,9 +29,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
         RefineRequest.model_validate(params)
     except ValidationError as exc:
         raise CliError(as_flags(describe_error(exc, prefix="refine"), params, prefix="refine.")) from None
-    check_suffix(args.out, "--out", (".ply",), "a Gaussian PLY")
-    if args.out.is_dir():
-        raise CliError(f"--out {args.out} is a folder; give a file name")
+    check_output(args.out, "--out", (".ply",), "a Gaussian PLY")
     g = read_gaussians(args.ply)
     erp_a, erp_b, c2w_a, c2w_b, desc = load_pair(args)
     if c2w_a is None:

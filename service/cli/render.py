@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError, as_flags, check_suffix, read_gaussians, read_panorama, say
+from .common import CliError, as_flags, check_output, read_gaussians, read_panorama, say, write_output
 
 
 def _pose_from_args(args: argparse.Namespace):
@@ -67,8 +67,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     from ..inputs import check_render_query
     from ..limits import check_render_budget
 
-    fmt = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg"}[check_suffix(args.output, "--output", (".png", ".jpg", ".jpeg"),
-                                                                         "the image format")]
+    suffix = check_output(args.output, "-o", (".png", ".jpg", ".jpeg"), "the image format", [args.ply, *(args.rig or ())])
+    fmt = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg"}[suffix]
     # as the API renders (the same query and its limits): plain compositing unless --compositing va
     settings = Settings()
     try:
@@ -105,10 +105,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         h, w = colour.shape[:2]
         colour = overlay_rig(colour, camera_directions(args.projection, h, w, query.fov_deg), layer)
     data = encode(to_uint8(colour), fmt)
-    try:
-        Path(args.output).write_bytes(data)
-    except OSError as exc:
-        raise CliError(f"cannot write {args.output}: {exc.strerror or exc}") from None
+    write_output(args.output, data)
     say(f"wrote {args.output} in {time.perf_counter() - t0:.2f} s")
     return 0
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import CliError, say
+from .common import MODEL_HINT, CliError, say
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -26,10 +26,18 @@ def cmd_serve(args: argparse.Namespace) -> int:
         settings = Settings(**overrides)
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    try:
-        ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build)
+    try:  # the store must be a folder this user can write in, or one it can make
+        settings.store_dir.mkdir(parents=True, exist_ok=True)
+        import tempfile
+
+        with tempfile.NamedTemporaryFile(dir=settings.store_dir, prefix=".omnisplat-probe-"):
+            pass
+    except OSError as exc:
+        raise CliError(f"--store {settings.store_dir}: cannot keep scenes there: {exc.strerror or exc}") from None
+    try:  # only the default model is built: a named one that is missing is a typo, not a request to build
+        ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build and settings.model_path is None)
     except ModelUnavailable as exc:
-        raise CliError(str(exc)) from None
+        raise CliError(str(exc) + MODEL_HINT * (settings.model_path is not None)) from None
     say(f"model {settings.resolved_model_path}; scenes in {settings.store_dir}")
     if args.ray:
         return _serve_ray(args, settings.model_copy(update={"model_path": settings.resolved_model_path}))

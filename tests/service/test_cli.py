@@ -531,3 +531,102 @@ def test_reconstruct_without_poses_refuses_identical_images(tmp_path, capsys):
     assert "same picture" in capsys.readouterr().err
     assert cli.main([*argv, "--baseline", "1", "--camera-height", "1.5"]) == 2
     assert "not both" in capsys.readouterr().err
+
+
+# -- outputs checked before any work, scene folders read strictly ----------------------------------------
+
+SAMPLE = ROOT / "samples" / "room"
+
+
+def _sample_copy(tmp_path: Path) -> Path:
+    import shutil
+
+    return Path(shutil.copytree(SAMPLE, tmp_path / "room"))
+
+
+def _no_model(tmp_path: Path) -> list[str]:
+    return ["--no-build", "--model", str(tmp_path / "none.onnx")]
+
+
+@pytest.mark.parametrize("extra, says", [
+    (["--split", "5"], "--split 5: "),  # the last split was taken without a word
+    (["--json", "{room}/images/00.png"], "--json"),  # an input photo was overwritten by the summary
+    (["--json", "{room}/scene.json"], "is one of the command's inputs"),
+    (["--json", "{tmp}/x.ply"], "must end in .json"),
+    (["-o", "{room}/scene.json/x.ply"], "is a file, not a folder"),  # refused only after the reconstruction
+    (["-o", ""], "-o: give a file name"),
+])
+def test_reconstruct_refuses_bad_outputs_and_splits_before_any_work(tmp_path, capsys, extra, says):
+    room = _sample_copy(tmp_path)
+    before = {p: p.read_bytes() for p in room.rglob("*") if p.is_file()}
+    extra = [e.format(room=room, tmp=tmp_path) for e in extra]
+    assert cli.main(["reconstruct", str(room), *_no_model(tmp_path), *extra]) == 2
+    err = capsys.readouterr().err
+    assert says in err and "does not exist" not in err and "Traceback" not in err, err  # before the model check
+    assert {p: p.read_bytes() for p in room.rglob("*") if p.is_file()} == before
+
+
+def test_reconstruct_split_message_names_the_folders_splits(tmp_path, capsys):
+    room = _sample_copy(tmp_path)
+    assert cli.main(["reconstruct", str(room), *_no_model(tmp_path), "--split", "5"]) == 2
+    assert f"--split 5: {room} has splits 0-0" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("edit, says", [
+    (lambda text: "\ufeff" + text, "does not exist"),  # a BOM: Python's "Unexpected UTF-8 BOM"; now read as the API reads JSON
+    (lambda text: text.replace('"name": "01"', '"name": "00"'), "the frame name '00' appears twice"),
+])
+def test_scene_json_with_a_bom_is_read_and_duplicate_frames_refused(tmp_path, capsys, edit, says):
+    room = _sample_copy(tmp_path)
+    scene_json = room / "scene.json"
+    scene_json.write_text(edit(scene_json.read_text()), encoding="utf-8")
+    assert cli.main(["reconstruct", str(room), *_no_model(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err, err  # "does not exist": the folder passed, the missing model stops it
+
+
+def test_render_refuses_to_overwrite_its_inputs_and_makes_its_folders(tmp_path, capsys):
+    ply_with_nan(tmp_path / "g.ply", 50, [])
+    from PIL import Image
+
+    Image.new("RGB", (64, 32)).save(tmp_path / "a.png")
+    argv = render_argv(tmp_path, "g.ply")[:-1]
+    assert cli.main([*argv, str(tmp_path / "a.png"), "--rig", str(tmp_path / "a.png"), str(tmp_path / "a.png")]) == 2
+    assert "is one of the command's inputs" in capsys.readouterr().err
+    assert cli.main([*argv, str(tmp_path / "new" / "deeper" / "view.png")]) == 0  # as reconstruct makes them
+    assert (tmp_path / "new" / "deeper" / "view.png").is_file()
+
+
+def test_serve_with_a_named_missing_model_does_not_build_one(tmp_path, capsys, monkeypatch):
+    """`serve --model typo.onnx` exported the default model at the typo's path and served it."""
+    import service.model_files as model_files
+
+    def no_export(*a, **k):
+        raise AssertionError("built a model")
+
+    monkeypatch.setattr(model_files, "_say", lambda msg: None)
+    monkeypatch.setitem(sys.modules, "export.onnx_export", type(sys)("stub"))
+    sys.modules["export.onnx_export"].export_model = no_export
+    assert cli.main(["serve", "--model", str(tmp_path / "typo.onnx"), "--store", str(tmp_path / "store")]) == 2
+    err = capsys.readouterr().err
+    assert "typo.onnx does not exist" in err and "only the default model" in err
+    assert not (tmp_path / "typo.onnx").exists()
+
+
+def test_serve_with_a_store_that_is_a_file_is_a_one_line_error(tmp_path, capsys):
+    (tmp_path / "store").write_text("not a folder")
+    assert cli.main(["serve", "--store", str(tmp_path / "store"), "--no-build", "--model", str(tmp_path / "m.onnx")]) == 2
+    err = capsys.readouterr().err
+    assert "--store" in err and "cannot keep scenes there" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["{tmp}/m.onnx", "--downscale", "0"], "--downscale: must be 1 or more, got 0"),  # a ZeroDivisionError traceback
+    (["{tmp}"], "is a folder"),  # IsADirectoryError after the build
+    (["{tmp}/m.txt"], "must end in .onnx"),
+])
+def test_export_checks_its_arguments_before_building(tmp_path, capsys, monkeypatch, argv, says):
+    monkeypatch.setattr(cli_export, "load_export_model", lambda: pytest.fail("built before checking"))
+    assert cli.main(["export", *(a.format(tmp=tmp_path) for a in argv)]) == 2
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err, err
