@@ -5,7 +5,26 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from pydantic import ValidationError
+
 from .common import MODEL_HINT, CliError, say
+
+#: the settings (service.config.Settings fields) that serve's flags set: (argparse dest, flag)
+SETTING_FLAGS = {"host": ("host", "--host"), "port": ("port", "--port"), "store_dir": ("store", "--store"),
+                 "model_path": ("model", "--model"), "models_dir": ("models_dir", "--models-dir"),
+                 "ort_threads": ("threads", "--threads"), "max_upload_bytes": ("max_upload_mb", "--max-upload-mb"),
+                 "max_requests": ("max_requests", "--max-requests")}
+
+
+def _setting_error(err: dict, args: argparse.Namespace) -> str:
+    """One settings error in the words the user typed: the flag and its value, or the environment variable."""
+    field = str(err["loc"][0]) if err.get("loc") else ""
+    msg = str(err.get("msg", "invalid")).removeprefix("Value error, ")
+    if field in SETTING_FLAGS and getattr(args, SETTING_FLAGS[field][0]) is not None:
+        dest, flag = SETTING_FLAGS[field]
+        units = (" bytes", " MiB") if field == "max_upload_bytes" else ("", "")  # the limit in bytes, the flag in MiB
+        return f"{flag}: {msg}{units[0]} (got {getattr(args, dest)!r}{units[1]})"
+    return f"OMNISPLAT_{field.upper()}: {msg} (got {err.get('input')!r})"
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -16,16 +35,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from ..model_files import ModelUnavailable, ensure_model
     from ..server import server_config
 
-    overrides = {k: v for k, v in {
-        "host": args.host, "port": args.port, "store_dir": args.store, "model_path": args.model,
-        "models_dir": args.models_dir, "ort_threads": args.threads,
-        "max_upload_bytes": None if args.max_upload_mb is None else int(args.max_upload_mb * 1024 * 1024),
-        "max_requests": args.max_requests,
-    }.items() if v is not None}
+    overrides = {field: getattr(args, dest) for field, (dest, _) in SETTING_FLAGS.items() if getattr(args, dest) is not None}
+    if "max_upload_bytes" in overrides:
+        overrides["max_upload_bytes"] = int(overrides["max_upload_bytes"] * 1024 * 1024)
     try:
         settings = Settings(**overrides)
-    except ValueError as exc:
-        raise CliError(str(exc)) from None
+    except ValidationError as exc:
+        raise CliError("; ".join(_setting_error(err, args) for err in exc.errors(include_url=False))) from None
     try:  # the store must be a folder this user can write in, or one it can make
         settings.store_dir.mkdir(parents=True, exist_ok=True)
         import tempfile

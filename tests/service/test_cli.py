@@ -630,3 +630,14 @@ def test_export_checks_its_arguments_before_building(tmp_path, capsys, monkeypat
     assert cli.main(["export", *(a.format(tmp=tmp_path) for a in argv)]) == 2
     err = capsys.readouterr().err
     assert says in err and "Traceback" not in err, err
+
+
+def test_serve_setting_errors_name_the_flags_and_variables(tmp_path, capsys, monkeypatch):
+    """They named Settings' fields (port, ort_threads, max_upload_bytes) with links to the library's docs."""
+    assert cli.main(["serve", "--port", "99999", "--threads", "0", "--max-upload-mb", "-1", "--no-build"]) == 2
+    err = capsys.readouterr().err
+    assert "--port: " in err and "(got 99999)" in err and "--threads: " in err and "--max-upload-mb: " in err
+    assert "ort_threads" not in err and "pydantic" not in err
+    monkeypatch.setenv("OMNISPLAT_MAX_REQUESTS", "many")
+    assert cli.main(["serve", "--no-build"]) == 2
+    assert "OMNISPLAT_MAX_REQUESTS: " in capsys.readouterr().err
