@@ -61,7 +61,12 @@ class HeadAsGet:
                 message = {**message, "body": b""}
             await send(message)
 
-        await self.app({**scope, "method": "GET", HEAD_SCOPE_KEY: True}, receive, no_body)
+        inner = {**scope, "method": "GET", HEAD_SCOPE_KEY: True}
+        try:
+            await self.app(inner, receive, no_body)
+        finally:  # the matched route, for the metrics outside (they count the HEAD under its path)
+            if "route" in inner:
+                scope["route"] = inner["route"]
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

@@ -285,6 +285,16 @@ def test_head_answers_like_get_without_a_body(slots, slots_scene, path):
         assert head.headers["content-length"] == get.headers["content-length"]
 
 
+def test_head_requests_are_counted_under_their_route(slots):
+    """The metrics listed every HEAD under route "unmatched"."""
+    with slots.client() as c:
+        assert c.head("/v1/info").status_code == 200
+        text = c.get("/metrics").text
+    heads = [line for line in text.splitlines() if line.startswith("omnisplat_http_requests_total{")
+             and 'method="HEAD"' in line]
+    assert any('route="/v1/info"' in line for line in heads), heads
+
+
 # -- PNG: chunk bombs and truncated image data ---------------------------------------------------------
 
 def _chunk(kind: bytes, payload: bytes) -> bytes:
