@@ -58,6 +58,25 @@ def is_open(path: str) -> bool:
     return path in OPEN_PATHS or path.startswith(DOCS_ASSETS_PREFIX)
 
 
+def declare_auth(schema: dict) -> dict:
+    """The OpenAPI ``schema`` with the key every path outside :func:`is_open` may ask for: a bearer security
+    scheme (optional: only a server started with an API key checks it) and a 401 answer with the JSON error."""
+    components = schema.setdefault("components", {})
+    components.setdefault("securitySchemes", {})["apiKey"] = {
+        "type": "http", "scheme": "bearer",
+        "description": "Only when the server has OMNISPLAT_API_KEY: `Authorization: Bearer KEY` (or `X-API-Key`)"}
+    error = {"$ref": "#/components/schemas/ErrorResponse"}
+    for path, operations in schema.get("paths", {}).items():
+        if is_open(path):
+            continue
+        for operation in operations.values():
+            operation.setdefault("security", [{}, {"apiKey": []}])  # {}: no key needed when none is set
+            operation.setdefault("responses", {}).setdefault("401", {
+                "description": "Missing or wrong API key (only when the server has one)",
+                "content": {"application/json": {"schema": error}}})
+    return schema
+
+
 class DuplicateKey(ValueError):
     """The query names ``key`` more than once."""
 

@@ -21,7 +21,7 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
 from . import __version__
-from .access import AccessGuard, Admission
+from .access import AccessGuard, Admission, declare_auth
 from .config import Settings, get_settings
 from .errors import install_error_handlers
 from .http_cache import HEAD_SCOPE_KEY
@@ -130,6 +130,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(viewer.router)
     app.include_router(edits.router)
     app.include_router(docs.router)
+    make_schema = app.openapi
+
+    def openapi() -> dict:  # FastAPI's schema, once, with the API key's 401 on the paths that check it
+        return app.openapi_schema or declare_auth(make_schema())
+
+    app.openapi = openapi
     # Last added = outermost: metrics see every request, including refusals by the guard and body limit.
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["GET", "POST", "DELETE"],

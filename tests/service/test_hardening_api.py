@@ -268,3 +268,17 @@ def test_camera_height_that_scales_the_cameras_together_names_the_option(client,
     err = r.json()["error"]
     assert err["code"] == "invalid_options" and "options.camera_height=1e-09" in err["message"], err
     assert "baseline of 2e-10" in err["message"], err
+
+
+def test_openapi_declares_the_api_keys_401_where_it_is_checked(client):
+    """Every /v1 route answers 401 when the server has a key; the schema said so nowhere."""
+    schema = client.get("/openapi.json").json()
+    paths = schema["paths"]
+    for path in ("/v1/scenes", "/v1/scenes/{scene_id}/render", "/v1/info", "/metrics"):
+        for operation in paths[path].values():
+            assert operation["responses"]["401"]["content"]["application/json"]["schema"]["$ref"].endswith("ErrorResponse")
+            assert {"apiKey": []} in operation["security"] and {} in operation["security"]
+    for path in ("/healthz", "/readyz"):
+        assert all("401" not in op["responses"] for op in paths[path].values())
+    assert schema["components"]["securitySchemes"]["apiKey"]["scheme"] == "bearer"
+    assert "ErrorResponse" in schema["components"]["schemas"]
