@@ -28,7 +28,7 @@ import zlib
 from dataclasses import dataclass
 
 import numpy as np
-from PIL import Image, ImageOps, UnidentifiedImageError
+from PIL import Image, UnidentifiedImageError
 
 from rasterizer.render import to_uint8
 
@@ -68,6 +68,38 @@ def exif_orientation(im: Image.Image) -> int:
     except Exception:  # noqa: BLE001 - damaged EXIF: shown as stored
         return 1
     return value if isinstance(value, int) and 1 <= value <= 8 else 1
+
+
+#: the turn that shows an image stored with each EXIF orientation (the EXIF/TIFF definition, as ImageOps.exif_transpose)
+_SHOW = {2: Image.Transpose.FLIP_LEFT_RIGHT, 3: Image.Transpose.ROTATE_180, 4: Image.Transpose.FLIP_TOP_BOTTOM,
+         5: Image.Transpose.TRANSPOSE, 6: Image.Transpose.ROTATE_270, 7: Image.Transpose.TRANSVERSE,
+         8: Image.Transpose.ROTATE_90}
+#: TIFF ImageWidth and ImageLength tags
+_TIFF_WIDTH, _TIFF_LENGTH = 256, 257
+
+
+def stored_size(im: Image.Image) -> tuple[int, int]:
+    """(width, height) of an opened image's raster as stored in the file, before any EXIF orientation.
+
+    Pillow reports a TIFF's size already turned by its Orientation tag (and turns its pixels on load), every
+    other format's as stored; a TIFF's own ImageWidth/ImageLength tags say the stored size whatever Pillow does.
+    """
+    if im.format == "TIFF":
+        w, h = im.tag_v2.get(_TIFF_WIDTH), im.tag_v2.get(_TIFF_LENGTH)
+        if isinstance(w, int) and isinstance(h, int):
+            return w, h
+    return im.size
+
+
+def show_upright(im: Image.Image, orientation: int) -> Image.Image:
+    """A loaded image turned by its EXIF ``orientation`` exactly once.
+
+    A decoder that turns the pixels itself (Pillow's TIFF reader) drops the tag as it does, as
+    ``ImageOps.exif_transpose`` does: a loaded image that no longer carries the tag is already upright.
+    """
+    if orientation == 1 or exif_orientation(im) == 1:
+        return im
+    return im.transpose(_SHOW[orientation])
 
 
 def file_orientation(data: bytes) -> int:
@@ -261,7 +293,7 @@ def check_header(data: bytes, field: str, *, max_pixels: int, min_height: int) -
     """Parse only the header and check size and aspect ratio (no pixel decoding)."""
     im = _open(data, field, max_pixels)
     try:
-        w, h = im.size
+        w, h = stored_size(im)
         fmt = im.format or "unknown"
         orientation = exif_orientation(im)
         frames = getattr(im, "is_animated", False)
@@ -298,7 +330,7 @@ def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> 
     im = _open(data, field, max_pixels)
     try:
         im.load()  # raises on truncated or corrupt data (LOAD_TRUNCATED_IMAGES stays False)
-        arr = _rgb8(im if header.orientation == 1 else ImageOps.exif_transpose(im), field)
+        arr = _rgb8(show_upright(im, header.orientation), field)
     except (PayloadTooLarge, InvalidImage, BadInput):
         raise
     except Exception as exc:  # noqa: BLE001 - corrupt, truncated, unsupported mode...

@@ -1,0 +1,72 @@
+"""Decoding uploaded panoramas (service.images): EXIF orientation per format, camera JPEGs with an MPF
+second image, colour modes, and the decode's memory."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from service.errors import BadInput
+from service.images import check_header, decode_rgb
+
+LIMITS = {"max_pixels": 4096 * 2048, "min_height": 32}
+
+#: for each EXIF orientation, the turn that gives the stored pixels of an image shown upright
+#: (the inverse of what a viewer applies: 6 is shown turned 90 deg clockwise, so stored 90 deg counter-clockwise)
+_STORE = {1: None, 2: Image.Transpose.FLIP_LEFT_RIGHT, 3: Image.Transpose.ROTATE_180, 4: Image.Transpose.FLIP_TOP_BOTTOM,
+          5: Image.Transpose.TRANSPOSE, 6: Image.Transpose.ROTATE_90, 7: Image.Transpose.TRANSVERSE,
+          8: Image.Transpose.ROTATE_270}
+#: lossless settings where a format has them (the pixels can then be compared exactly)
+_SAVE = {"PNG": {}, "TIFF": {}, "WEBP": {"lossless": True}, "JPEG": {"quality": 100, "subsampling": 0}}
+
+
+def upright(height: int = 64) -> np.ndarray:
+    """A smooth (JPEG-friendly), asymmetric 2:1 test panorama: no flip or turn of it looks like itself."""
+    yy, xx = np.mgrid[0:height, 0:2 * height].astype(np.float64)
+    rgb = np.stack([xx / (2 * height), yy / height, 0.5 + 0.4 * np.sin(xx / 9 + yy / 5)], axis=2)
+    return (rgb * 255).astype(np.uint8)
+
+
+def with_orientation(shown: np.ndarray, orientation: int, fmt: str) -> bytes:
+    """The file a camera writes for ``shown``: the pixels stored turned back, and the tag that turns them."""
+    im = Image.fromarray(shown)
+    if _STORE[orientation] is not None:
+        im = im.transpose(_STORE[orientation])
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    buf = io.BytesIO()
+    im.save(buf, format=fmt, exif=exif.tobytes(), **_SAVE[fmt])
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("fmt", sorted(_SAVE))
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_every_exif_orientation_is_applied_once_in_every_format(fmt, orientation):
+    """The decoded pixels are the upright panorama (BMP holds no EXIF). Pillow turns a TIFF by itself on load:
+    the service must not turn it a second time, nor swap the size it checks twice."""
+    shown = upright()
+    data = with_orientation(shown, orientation, fmt)
+    header = check_header(data, "image_a", **LIMITS)
+    assert (header.width, header.height, header.orientation) == (128, 64, orientation)
+    rgb, _ = decode_rgb(data, "image_a", **LIMITS)
+    assert rgb.shape == shown.shape
+    err = np.abs(rgb.astype(int) - shown).mean()
+    assert err < (2.0 if fmt == "JPEG" else 1e-9), err
+    for wrong in (2, 3, 4):  # the right turn, not a close one: every same-shape wrong turn is far off
+        turned = np.asarray(Image.fromarray(shown).transpose(_STORE[wrong]))
+        assert np.abs(rgb.astype(int) - turned).mean() > 20
+
+
+@pytest.mark.parametrize("fmt", sorted(_SAVE))
+@pytest.mark.parametrize("orientation", range(5, 9))
+def test_a_quarter_turn_that_shows_a_portrait_is_422_naming_the_shown_size(fmt, orientation):
+    """Stored 128x64 (2:1) with a quarter-turn tag: shown 64x128, not a panorama; the message quotes the shown size."""
+    portrait = np.ascontiguousarray(upright().transpose(1, 0, 2))  # 64 wide, 128 high
+    data = with_orientation(portrait, orientation, fmt)
+    with pytest.raises(BadInput) as info:
+        check_header(data, "image_b", **LIMITS)
+    assert info.value.code == "bad_aspect_ratio"
+    assert "got 64x128" in info.value.message and f"orientation {orientation}" in info.value.message
