@@ -296,7 +296,9 @@ def check_header(data: bytes, field: str, *, max_pixels: int, min_height: int) -
         w, h = stored_size(im)
         fmt = im.format or "unknown"
         orientation = exif_orientation(im)
-        frames = getattr(im, "is_animated", False)
+        # a JPEG with an MPF second image (a preview, a depth map, a stereo eye) is shown by its primary image,
+        # the frame Pillow opens: only animations and multi-page files hold frames that are all "the image"
+        frames = getattr(im, "is_animated", False) and fmt != "MPO"
     finally:
         im.close()
     if w <= 0 or h <= 0:

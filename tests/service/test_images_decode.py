@@ -70,3 +70,35 @@ def test_a_quarter_turn_that_shows_a_portrait_is_422_naming_the_shown_size(fmt, 
         check_header(data, "image_b", **LIMITS)
     assert info.value.code == "bad_aspect_ratio"
     assert "got 64x128" in info.value.message and f"orientation {orientation}" in info.value.message
+
+
+@pytest.mark.parametrize("second", ["preview", "full"])
+def test_a_camera_jpeg_with_an_mpf_second_image_gives_its_primary_image(second):
+    """360 cameras and phones append a preview, a depth map or a second eye to the JPEG (MPF, read by Pillow as
+    MPO); every viewer shows the first image, and so does the service."""
+    shown = upright()
+    extra = Image.fromarray(shown[:, ::-1].copy())  # far from the primary: taking it would show
+    extra = extra.resize((64, 32)) if second == "preview" else extra
+    buf = io.BytesIO()
+    Image.fromarray(shown).save(buf, format="MPO", save_all=True, append_images=[extra], quality=95)
+    data = buf.getvalue()
+    assert Image.open(io.BytesIO(data)).n_frames == 2
+    header = check_header(data, "image_a", **LIMITS)
+    assert (header.width, header.height) == (128, 64)
+    rgb, _ = decode_rgb(data, "image_a", **LIMITS)
+    assert np.abs(rgb.astype(int) - shown).mean() < 2.0
+
+
+def _animation(fmt: str) -> bytes:
+    frames = [Image.fromarray(upright()), Image.fromarray(upright()[::-1].copy())]
+    buf = io.BytesIO()
+    frames[0].save(buf, format=fmt, save_all=True, append_images=frames[1:])
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("fmt", ["PNG", "WEBP", "TIFF"])
+def test_animations_and_multi_page_files_are_still_422(fmt):
+    """An APNG, an animated WebP or a multi-page TIFF has no primary image: which frame is meant is unknown."""
+    with pytest.raises(BadInput) as info:
+        check_header(_animation(fmt), "image_a", **LIMITS)
+    assert info.value.code == "animated_image"
