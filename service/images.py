@@ -344,28 +344,48 @@ def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> 
     return np.ascontiguousarray(arr), header
 
 
+#: rows of a greyscale image converted at a time (about this many pixels), so that no temporary is full-size
+GREY_BLOCK_PIXELS = 1 << 20
+
+
 def _rgb8(im: Image.Image, field: str) -> np.ndarray:
-    """8-bit RGB of a decoded image; 16-bit and float greyscale are scaled by their full range.
+    """8-bit RGB (H, W, 3) of a decoded image; 16-bit and float greyscale are scaled by their full range.
 
     Pillow's ``convert("RGB")`` clips 16-bit values at 255 (a white image) and truncates
     floats in [0, 1] to 0 (a black one), so those modes are scaled here first.
     """
     if im.mode.startswith("I;16") or im.mode == "I":
-        grey = np.asarray(im).astype(np.float64)
-        if grey.size and (grey.min() < 0 or grey.max() > 65535):
-            raise InvalidImage(f"{field}: 32-bit integer images are not supported (values beyond 16 bits); "
-                               "send 8- or 16-bit PNG/TIFF", code="unsupported_image_mode")
-        grey = to_uint8(grey / 65535.0)
-    elif im.mode == "F":
-        grey = np.asarray(im)
-        if not np.all(np.isfinite(grey)) or (grey.size and (grey.min() < 0 or grey.max() > 1)):
-            raise InvalidImage(f"{field}: float images must hold finite values in [0, 1]",
-                               code="unsupported_image_mode")
-        grey = to_uint8(grey)
-    else:
-        _check_opaque(im, field)
-        return np.asarray(im if im.mode == "RGB" else im.convert("RGB"), dtype=np.uint8)
-    return np.repeat(grey[:, :, None], 3, axis=2)
+        return _grey_rgb8(np.asarray(im), field, _grey16_block)
+    if im.mode == "F":
+        return _grey_rgb8(np.asarray(im), field, _float_block)
+    _check_opaque(im, field)
+    return np.asarray(im if im.mode == "RGB" else im.convert("RGB"), dtype=np.uint8)
+
+
+def _grey_rgb8(grey: np.ndarray, field: str, block_to_uint8) -> np.ndarray:
+    """(H, W) greyscale -> uint8 (H, W, 3), a block of rows at a time: the scaling's temporaries stay about
+    :data:`GREY_BLOCK_PIXELS` pixels, not several full-size float64 copies (~1 GB for an 8192x4096 image)."""
+    h, w = grey.shape
+    out = np.empty((h, w, 3), np.uint8)
+    rows = max(1, GREY_BLOCK_PIXELS // max(w, 1))
+    for top in range(0, h, rows):
+        out[top:top + rows] = block_to_uint8(grey[top:top + rows], field)[:, :, None]
+    return out
+
+
+def _grey16_block(grey: np.ndarray, field: str) -> np.ndarray:
+    """16-bit (or 32-bit integer holding 16-bit) grey -> uint8, v * 255 / 65535 = v / 257 rounded half up."""
+    if grey.size and (grey.min() < 0 or grey.max() > 65535):
+        raise InvalidImage(f"{field}: 32-bit integer images are not supported (values beyond 16 bits); "
+                           "send 8- or 16-bit PNG/TIFF", code="unsupported_image_mode")
+    return ((grey.astype(np.uint32) * 2 + 257) // 514).astype(np.uint8)
+
+
+def _float_block(grey: np.ndarray, field: str) -> np.ndarray:
+    """Float grey in [0, 1] -> uint8 (:func:`to_uint8`); anything else (NaN, out of range) is refused."""
+    if not np.all(np.isfinite(grey)) or (grey.size and (grey.min() < 0 or grey.max() > 1)):
+        raise InvalidImage(f"{field}: float images must hold finite values in [0, 1]", code="unsupported_image_mode")
+    return to_uint8(grey)
 
 
 def _check_opaque(im: Image.Image, field: str) -> None:

@@ -4,12 +4,14 @@ second image, colour modes, and the decode's memory."""
 from __future__ import annotations
 
 import io
+import tracemalloc
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from service.errors import BadInput
+from service import images
+from service.errors import BadInput, InvalidImage
 from service.images import check_header, decode_rgb
 
 LIMITS = {"max_pixels": 4096 * 2048, "min_height": 32}
@@ -102,3 +104,49 @@ def test_animations_and_multi_page_files_are_still_422(fmt):
     with pytest.raises(BadInput) as info:
         check_header(_animation(fmt), "image_a", **LIMITS)
     assert info.value.code == "animated_image"
+
+
+def _png(arr: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(arr).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def _decode_peak(data: bytes) -> int:
+    """Bytes of the largest Python/numpy allocation total while decoding (tracemalloc)."""
+    tracemalloc.start()
+    try:
+        decode_rgb(data, "image_a", max_pixels=1 << 25, min_height=32)
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def test_16bit_greyscale_decodes_in_about_the_memory_of_8bit_rgb():
+    """A tiny 16-bit grey PNG of a large size (it compresses ~500x) must not cost several full-size float64 copies:
+    its decode peak stays within 2x that of 8-bit RGB of the same size (~4.8x with float64 temporaries)."""
+    h, w = 1024, 2048
+    grey16 = _png((np.arange(h * w) % 65536).astype(np.uint16).reshape(h, w))
+    rgb8 = _png((np.arange(h * w * 3) % 251).astype(np.uint8).reshape(h, w, 3))
+    assert Image.open(io.BytesIO(grey16)).mode.startswith("I;16")
+    assert _decode_peak(grey16) <= 2 * _decode_peak(rgb8)
+
+
+@pytest.mark.parametrize("block_pixels", [1000, 1 << 20])
+def test_16bit_greyscale_is_scaled_exactly_in_every_block(monkeypatch, block_pixels):
+    """Every 16-bit value v maps to round(v * 255 / 65535) (half up), across the row blocks of the conversion;
+    a 32-bit integer TIFF with a value beyond 16 bits in its last rows is refused."""
+    monkeypatch.setattr(images, "GREY_BLOCK_PIXELS", block_pixels)
+    values = np.arange(65536, dtype=np.uint16)
+    grey = np.concatenate([values, values[::-1]]).reshape(256, 512)
+    rgb, _ = decode_rgb(_png(grey), "image_a", **LIMITS)
+    expected = np.floor(grey.astype(np.float64) * 255 / 65535 + 0.5).astype(np.uint8)
+    for c in range(3):
+        np.testing.assert_array_equal(rgb[..., c], expected)
+    wide = grey.astype(np.int32)
+    wide[-1, -1] = 70000
+    buf = io.BytesIO()
+    Image.fromarray(wide).save(buf, format="TIFF")
+    with pytest.raises(InvalidImage) as info:
+        decode_rgb(buf.getvalue(), "image_a", **LIMITS)
+    assert info.value.code == "unsupported_image_mode"
