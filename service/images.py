@@ -388,10 +388,15 @@ def _float_block(grey: np.ndarray, field: str) -> np.ndarray:
     return to_uint8(grey)
 
 
+#: Pillow modes with an alpha band (premultiplied ones included)
+_ALPHA_MODES = ("RGBA", "RGBa", "LA", "La", "PA")
+
+
 def _check_opaque(im: Image.Image, field: str) -> None:
     """Refuse transparent pixels: the colour stored under them is undefined (often black), and a panorama
-    needs one at every pixel. Alpha 255 everywhere (an opaque RGBA export) passes."""
-    if "A" in im.getbands():
+    needs one at every pixel. Alpha 255 everywhere (an opaque RGBA export) passes. Only a mode's alpha band counts:
+    LAB's "A" band is a colour (a*)."""
+    if im.mode in _ALPHA_MODES:
         alpha = np.asarray(im.getchannel("A"))
     elif im.mode == "P" and "transparency" in im.info:
         alpha = np.asarray(im.convert("RGBA").getchannel("A"))

@@ -150,3 +150,15 @@ def test_16bit_greyscale_is_scaled_exactly_in_every_block(monkeypatch, block_pix
     with pytest.raises(InvalidImage) as info:
         decode_rgb(buf.getvalue(), "image_a", **LIMITS)
     assert info.value.code == "unsupported_image_mode"
+
+
+@pytest.mark.parametrize("mode", ["LAB", "CMYK", "YCbCr"])
+def test_lab_cmyk_and_ycbcr_tiffs_convert_to_their_rgb(mode):
+    """Colour spaces without alpha decode to their RGB; LAB's "A" band is the a* colour axis, not transparency."""
+    shown = upright()
+    buf = io.BytesIO()
+    Image.fromarray(shown).convert(mode).save(buf, format="TIFF")
+    assert Image.open(io.BytesIO(buf.getvalue())).mode == mode
+    rgb, header = decode_rgb(buf.getvalue(), "image_a", **LIMITS)
+    assert header.format == "TIFF" and rgb.shape == shown.shape
+    assert np.abs(rgb.astype(int) - shown).mean() < 2.0
