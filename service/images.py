@@ -91,13 +91,14 @@ def stored_size(im: Image.Image) -> tuple[int, int]:
     return im.size
 
 
-def show_upright(im: Image.Image, orientation: int) -> Image.Image:
-    """A loaded image turned by its EXIF ``orientation`` exactly once.
+def show_upright(im: Image.Image, orientation: int, shown: tuple[int, int]) -> Image.Image:
+    """A loaded image turned by its EXIF ``orientation`` exactly once; ``shown``: its (width, height) as shown.
 
     A decoder that turns the pixels itself (Pillow's TIFF reader) drops the tag as it does, as
-    ``ImageOps.exif_transpose`` does: a loaded image that no longer carries the tag is already upright.
+    ``ImageOps.exif_transpose`` does: a loaded image that no longer carries the tag is already upright, and so is
+    one of a quarter turn (5..8) that already has the shown size (a 2:1 panorama is stored 1:2).
     """
-    if orientation == 1 or exif_orientation(im) == 1:
+    if orientation == 1 or exif_orientation(im) == 1 or (orientation >= 5 and im.size == shown):
         return im
     return im.transpose(_SHOW[orientation])
 
@@ -332,7 +333,7 @@ def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> 
     im = _open(data, field, max_pixels)
     try:
         im.load()  # raises on truncated or corrupt data (LOAD_TRUNCATED_IMAGES stays False)
-        arr = _rgb8(show_upright(im, header.orientation), field)
+        arr = _rgb8(show_upright(im, header.orientation, (header.width, header.height)), field)
     except (PayloadTooLarge, InvalidImage, BadInput):
         raise
     except Exception as exc:  # noqa: BLE001 - corrupt, truncated, unsupported mode...

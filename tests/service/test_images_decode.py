@@ -62,6 +62,15 @@ def test_every_exif_orientation_is_applied_once_in_every_format(fmt, orientation
         assert np.abs(rgb.astype(int) - turned).mean() > 20
 
 
+@pytest.mark.parametrize("orientation", range(5, 9))
+def test_a_quarter_turn_is_not_applied_twice_when_the_decoder_keeps_the_tag(monkeypatch, orientation):
+    """Should a decoder turn a TIFF on load and keep its tag, the image that already has the shown size is upright."""
+    monkeypatch.setattr(images, "exif_orientation", lambda im: orientation)  # the tag is never dropped
+    shown = upright()
+    rgb, _ = decode_rgb(with_orientation(shown, orientation, "TIFF"), "image_a", **LIMITS)
+    np.testing.assert_array_equal(rgb, shown)
+
+
 @pytest.mark.parametrize("fmt", sorted(_SAVE))
 @pytest.mark.parametrize("orientation", range(5, 9))
 def test_a_quarter_turn_that_shows_a_portrait_is_422_naming_the_shown_size(fmt, orientation):
