@@ -28,7 +28,7 @@ import zlib
 from dataclasses import dataclass
 
 import numpy as np
-from PIL import Image, ImageOps, UnidentifiedImageError
+from PIL import Image, UnidentifiedImageError
 
 from rasterizer.render import to_uint8
 
@@ -68,6 +68,39 @@ def exif_orientation(im: Image.Image) -> int:
     except Exception:  # noqa: BLE001 - damaged EXIF: shown as stored
         return 1
     return value if isinstance(value, int) and 1 <= value <= 8 else 1
+
+
+#: the turn that shows an image stored with each EXIF orientation (the EXIF/TIFF definition, as ImageOps.exif_transpose)
+_SHOW = {2: Image.Transpose.FLIP_LEFT_RIGHT, 3: Image.Transpose.ROTATE_180, 4: Image.Transpose.FLIP_TOP_BOTTOM,
+         5: Image.Transpose.TRANSPOSE, 6: Image.Transpose.ROTATE_270, 7: Image.Transpose.TRANSVERSE,
+         8: Image.Transpose.ROTATE_90}
+#: TIFF ImageWidth and ImageLength tags
+_TIFF_WIDTH, _TIFF_LENGTH = 256, 257
+
+
+def stored_size(im: Image.Image) -> tuple[int, int]:
+    """(width, height) of an opened image's raster as stored in the file, before any EXIF orientation.
+
+    Pillow reports a TIFF's size already turned by its Orientation tag (and turns its pixels on load), every
+    other format's as stored; a TIFF's own ImageWidth/ImageLength tags say the stored size whatever Pillow does.
+    """
+    if im.format == "TIFF":
+        w, h = im.tag_v2.get(_TIFF_WIDTH), im.tag_v2.get(_TIFF_LENGTH)
+        if isinstance(w, int) and isinstance(h, int):
+            return w, h
+    return im.size
+
+
+def show_upright(im: Image.Image, orientation: int, shown: tuple[int, int]) -> Image.Image:
+    """A loaded image turned by its EXIF ``orientation`` exactly once; ``shown``: its (width, height) as shown.
+
+    A decoder that turns the pixels itself (Pillow's TIFF reader) drops the tag as it does, as
+    ``ImageOps.exif_transpose`` does: a loaded image that no longer carries the tag is already upright, and so is
+    one of a quarter turn (5..8) that already has the shown size (a 2:1 panorama is stored 1:2).
+    """
+    if orientation == 1 or exif_orientation(im) == 1 or (orientation >= 5 and im.size == shown):
+        return im
+    return im.transpose(_SHOW[orientation])
 
 
 def file_orientation(data: bytes) -> int:
@@ -261,10 +294,12 @@ def check_header(data: bytes, field: str, *, max_pixels: int, min_height: int) -
     """Parse only the header and check size and aspect ratio (no pixel decoding)."""
     im = _open(data, field, max_pixels)
     try:
-        w, h = im.size
+        w, h = stored_size(im)
         fmt = im.format or "unknown"
         orientation = exif_orientation(im)
-        frames = getattr(im, "is_animated", False)
+        # a JPEG with an MPF second image (a preview, a depth map, a stereo eye) is shown by its primary image,
+        # the frame Pillow opens: only animations and multi-page files hold frames that are all "the image"
+        frames = getattr(im, "is_animated", False) and fmt != "MPO"
     finally:
         im.close()
     if w <= 0 or h <= 0:
@@ -298,7 +333,7 @@ def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> 
     im = _open(data, field, max_pixels)
     try:
         im.load()  # raises on truncated or corrupt data (LOAD_TRUNCATED_IMAGES stays False)
-        arr = _rgb8(im if header.orientation == 1 else ImageOps.exif_transpose(im), field)
+        arr = _rgb8(show_upright(im, header.orientation, (header.width, header.height)), field)
     except (PayloadTooLarge, InvalidImage, BadInput):
         raise
     except Exception as exc:  # noqa: BLE001 - corrupt, truncated, unsupported mode...
@@ -310,34 +345,59 @@ def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> 
     return np.ascontiguousarray(arr), header
 
 
+#: rows of a greyscale image converted at a time (about this many pixels), so that no temporary is full-size
+GREY_BLOCK_PIXELS = 1 << 20
+
+
 def _rgb8(im: Image.Image, field: str) -> np.ndarray:
-    """8-bit RGB of a decoded image; 16-bit and float greyscale are scaled by their full range.
+    """8-bit RGB (H, W, 3) of a decoded image; 16-bit and float greyscale are scaled by their full range.
 
     Pillow's ``convert("RGB")`` clips 16-bit values at 255 (a white image) and truncates
     floats in [0, 1] to 0 (a black one), so those modes are scaled here first.
     """
     if im.mode.startswith("I;16") or im.mode == "I":
-        grey = np.asarray(im).astype(np.float64)
-        if grey.size and (grey.min() < 0 or grey.max() > 65535):
-            raise InvalidImage(f"{field}: 32-bit integer images are not supported (values beyond 16 bits); "
-                               "send 8- or 16-bit PNG/TIFF", code="unsupported_image_mode")
-        grey = to_uint8(grey / 65535.0)
-    elif im.mode == "F":
-        grey = np.asarray(im)
-        if not np.all(np.isfinite(grey)) or (grey.size and (grey.min() < 0 or grey.max() > 1)):
-            raise InvalidImage(f"{field}: float images must hold finite values in [0, 1]",
-                               code="unsupported_image_mode")
-        grey = to_uint8(grey)
-    else:
-        _check_opaque(im, field)
-        return np.asarray(im if im.mode == "RGB" else im.convert("RGB"), dtype=np.uint8)
-    return np.repeat(grey[:, :, None], 3, axis=2)
+        return _grey_rgb8(np.asarray(im), field, _grey16_block)
+    if im.mode == "F":
+        return _grey_rgb8(np.asarray(im), field, _float_block)
+    _check_opaque(im, field)
+    return np.asarray(im if im.mode == "RGB" else im.convert("RGB"), dtype=np.uint8)
+
+
+def _grey_rgb8(grey: np.ndarray, field: str, block_to_uint8) -> np.ndarray:
+    """(H, W) greyscale -> uint8 (H, W, 3), a block of rows at a time: the scaling's temporaries stay about
+    :data:`GREY_BLOCK_PIXELS` pixels, not several full-size float64 copies (~1 GB for an 8192x4096 image)."""
+    h, w = grey.shape
+    out = np.empty((h, w, 3), np.uint8)
+    rows = max(1, GREY_BLOCK_PIXELS // max(w, 1))
+    for top in range(0, h, rows):
+        out[top:top + rows] = block_to_uint8(grey[top:top + rows], field)[:, :, None]
+    return out
+
+
+def _grey16_block(grey: np.ndarray, field: str) -> np.ndarray:
+    """16-bit (or 32-bit integer holding 16-bit) grey -> uint8, v * 255 / 65535 = v / 257 rounded half up."""
+    if grey.size and (grey.min() < 0 or grey.max() > 65535):
+        raise InvalidImage(f"{field}: 32-bit integer images are not supported (values beyond 16 bits); "
+                           "send 8- or 16-bit PNG/TIFF", code="unsupported_image_mode")
+    return ((grey.astype(np.uint32) * 2 + 257) // 514).astype(np.uint8)
+
+
+def _float_block(grey: np.ndarray, field: str) -> np.ndarray:
+    """Float grey in [0, 1] -> uint8 (:func:`to_uint8`); anything else (NaN, out of range) is refused."""
+    if not np.all(np.isfinite(grey)) or (grey.size and (grey.min() < 0 or grey.max() > 1)):
+        raise InvalidImage(f"{field}: float images must hold finite values in [0, 1]", code="unsupported_image_mode")
+    return to_uint8(grey)
+
+
+#: Pillow modes with an alpha band (premultiplied ones included)
+_ALPHA_MODES = ("RGBA", "RGBa", "LA", "La", "PA")
 
 
 def _check_opaque(im: Image.Image, field: str) -> None:
     """Refuse transparent pixels: the colour stored under them is undefined (often black), and a panorama
-    needs one at every pixel. Alpha 255 everywhere (an opaque RGBA export) passes."""
-    if "A" in im.getbands():
+    needs one at every pixel. Alpha 255 everywhere (an opaque RGBA export) passes. Only a mode's alpha band counts:
+    LAB's "A" band is a colour (a*)."""
+    if im.mode in _ALPHA_MODES:
         alpha = np.asarray(im.getchannel("A"))
     elif im.mode == "P" and "transparency" in im.info:
         alpha = np.asarray(im.convert("RGBA").getchannel("A"))

@@ -1,0 +1,173 @@
+"""Decoding uploaded panoramas (service.images): EXIF orientation per format, camera JPEGs with an MPF
+second image, colour modes, and the decode's memory."""
+
+from __future__ import annotations
+
+import io
+import tracemalloc
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from service import images
+from service.errors import BadInput, InvalidImage
+from service.images import check_header, decode_rgb
+
+LIMITS = {"max_pixels": 4096 * 2048, "min_height": 32}
+
+#: for each EXIF orientation, the turn that gives the stored pixels of an image shown upright
+#: (the inverse of what a viewer applies: 6 is shown turned 90 deg clockwise, so stored 90 deg counter-clockwise)
+_STORE = {1: None, 2: Image.Transpose.FLIP_LEFT_RIGHT, 3: Image.Transpose.ROTATE_180, 4: Image.Transpose.FLIP_TOP_BOTTOM,
+          5: Image.Transpose.TRANSPOSE, 6: Image.Transpose.ROTATE_90, 7: Image.Transpose.TRANSVERSE,
+          8: Image.Transpose.ROTATE_270}
+#: lossless settings where a format has them (the pixels can then be compared exactly)
+_SAVE = {"PNG": {}, "TIFF": {}, "WEBP": {"lossless": True}, "JPEG": {"quality": 100, "subsampling": 0}}
+
+
+def upright(height: int = 64) -> np.ndarray:
+    """A smooth (JPEG-friendly), asymmetric 2:1 test panorama: no flip or turn of it looks like itself."""
+    yy, xx = np.mgrid[0:height, 0:2 * height].astype(np.float64)
+    rgb = np.stack([xx / (2 * height), yy / height, 0.5 + 0.4 * np.sin(xx / 9 + yy / 5)], axis=2)
+    return (rgb * 255).astype(np.uint8)
+
+
+def with_orientation(shown: np.ndarray, orientation: int, fmt: str) -> bytes:
+    """The file a camera writes for ``shown``: the pixels stored turned back, and the tag that turns them."""
+    im = Image.fromarray(shown)
+    if _STORE[orientation] is not None:
+        im = im.transpose(_STORE[orientation])
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    buf = io.BytesIO()
+    im.save(buf, format=fmt, exif=exif.tobytes(), **_SAVE[fmt])
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("fmt", sorted(_SAVE))
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_every_exif_orientation_is_applied_once_in_every_format(fmt, orientation):
+    """The decoded pixels are the upright panorama (BMP holds no EXIF). Pillow turns a TIFF by itself on load:
+    the service must not turn it a second time, nor swap the size it checks twice."""
+    shown = upright()
+    data = with_orientation(shown, orientation, fmt)
+    header = check_header(data, "image_a", **LIMITS)
+    assert (header.width, header.height, header.orientation) == (128, 64, orientation)
+    rgb, _ = decode_rgb(data, "image_a", **LIMITS)
+    assert rgb.shape == shown.shape
+    err = np.abs(rgb.astype(int) - shown).mean()
+    assert err < (2.0 if fmt == "JPEG" else 1e-9), err
+    for wrong in (2, 3, 4):  # the right turn, not a close one: every same-shape wrong turn is far off
+        turned = np.asarray(Image.fromarray(shown).transpose(_STORE[wrong]))
+        assert np.abs(rgb.astype(int) - turned).mean() > 20
+
+
+@pytest.mark.parametrize("orientation", range(5, 9))
+def test_a_quarter_turn_is_not_applied_twice_when_the_decoder_keeps_the_tag(monkeypatch, orientation):
+    """Should a decoder turn a TIFF on load and keep its tag, the image that already has the shown size is upright."""
+    monkeypatch.setattr(images, "exif_orientation", lambda im: orientation)  # the tag is never dropped
+    shown = upright()
+    rgb, _ = decode_rgb(with_orientation(shown, orientation, "TIFF"), "image_a", **LIMITS)
+    np.testing.assert_array_equal(rgb, shown)
+
+
+@pytest.mark.parametrize("fmt", sorted(_SAVE))
+@pytest.mark.parametrize("orientation", range(5, 9))
+def test_a_quarter_turn_that_shows_a_portrait_is_422_naming_the_shown_size(fmt, orientation):
+    """Stored 128x64 (2:1) with a quarter-turn tag: shown 64x128, not a panorama; the message quotes the shown size."""
+    portrait = np.ascontiguousarray(upright().transpose(1, 0, 2))  # 64 wide, 128 high
+    data = with_orientation(portrait, orientation, fmt)
+    with pytest.raises(BadInput) as info:
+        check_header(data, "image_b", **LIMITS)
+    assert info.value.code == "bad_aspect_ratio"
+    assert "got 64x128" in info.value.message and f"orientation {orientation}" in info.value.message
+
+
+@pytest.mark.parametrize("second", ["preview", "full"])
+def test_a_camera_jpeg_with_an_mpf_second_image_gives_its_primary_image(second):
+    """360 cameras and phones append a preview, a depth map or a second eye to the JPEG (MPF, read by Pillow as
+    MPO); every viewer shows the first image, and so does the service."""
+    shown = upright()
+    extra = Image.fromarray(shown[:, ::-1].copy())  # far from the primary: taking it would show
+    extra = extra.resize((64, 32)) if second == "preview" else extra
+    buf = io.BytesIO()
+    Image.fromarray(shown).save(buf, format="MPO", save_all=True, append_images=[extra], quality=95)
+    data = buf.getvalue()
+    assert Image.open(io.BytesIO(data)).n_frames == 2
+    header = check_header(data, "image_a", **LIMITS)
+    assert (header.width, header.height) == (128, 64)
+    rgb, _ = decode_rgb(data, "image_a", **LIMITS)
+    assert np.abs(rgb.astype(int) - shown).mean() < 2.0
+
+
+def _animation(fmt: str) -> bytes:
+    frames = [Image.fromarray(upright()), Image.fromarray(upright()[::-1].copy())]
+    buf = io.BytesIO()
+    frames[0].save(buf, format=fmt, save_all=True, append_images=frames[1:])
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("fmt", ["PNG", "WEBP", "TIFF"])
+def test_animations_and_multi_page_files_are_still_422(fmt):
+    """An APNG, an animated WebP or a multi-page TIFF has no primary image: which frame is meant is unknown."""
+    with pytest.raises(BadInput) as info:
+        check_header(_animation(fmt), "image_a", **LIMITS)
+    assert info.value.code == "animated_image"
+
+
+def _png(arr: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(arr).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def _decode_peak(data: bytes) -> int:
+    """Bytes of the largest Python/numpy allocation total while decoding (tracemalloc)."""
+    tracemalloc.start()
+    try:
+        decode_rgb(data, "image_a", max_pixels=1 << 25, min_height=32)
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def test_16bit_greyscale_decodes_in_about_the_memory_of_8bit_rgb():
+    """A tiny 16-bit grey PNG of a large size (it compresses ~500x) must not cost several full-size float64 copies:
+    its decode peak stays within 2x that of 8-bit RGB of the same size (~4.8x with float64 temporaries)."""
+    h, w = 1024, 2048
+    grey16 = _png((np.arange(h * w) % 65536).astype(np.uint16).reshape(h, w))
+    rgb8 = _png((np.arange(h * w * 3) % 251).astype(np.uint8).reshape(h, w, 3))
+    assert Image.open(io.BytesIO(grey16)).mode.startswith("I;16")
+    assert _decode_peak(grey16) <= 2 * _decode_peak(rgb8)
+
+
+@pytest.mark.parametrize("block_pixels", [1000, 1 << 20])
+def test_16bit_greyscale_is_scaled_exactly_in_every_block(monkeypatch, block_pixels):
+    """Every 16-bit value v maps to round(v * 255 / 65535) (half up), across the row blocks of the conversion;
+    a 32-bit integer TIFF with a value beyond 16 bits in its last rows is refused."""
+    monkeypatch.setattr(images, "GREY_BLOCK_PIXELS", block_pixels)
+    values = np.arange(65536, dtype=np.uint16)
+    grey = np.concatenate([values, values[::-1]]).reshape(256, 512)
+    rgb, _ = decode_rgb(_png(grey), "image_a", **LIMITS)
+    expected = np.floor(grey.astype(np.float64) * 255 / 65535 + 0.5).astype(np.uint8)
+    for c in range(3):
+        np.testing.assert_array_equal(rgb[..., c], expected)
+    wide = grey.astype(np.int32)
+    wide[-1, -1] = 70000
+    buf = io.BytesIO()
+    Image.fromarray(wide).save(buf, format="TIFF")
+    with pytest.raises(InvalidImage) as info:
+        decode_rgb(buf.getvalue(), "image_a", **LIMITS)
+    assert info.value.code == "unsupported_image_mode"
+
+
+@pytest.mark.parametrize("mode", ["LAB", "CMYK", "YCbCr"])
+def test_lab_cmyk_and_ycbcr_tiffs_convert_to_their_rgb(mode):
+    """Colour spaces without alpha decode to their RGB; LAB's "A" band is the a* colour axis, not transparency."""
+    shown = upright()
+    buf = io.BytesIO()
+    Image.fromarray(shown).convert(mode).save(buf, format="TIFF")
+    assert Image.open(io.BytesIO(buf.getvalue())).mode == mode
+    rgb, header = decode_rgb(buf.getvalue(), "image_a", **LIMITS)
+    assert header.format == "TIFF" and rgb.shape == shown.shape
+    assert np.abs(rgb.astype(int) - shown).mean() < 2.0
