@@ -9,9 +9,10 @@ Layout under ``root``::
     trash/                      # scenes being deleted; cleared at start-up
 
 Budget: the scenes together stay within ``budget_bytes`` (0: no cap). A write that would pass it
-first evicts the least recently used scenes that no job holds (:meth:`SceneStore.hold`); when
-that cannot make room, or when the disk would keep less than ``min_free_bytes`` free, the write
-is refused with :class:`StoreFull` (the service answers 507) and nothing is stored.
+first evicts the least recently used scenes that no job holds (:meth:`SceneStore.hold`). When
+evicting all of them could not make room (the write alone exceeds the budget, or held scenes fill
+it), or when the disk would keep less than ``min_free_bytes`` free, the write is refused with
+:class:`StoreFull` (the service answers 507) before any eviction: nothing is stored, nothing lost.
 
 A scene is written into ``tmp/<random>/`` (each file fsynced), then renamed to
 ``scenes/<id>`` in one ``os.replace`` and the parent directory fsynced: a crash leaves
@@ -331,9 +332,12 @@ class SceneStore:
             raise StoreFull(f"the scene store's disk has {free} bytes free; writing {need} more would leave less "
                             f"than the {self.min_free_bytes}-byte margin; nothing was stored")
 
-    def _make_room(self, need: int, keep: str | None = None) -> None:
+    def _make_room(self, need: int, keep: str | None = None, what: str = "the new scene") -> None:
         """Evict least recently used scenes (not held, not ``keep``) until ``need`` more bytes fit the budget
-        and the scene count fits ``max_scenes``; :class:`StoreFull` when they cannot. Call with ``_room`` held."""
+        and the scene count fits ``max_scenes``; :class:`StoreFull` when they cannot. Call with ``_room`` held.
+
+        Decides first, evicts after: a write that cannot fit even with every evictable scene gone is
+        refused with nothing evicted (``what`` names the write in that message)."""
         if self.budget_bytes <= 0 and self.max_scenes <= 0:
             return
         ids = self.ids()
@@ -343,18 +347,26 @@ class SceneStore:
         with self._lock:
             held = set(self._holds)
         victims = sorted((i for i in ids if i not in held and i != keep), key=self._last_used)
-        while (self.budget_bytes > 0 and used + need > self.budget_bytes) or \
-                (self.max_scenes > 0 and count > self.max_scenes):
-            if not victims:
-                self.refusals += 1
-                raise StoreFull(f"the scene store's budget ({self.budget_bytes} bytes, {self.max_scenes or 'any'} "
-                                f"scenes) cannot take {need} more bytes: {used} are used by scenes that jobs are "
-                                "using; nothing was stored")
-            victim = victims.pop(0)
+        kept = [i for i in ids if i in held or i == keep]  # never evicted for this write
+        kept_bytes = sum(sizes.get(i, 0) for i in kept)
+        if (self.budget_bytes > 0 and kept_bytes + need > self.budget_bytes) or \
+                (self.max_scenes > 0 and count - len(victims) > self.max_scenes):
+            self.refusals += 1
+            if self.budget_bytes > 0 and need > self.budget_bytes:
+                raise StoreFull(f"{what} alone takes {need} bytes, more than the scene store's whole budget "
+                                f"({self.budget_bytes} bytes); nothing was stored and no scene was evicted")
+            raise StoreFull(f"the scene store's budget ({self.budget_bytes or 'any'} bytes, {self.max_scenes or 'any'} "
+                            f"scenes) cannot take {what} ({need} bytes): {kept_bytes} bytes in {len(kept)} scenes "
+                            "are in use by jobs or by this write and cannot be evicted; nothing was stored and "
+                            "no scene was evicted")
+        for victim in victims:  # enough of them, by the check above
+            if (self.budget_bytes <= 0 or used + need <= self.budget_bytes) and \
+                    (self.max_scenes <= 0 or count <= self.max_scenes):
+                break
             log.info("store budget: evicting %s (least recently used)", victim)
             if self.delete(victim):
                 self.evictions += 1
-                count -= 1
+            count -= 1  # gone either way (another process may have deleted it first)
             used -= sizes.get(victim, 0)
 
     def write_problem(self, min_free: int = 0) -> str | None:
@@ -424,7 +436,8 @@ class SceneStore:
         self._check_margin(len(data))
         try:
             with self._room:
-                self._make_room(len(data) - (target.stat().st_size if target.is_file() else 0), keep=scene_id)
+                self._make_room(len(data) - (target.stat().st_size if target.is_file() else 0), keep=scene_id,
+                                what=f"the file {name}")
                 _write_file(tmp, lambda f: f.write(data))
                 os.replace(tmp, target)
         except FileNotFoundError:  # the scene was deleted meanwhile
