@@ -121,6 +121,7 @@ def test_start_up_removes_interrupted_artifact_writes(tmp_path):
     store.put(sid, _gaussians(10), {})
     leftover = store.scenes_dir / sid / ".gaussians.ply.0123abcd.tmp"
     leftover.write_bytes(b"half a file")
+    os.utime(leftover, (0, 0))  # older than any grace: a crash's, not a live writer's
     SceneStore(tmp_path)
     assert not leftover.exists() and SceneStore(tmp_path).exists(sid)
 
