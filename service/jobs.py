@@ -230,11 +230,13 @@ class JobRegistry:
     def submit(self, job_id: str, parent_id: str, params: dict, *, done: bool = False) -> tuple[Job, bool]:
         """The job for ``job_id``: an existing queued/running/done one, else a new one (created=True).
 
-        A failed job is replaced by a new attempt. ``done=True`` records an already stored result.
+        ``done=True`` records an already stored result. A failed job is replaced by a new attempt, and
+        so is a done one when ``done=False``: the caller found its result scene gone (deleted or evicted),
+        so the same request makes it again instead of answering a scene that no longer exists.
         """
         with self._lock:
             job = self._jobs.get(job_id)
-            if job is not None and job.status != "failed":
+            if job is not None and (job.status in ACTIVE or (job.status == "done" and done)):
                 return job, False
             if not done:
                 other = self._recorded(job_id)  # queued/running on another replica

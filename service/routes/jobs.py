@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from .. import jobs as work
 from ..deps import KnownQueryParameters, SceneId, SingleQueryValues, StoreDep, UniqueBodyKeys
 from ..errors import Busy, NotFound
+from ..job_state import ACTIVE
 from ..jobs import RefineRequest
 from ..limits import WorkGate
 from ..references import ReferencesMissing, has_references
@@ -66,7 +67,7 @@ async def refine_scene(scene_id: SceneId, request: Request, response: Response, 
         job, _ = registry.submit(job_id, scene_id, params, done=True)
         return JobStatus(**job.as_json())
     existing = registry.get(job_id)
-    if existing is None or existing.status == "failed":
+    if existing is None or existing.status not in ACTIVE:  # failed, or done with its result gone: a new run
         gate = _gate(request)
         if gate.full:
             gate.reject()

@@ -183,3 +183,25 @@ def test_result_id_depends_on_everything():
     assert base != result_id_for("b" * 32, p, "sha")
     assert base != result_id_for("a" * 32, {"iterations": 2}, "sha")
     assert base != result_id_for("a" * 32, p, "sha2")
+
+
+def test_registry_reruns_a_done_job_whose_result_is_gone():
+    """``done=False`` means the caller found no result scene: a done job is then a new attempt, as a failed one."""
+    reg = JobRegistry()
+    job, _ = reg.submit("a" * 32, "b" * 32, {})
+    reg.mark_done(job)
+    assert reg.submit("a" * 32, "b" * 32, {}, done=True) == (job, False)  # the result is stored: the same job
+    again, created = reg.submit("a" * 32, "b" * 32, {})
+    assert created and again is not job and again.status == "queued"
+
+
+def test_refine_remakes_its_deleted_result(client, scene_id):
+    params = {"iterations": 2, "height": 16, "patience": 0}
+    first = client.post(f"/v1/scenes/{scene_id}/refine", json=params)
+    assert first.status_code == 202, first.text
+    result = _wait(client, first.headers["location"])["scene_id"]
+    assert client.delete(f"/v1/scenes/{result}").status_code == 204
+    again = client.post(f"/v1/scenes/{scene_id}/refine", json=params)
+    assert again.status_code == 202 and again.json()["status"] in ("queued", "running"), again.text
+    assert _wait(client, again.headers["location"])["status"] == "done"
+    assert client.get(f"/v1/scenes/{result}").status_code == 200
