@@ -20,6 +20,7 @@ Reference images: a scene must carry the artifact ``references.npz`` (uint8 ERP 
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import threading
 import time
@@ -293,6 +294,20 @@ class JobRegistry:
             for j in self._jobs.values():
                 out[j.status] += 1
             return out
+
+
+def start_job(registry: JobRegistry, job: Job, gate, store: SceneStore) -> asyncio.Task:
+    """Start :func:`run_job` as a task on the running loop; the job's parent is held from now (queued
+    included) until the task ends, whatever the outcome (done, failed, cancelled even before it started):
+    another job's result never evicts the scene an accepted job waits to refine."""
+    store.acquire(job.parent_id)
+    try:
+        task = asyncio.get_running_loop().create_task(run_job(registry, job, gate, store))
+    except BaseException:
+        store.release(job.parent_id)
+        raise
+    task.add_done_callback(lambda _: store.release(job.parent_id))
+    return task
 
 
 async def run_job(registry: JobRegistry, job: Job, gate, store: SceneStore) -> None:

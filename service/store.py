@@ -329,16 +329,30 @@ class SceneStore:
     @contextlib.contextmanager
     def hold(self, *scene_ids: str) -> Iterator[None]:
         """Keep ``scene_ids`` from eviction while the block runs (a job reading them); DELETE still removes them."""
-        with self._lock:
-            self._holds.update(scene_ids)
+        self.acquire(*scene_ids)
         try:
             yield
         finally:
-            with self._lock:
-                self._holds.subtract(scene_ids)
-                for sid in scene_ids:
-                    if self._holds[sid] <= 0:
-                        del self._holds[sid]
+            self.release(*scene_ids)
+
+    def acquire(self, *scene_ids: str) -> None:
+        """Keep ``scene_ids`` from eviction until as many :meth:`release` calls (holds count; a queued job's
+        parent is held from its submission to its end); DELETE still removes them."""
+        with self._lock:
+            self._holds.update(scene_ids)
+
+    def release(self, *scene_ids: str) -> None:
+        """Drop one :meth:`acquire` of each of ``scene_ids``."""
+        with self._lock:
+            self._holds.subtract(scene_ids)
+            for sid in scene_ids:
+                if self._holds[sid] <= 0:
+                    del self._holds[sid]
+
+    def held(self) -> dict[str, int]:
+        """Scene id -> holds now (jobs queued or running on it)."""
+        with self._lock:
+            return dict(self._holds)
 
     def _touch(self, scene_id: str) -> None:
         self._used[scene_id] = time.time()

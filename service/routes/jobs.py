@@ -12,7 +12,6 @@ bounded queue (503 + Retry-After beyond it).
 
 from __future__ import annotations
 
-import asyncio
 from typing import Annotated
 
 from fastapi import APIRouter, Body, Path, Request, Response
@@ -74,7 +73,7 @@ async def refine_scene(scene_id: SceneId, request: Request, response: Response, 
             raise Busy(f"refine queue is full; retry in {gate.retry_after} s", retry_after=gate.retry_after)
     job, created = registry.submit(job_id, scene_id, params)
     if created:
-        job.task = asyncio.get_running_loop().create_task(work.run_job(registry, job, _gate(request), store))
+        job.task = work.start_job(registry, job, _gate(request), store)
     return JobStatus(**job.as_json())
 
 

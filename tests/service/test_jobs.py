@@ -205,3 +205,48 @@ def test_refine_remakes_its_deleted_result(client, scene_id):
     assert again.status_code == 202 and again.json()["status"] in ("queued", "running"), again.text
     assert _wait(client, again.headers["location"])["status"] == "done"
     assert client.get(f"/v1/scenes/{result}").status_code == 200
+
+
+def _tiny_scene(store, name: str) -> str:
+    from rasterizer.gaussians import Gaussians
+    from service.store import content_id
+
+    one = np.ones((4, 3), np.float32)
+    sid = content_id("jobs-test", name)
+    store.put(sid, Gaussians(one, one * 0.1, np.tile([1.0, 0, 0, 0], (4, 1)), np.ones(4), one[:, None]), {})
+    return sid
+
+
+def test_a_queued_job_holds_its_parent_until_it_ends(tmp_path):
+    """Another write evicts around a queued job's parent (not only a running one's), and every hold is given back
+    however the job ends: cancelled while queued, or failed."""
+    import asyncio
+
+    from service.jobs import start_job
+    from service.limits import WorkGate
+    from service.store import SceneStore
+
+    store = SceneStore(tmp_path, max_scenes=2, budget_bytes=0, min_free_bytes=0)
+    parent = _tiny_scene(store, "parent")
+    other = _tiny_scene(store, "other")
+    store.gaussians(other)  # the parent is now the least recently used scene
+
+    async def scenario() -> None:
+        gate = WorkGate("refine", 1, 4, 5)
+        await gate.limiter.acquire()  # the one slot is busy: the job waits in the queue
+        reg = JobRegistry()
+        job, _ = reg.submit("c" * 32, parent, {})
+        task = start_job(reg, job, gate, store)
+        await asyncio.sleep(0.05)
+        assert job.status == "queued" and store.held() == {parent: 1}
+        _tiny_scene(store, "result of another job")  # one scene must go: not the queued job's parent
+        assert parent in store.ids() and other not in store.ids()
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        assert store.held() == {}
+        gate.limiter.release()
+        failing, _ = reg.submit("d" * 32, parent, {})  # the parent has no references: this job fails
+        await start_job(reg, failing, gate, store)
+        assert failing.status == "failed" and store.held() == {}
+
+    asyncio.run(scenario())
