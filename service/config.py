@@ -87,7 +87,7 @@ class Settings(BaseSettings):
                                      "cost take the reconstruction slot instead of a render slot, so that their "
                                      "memory peak never adds to a reconstruction's")
     min_free_store_bytes: int = Field(256 * 1024 * 1024, ge=0, description="free disk the store must have "
-                                      "before a reconstruction starts (507 below; /readyz 503)")
+                                      "before a reconstruction or a refinement starts (507 below; /readyz 503)")
 
     # -- concurrency ----------------------------------------------------------
     inference_concurrency: int = Field(1, ge=1, description="reconstructions running at once")

@@ -250,3 +250,16 @@ def test_a_queued_job_holds_its_parent_until_it_ends(tmp_path):
         assert failing.status == "failed" and store.held() == {}
 
     asyncio.run(scenario())
+
+
+def test_refine_on_a_disk_under_the_margin_is_refused_up_front(client, live, scene_id, monkeypatch):
+    """As POST /v1/scenes: 507 before any work, and no job accepted (it would run, then fail store_full)."""
+    done = client.post(f"/v1/scenes/{scene_id}/refine", json={"iterations": 1, "height": 16})
+    assert _wait(client, done.headers["location"])["status"] == "done"
+    monkeypatch.setattr(live.app.state.settings, "min_free_store_bytes", 1 << 62)
+    jobs = live.app.state.jobs.counts()
+    r = client.post(f"/v1/scenes/{scene_id}/refine", json={"iterations": 1, "height": 20})
+    assert r.status_code == 507 and "no work was done" in r.json()["error"]["message"], r.text
+    assert live.app.state.jobs.counts() == jobs  # no job was made
+    again = client.post(f"/v1/scenes/{scene_id}/refine", json={"iterations": 1, "height": 16})
+    assert again.status_code == 202 and again.json()["status"] == "done"  # a stored result needs no disk
