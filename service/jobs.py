@@ -68,7 +68,14 @@ class RefineRequest(BaseModel):
 
 
 class JobCancelled(Exception):
-    """Raised inside a job's progress callback when the registry is shutting down."""
+    """A job cut by the service's shutdown: raised inside its progress callback when the registry is shutting
+    down, and recorded (with this code and message) for a job whose task was cancelled, queued or running."""
+
+    code = "server_shutdown"
+    message = "the server shut down before the job finished; submit it again"
+
+    def __init__(self) -> None:
+        super().__init__(self.message)
 
 
 def result_id_for(parent_id: str, params: dict, model_sha256: str) -> str:
@@ -264,7 +271,7 @@ class JobRegistry:
     def progress_callback(self, job: Job) -> Callable[[float], None]:
         def report(fraction: float) -> None:
             if self.cancelled.is_set():
-                raise JobCancelled("service shutting down")
+                raise JobCancelled()
             job.progress = float(min(1.0, max(job.progress, fraction)))
             if time.monotonic() - self._saved.get(job.id, 0.0) >= PROGRESS_WRITE_S:
                 self._save(job)
@@ -325,7 +332,10 @@ async def run_job(registry: JobRegistry, job: Job, gate, store: SceneStore) -> N
 
     try:
         await gate.run(work)
-    except BaseException as exc:  # noqa: BLE001 - recorded on the job; cancellation re-raised
+    except asyncio.CancelledError:  # the loop stops (graceful shutdown): say so, not "CancelledError"
+        registry.mark_failed(job, JobCancelled())
+        raise
+    except BaseException as exc:  # noqa: BLE001 - recorded on the job; KeyboardInterrupt and such re-raised
         registry.mark_failed(job, exc)
         if not isinstance(exc, Exception):
             raise

@@ -263,3 +263,37 @@ def test_refine_on_a_disk_under_the_margin_is_refused_up_front(client, live, sce
     assert live.app.state.jobs.counts() == jobs  # no job was made
     again = client.post(f"/v1/scenes/{scene_id}/refine", json={"iterations": 1, "height": 16})
     assert again.status_code == 202 and again.json()["status"] == "done"  # a stored result needs no disk
+
+
+def test_a_job_cut_by_shutdown_says_so(tmp_path):
+    """Queued (its task cancelled as the loop stops) or running (stopped at its next progress report): the job
+    fails with a message the client can act on, never a bare 'CancelledError'."""
+    import asyncio
+
+    from service.jobs import start_job
+    from service.limits import WorkGate
+    from service.store import SceneStore
+
+    store = SceneStore(tmp_path, min_free_bytes=0)
+    parent = _tiny_scene(store, "parent")
+    result = _tiny_scene(store, "result")  # stored: the job's only step is its last progress report
+
+    async def scenario() -> tuple[dict, dict]:
+        gate = WorkGate("refine", 1, 4, 5)
+        reg = JobRegistry()
+        await gate.limiter.acquire()
+        queued, _ = reg.submit("e" * 32, parent, {})
+        task = start_job(reg, queued, gate, store)
+        await asyncio.sleep(0.05)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        gate.limiter.release()
+        running, _ = reg.submit(result, parent, {})
+        reg.cancel_all()
+        await start_job(reg, running, gate, store)
+        return queued.error, running.error
+
+    for error in asyncio.run(scenario()):
+        assert error == {"code": "server_shutdown",
+                         "message": "the server shut down before the job finished; submit it again"}
+    assert store.held() == {}
