@@ -402,10 +402,13 @@ class SceneStore:
             if self.budget_bytes > 0 and need > self.budget_bytes:
                 raise StoreFull(f"{what} alone takes {need} bytes, more than the scene store's whole budget "
                                 f"({self.budget_bytes} bytes); nothing was stored and no scene was evicted")
-            raise StoreFull(f"the scene store's budget ({self.budget_bytes or 'any'} bytes, {self.max_scenes or 'any'} "
-                            f"scenes) cannot take {what} ({need} bytes): {kept_bytes} bytes in {len(kept)} scenes "
-                            "are in use by jobs or by this write and cannot be evicted; nothing was stored and "
-                            "no scene was evicted")
+            if self.budget_bytes > 0 and kept_bytes + need > self.budget_bytes:
+                raise StoreFull(f"the scene store's budget ({self.budget_bytes} bytes) cannot take {what} ({need} "
+                                f"bytes) beside the {kept_bytes} bytes of {len(kept)} scenes that jobs (or this write) "
+                                "are using; nothing was stored and no scene was evicted")
+            raise StoreFull(f"the scene store keeps at most {self.max_scenes} scenes and jobs (or this write) are using "
+                            f"{len(kept)} of them: {what} cannot be stored beside them; nothing was stored and no "
+                            "scene was evicted")
         for victim in victims:  # enough of them, by the check above
             if (self.budget_bytes <= 0 or used + need <= self.budget_bytes) and \
                     (self.max_scenes <= 0 or count <= self.max_scenes):

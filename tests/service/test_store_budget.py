@@ -179,9 +179,13 @@ def test_a_write_that_cannot_fit_evicts_nothing(tmp_path):
     assert store.ids() == sorted(kept) and store.evictions == 0
     assert re.search(r"the new scene alone takes \d+ bytes, more than the scene store's whole budget .*no scene was "
                      "evicted", str(info.value))
-    with store.hold(kept[0]), pytest.raises(StoreFull, match="in use by jobs") as info:
+    with store.hold(kept[0]), pytest.raises(StoreFull, match=r"beside the \d+ bytes of 1 scenes that jobs") as info:
         store.put(content_id("big"), _gaussians(3600, 8), {})  # fits the budget, not beside the held scene
     assert "alone" not in str(info.value)
     assert store.ids() == sorted(kept) and store.evictions == 0 and store.refusals == 2
     store.put(content_id("fits"), _gaussians(2000, 7), {})  # one eviction makes room: still done
     assert store.evictions == 1 and len(store.ids()) == 2
+    store.budget_bytes, store.max_scenes = 0, 2
+    with store.hold(*store.ids()), pytest.raises(StoreFull, match="keeps at most 2 scenes and jobs .* are using 2"):
+        store.put(content_id("count"), _gaussians(10), {})
+    assert len(store.ids()) == 2 and store.evictions == 1
