@@ -15,7 +15,7 @@ from pydantic import Field, computed_field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from .model_files import default_model_name
-from .store import DEFAULT_BUDGET_BYTES
+from .store import DEFAULT_BUDGET_BYTES, DEFAULT_TMP_GRACE_S
 
 DEFAULT_HOME = Path.home() / ".omnisplat"
 
@@ -65,9 +65,10 @@ class Settings(BaseSettings):
 
     # -- scene store ----------------------------------------------------------
     store_dir: Path = DEFAULT_HOME / "scenes"
-    store_tmp_grace_s: float = Field(0.0, ge=0, description="unfinished writes in the store's tmp/ younger than "
-                                                            "this survive start-up (other replicas sharing the "
-                                                            "store may be writing them)")
+    store_tmp_grace_s: float = Field(DEFAULT_TMP_GRACE_S, ge=0, description="unfinished writes in the store (tmp/, "
+                                     "trash/, artifact .tmp files) younger than this survive a server's start-up: "
+                                     "another server sharing the store may be writing them; 0 clears them all "
+                                     "(only for a store no other process uses)")
     replica_id: str | None = Field(None, description="names this process in job records (default host:pid)")
     max_scenes: int = Field(0, ge=0, description="scenes kept on disk, least recently used evicted first; 0 = unlimited")
     cache_scenes: int = Field(8, ge=0, description="scenes kept decoded in memory (LRU)")
@@ -86,7 +87,7 @@ class Settings(BaseSettings):
                                      "cost take the reconstruction slot instead of a render slot, so that their "
                                      "memory peak never adds to a reconstruction's")
     min_free_store_bytes: int = Field(256 * 1024 * 1024, ge=0, description="free disk the store must have "
-                                      "before a reconstruction starts (507 below; /readyz 503)")
+                                      "before a reconstruction or a refinement starts (507 below; /readyz 503)")
 
     # -- concurrency ----------------------------------------------------------
     inference_concurrency: int = Field(1, ge=1, description="reconstructions running at once")

@@ -20,7 +20,7 @@ from rasterizer.geometry import PoseError
 from rasterizer.splat import RenderLimitError
 
 from .encoder import EncoderInputError
-from .store import InvalidSceneId, SceneNotFound, StoreCorrupt
+from .store import InvalidSceneId, SceneNotFound, StoreCorrupt, StoreInterrupted
 
 log = logging.getLogger("omnisplat.service")
 
@@ -108,6 +108,9 @@ def _domain_error(exc: Exception) -> ServiceError | None:
         return BadInput(str(exc), code="invalid_input")
     if isinstance(exc, RenderLimitError):
         return PayloadTooLarge(f"render too large for this scene: {exc}", code="render_too_large")
+    if isinstance(exc, StoreInterrupted):  # another process kept clearing the staging folder: send it again
+        log.warning("%s", exc)
+        return Busy(exc.message, retry_after=1, code=exc.code)
     if isinstance(exc, OSError) and exc.errno in STORE_ERRNOS:
         log.error("store write failed: %s", exc)
         return StoreUnavailable(f"{STORE_ERRNOS[exc.errno]}; the request was not stored", code="store_unavailable")

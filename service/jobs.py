@@ -20,6 +20,7 @@ Reference images: a scene must carry the artifact ``references.npz`` (uint8 ERP 
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import threading
 import time
@@ -67,7 +68,14 @@ class RefineRequest(BaseModel):
 
 
 class JobCancelled(Exception):
-    """Raised inside a job's progress callback when the registry is shutting down."""
+    """A job cut by the service's shutdown: raised inside its progress callback when the registry is shutting
+    down, and recorded (with this code and message) for a job whose task was cancelled, queued or running."""
+
+    code = "server_shutdown"
+    message = "the server shut down before the job finished; submit it again"
+
+    def __init__(self) -> None:
+        super().__init__(self.message)
 
 
 def result_id_for(parent_id: str, params: dict, model_sha256: str) -> str:
@@ -230,11 +238,13 @@ class JobRegistry:
     def submit(self, job_id: str, parent_id: str, params: dict, *, done: bool = False) -> tuple[Job, bool]:
         """The job for ``job_id``: an existing queued/running/done one, else a new one (created=True).
 
-        A failed job is replaced by a new attempt. ``done=True`` records an already stored result.
+        ``done=True`` records an already stored result. A failed job is replaced by a new attempt, and
+        so is a done one when ``done=False``: the caller found its result scene gone (deleted or evicted),
+        so the same request makes it again instead of answering a scene that no longer exists.
         """
         with self._lock:
             job = self._jobs.get(job_id)
-            if job is not None and job.status != "failed":
+            if job is not None and (job.status in ACTIVE or (job.status == "done" and done)):
                 return job, False
             if not done:
                 other = self._recorded(job_id)  # queued/running on another replica
@@ -261,7 +271,7 @@ class JobRegistry:
     def progress_callback(self, job: Job) -> Callable[[float], None]:
         def report(fraction: float) -> None:
             if self.cancelled.is_set():
-                raise JobCancelled("service shutting down")
+                raise JobCancelled()
             job.progress = float(min(1.0, max(job.progress, fraction)))
             if time.monotonic() - self._saved.get(job.id, 0.0) >= PROGRESS_WRITE_S:
                 self._save(job)
@@ -293,6 +303,20 @@ class JobRegistry:
             return out
 
 
+def start_job(registry: JobRegistry, job: Job, gate, store: SceneStore) -> asyncio.Task:
+    """Start :func:`run_job` as a task on the running loop; the job's parent is held from now (queued
+    included) until the task ends, whatever the outcome (done, failed, cancelled even before it started):
+    another job's result never evicts the scene an accepted job waits to refine."""
+    store.acquire(job.parent_id)
+    try:
+        task = asyncio.get_running_loop().create_task(run_job(registry, job, gate, store))
+    except BaseException:
+        store.release(job.parent_id)
+        raise
+    task.add_done_callback(lambda _: store.release(job.parent_id))
+    return task
+
+
 async def run_job(registry: JobRegistry, job: Job, gate, store: SceneStore) -> None:
     """Run one job through ``gate`` (a WorkGate); every outcome lands in the job record."""
     report = registry.progress_callback(job)
@@ -308,7 +332,10 @@ async def run_job(registry: JobRegistry, job: Job, gate, store: SceneStore) -> N
 
     try:
         await gate.run(work)
-    except BaseException as exc:  # noqa: BLE001 - recorded on the job; cancellation re-raised
+    except asyncio.CancelledError:  # the loop stops (graceful shutdown): say so, not "CancelledError"
+        registry.mark_failed(job, JobCancelled())
+        raise
+    except BaseException as exc:  # noqa: BLE001 - recorded on the job; KeyboardInterrupt and such re-raised
         registry.mark_failed(job, exc)
         if not isinstance(exc, Exception):
             raise

@@ -5,13 +5,14 @@ Layout under ``root``::
     scenes/<id>/gaussians.npz   # means, scales (float32); quats, opacities, sh (float16): :data:`STORED_DTYPES`
     scenes/<id>/meta.json       # inputs, poses, options, model, timings, parent...
     scenes/<id>/<artifact>      # references, correspondences, selections (added atomically)
-    tmp/                        # scenes being written; cleared at start-up
-    trash/                      # scenes being deleted; cleared at start-up
+    tmp/                        # scenes being written; leftovers older than tmp_grace_s cleared at start-up
+    trash/                      # scenes being deleted; idem
 
 Budget: the scenes together stay within ``budget_bytes`` (0: no cap). A write that would pass it
-first evicts the least recently used scenes that no job holds (:meth:`SceneStore.hold`); when
-that cannot make room, or when the disk would keep less than ``min_free_bytes`` free, the write
-is refused with :class:`StoreFull` (the service answers 507) and nothing is stored.
+first evicts the least recently used scenes that no job holds (:meth:`SceneStore.hold`). When
+evicting all of them could not make room (the write alone exceeds the budget, or held scenes fill
+it), or when the disk would keep less than ``min_free_bytes`` free, the write is refused with
+:class:`StoreFull` (the service answers 507) before any eviction: nothing is stored, nothing lost.
 
 A scene is written into ``tmp/<random>/`` (each file fsynced), then renamed to
 ``scenes/<id>`` in one ``os.replace`` and the parent directory fsynced: a crash leaves
@@ -57,6 +58,12 @@ STORED_DTYPES = {"means": np.float32, "scales": np.float32, "quats": np.float16,
 DEFAULT_BUDGET_BYTES = 16 << 30
 #: Default free disk every store write must leave (``OMNISPLAT_MIN_FREE_STORE_BYTES``).
 DEFAULT_MIN_FREE_BYTES = 256 << 20
+#: Default age (s) below which a start-up leaves unfinished writes (``tmp/``, ``trash/``, artifact ``.tmp`` files)
+#: alone (``OMNISPLAT_STORE_TMP_GRACE_S``): another process sharing the store (a second server on the same volume)
+#: may be writing them. A write takes seconds; a crash's leftovers go at a start-up after this.
+DEFAULT_TMP_GRACE_S = 600.0
+#: Times :meth:`SceneStore.put` restarts a write whose staging folder another process removed.
+_STAGING_ATTEMPTS = 3
 #: Largest change of any rendered pixel (colour in [0, 1]) that storing a scene may cause.
 STORED_RENDER_TOLERANCE = 2.0 / 255.0
 _META_CACHE = 1024  # metadata dicts kept in memory
@@ -91,6 +98,20 @@ class SceneNotFound(KeyError):
 
 class StoreCorrupt(RuntimeError):
     """A stored scene cannot be read back (disk damage or outside interference)."""
+
+
+class StoreInterrupted(OSError):
+    """A write whose staging folder kept vanishing (another process clearing ``tmp/``); nothing was stored,
+    and sending it again is expected to work."""
+
+    code = "store_interrupted"
+
+    def __init__(self, message: str) -> None:
+        super().__init__(errno.EAGAIN, message)
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
 
 
 class StoreFull(OSError):
@@ -239,23 +260,20 @@ class SceneStore:
     """Scenes on local disk (durable, atomic) plus a bounded in-memory LRU of their Gaussians."""
 
     def __init__(self, root: str | Path, *, cache_scenes: int = 8, cache_bytes: int = 1 << 30,
-                 max_scenes: int = 0, tmp_grace_s: float = 0.0, budget_bytes: int = DEFAULT_BUDGET_BYTES,
-                 min_free_bytes: int = DEFAULT_MIN_FREE_BYTES) -> None:
+                 max_scenes: int = 0, tmp_grace_s: float = DEFAULT_TMP_GRACE_S,
+                 budget_bytes: int = DEFAULT_BUDGET_BYTES, min_free_bytes: int = DEFAULT_MIN_FREE_BYTES,
+                 clean_up: bool = True) -> None:
+        """``clean_up``: remove unfinished writes older than ``tmp_grace_s`` (a crash's leftovers; 0: all of
+        them, only right when no other process uses the store). A client that borrows a server's store (the
+        CLI) passes False: it never removes anything it did not write."""
         self.root = Path(root)
         self.scenes_dir = self.root / "scenes"
         self.tmp_dir = self.root / "tmp"
         self.trash_dir = self.root / "trash"
         for d in (self.scenes_dir, self.tmp_dir, self.trash_dir):
             d.mkdir(parents=True, exist_ok=True)
-        for d in (self.tmp_dir, self.trash_dir):  # leftovers of a crash: never visible as scenes
-            for child in d.iterdir():
-                if tmp_grace_s and _age(child) < tmp_grace_s:
-                    continue  # another process sharing the store may still be writing it
-                shutil.rmtree(child, ignore_errors=True) if child.is_dir() else child.unlink(missing_ok=True)
-        for folder in self.scenes_dir.iterdir():  # artifact writes a crash cut short (.<name>.<hex>.tmp)
-            for leftover in folder.glob(".*.tmp") if folder.is_dir() else ():
-                if not (tmp_grace_s and _age(leftover) < tmp_grace_s):
-                    leftover.unlink(missing_ok=True)
+        if clean_up:
+            self._clean_up(tmp_grace_s)
         self.max_scenes = max_scenes
         self.budget_bytes = int(budget_bytes)
         self.min_free_bytes = int(min_free_bytes)
@@ -269,11 +287,27 @@ class SceneStore:
         self.refusals = 0
 
     @classmethod
-    def from_settings(cls, settings) -> "SceneStore":
-        """The store a :class:`service.config.Settings` describes."""
+    def from_settings(cls, settings, *, clean_up: bool = True) -> "SceneStore":
+        """The store a :class:`service.config.Settings` describes (``clean_up``: see :meth:`__init__`)."""
         return cls(settings.store_dir, cache_scenes=settings.cache_scenes, cache_bytes=settings.cache_bytes,
                    max_scenes=settings.max_scenes, tmp_grace_s=settings.store_tmp_grace_s,
-                   budget_bytes=settings.store_budget_bytes, min_free_bytes=settings.min_free_store_bytes)
+                   budget_bytes=settings.store_budget_bytes, min_free_bytes=settings.min_free_store_bytes,
+                   clean_up=clean_up)
+
+    def _clean_up(self, grace_s: float) -> None:
+        """Remove unfinished writes (staging folders, trash, artifact ``.tmp`` files) older than ``grace_s``:
+        leftovers of a crash, never visible as scenes. Younger ones may be another live process's writes."""
+        def stale(path: Path) -> bool:
+            return not (grace_s and _age(path) < grace_s)
+
+        for d in (self.tmp_dir, self.trash_dir):
+            for child in d.iterdir():
+                if stale(child):
+                    shutil.rmtree(child, ignore_errors=True) if child.is_dir() else child.unlink(missing_ok=True)
+        for folder in self.scenes_dir.iterdir():  # .<name>.<hex>.tmp
+            for leftover in folder.glob(".*.tmp") if folder.is_dir() else ():
+                if stale(leftover):
+                    leftover.unlink(missing_ok=True)
 
     # -- paths ------------------------------------------------------------------
     def _dir(self, scene_id: str) -> Path:
@@ -295,16 +329,30 @@ class SceneStore:
     @contextlib.contextmanager
     def hold(self, *scene_ids: str) -> Iterator[None]:
         """Keep ``scene_ids`` from eviction while the block runs (a job reading them); DELETE still removes them."""
-        with self._lock:
-            self._holds.update(scene_ids)
+        self.acquire(*scene_ids)
         try:
             yield
         finally:
-            with self._lock:
-                self._holds.subtract(scene_ids)
-                for sid in scene_ids:
-                    if self._holds[sid] <= 0:
-                        del self._holds[sid]
+            self.release(*scene_ids)
+
+    def acquire(self, *scene_ids: str) -> None:
+        """Keep ``scene_ids`` from eviction until as many :meth:`release` calls (holds count; a queued job's
+        parent is held from its submission to its end); DELETE still removes them."""
+        with self._lock:
+            self._holds.update(scene_ids)
+
+    def release(self, *scene_ids: str) -> None:
+        """Drop one :meth:`acquire` of each of ``scene_ids``."""
+        with self._lock:
+            self._holds.subtract(scene_ids)
+            for sid in scene_ids:
+                if self._holds[sid] <= 0:
+                    del self._holds[sid]
+
+    def held(self) -> dict[str, int]:
+        """Scene id -> holds now (jobs queued or running on it)."""
+        with self._lock:
+            return dict(self._holds)
 
     def _touch(self, scene_id: str) -> None:
         self._used[scene_id] = time.time()
@@ -331,9 +379,12 @@ class SceneStore:
             raise StoreFull(f"the scene store's disk has {free} bytes free; writing {need} more would leave less "
                             f"than the {self.min_free_bytes}-byte margin; nothing was stored")
 
-    def _make_room(self, need: int, keep: str | None = None) -> None:
+    def _make_room(self, need: int, keep: str | None = None, what: str = "the new scene") -> None:
         """Evict least recently used scenes (not held, not ``keep``) until ``need`` more bytes fit the budget
-        and the scene count fits ``max_scenes``; :class:`StoreFull` when they cannot. Call with ``_room`` held."""
+        and the scene count fits ``max_scenes``; :class:`StoreFull` when they cannot. Call with ``_room`` held.
+
+        Decides first, evicts after: a write that cannot fit even with every evictable scene gone is
+        refused with nothing evicted (``what`` names the write in that message)."""
         if self.budget_bytes <= 0 and self.max_scenes <= 0:
             return
         ids = self.ids()
@@ -343,18 +394,29 @@ class SceneStore:
         with self._lock:
             held = set(self._holds)
         victims = sorted((i for i in ids if i not in held and i != keep), key=self._last_used)
-        while (self.budget_bytes > 0 and used + need > self.budget_bytes) or \
-                (self.max_scenes > 0 and count > self.max_scenes):
-            if not victims:
-                self.refusals += 1
-                raise StoreFull(f"the scene store's budget ({self.budget_bytes} bytes, {self.max_scenes or 'any'} "
-                                f"scenes) cannot take {need} more bytes: {used} are used by scenes that jobs are "
-                                "using; nothing was stored")
-            victim = victims.pop(0)
+        kept = [i for i in ids if i in held or i == keep]  # never evicted for this write
+        kept_bytes = sum(sizes.get(i, 0) for i in kept)
+        if (self.budget_bytes > 0 and kept_bytes + need > self.budget_bytes) or \
+                (self.max_scenes > 0 and count - len(victims) > self.max_scenes):
+            self.refusals += 1
+            if self.budget_bytes > 0 and need > self.budget_bytes:
+                raise StoreFull(f"{what} alone takes {need} bytes, more than the scene store's whole budget "
+                                f"({self.budget_bytes} bytes); nothing was stored and no scene was evicted")
+            if self.budget_bytes > 0 and kept_bytes + need > self.budget_bytes:
+                raise StoreFull(f"the scene store's budget ({self.budget_bytes} bytes) cannot take {what} ({need} "
+                                f"bytes) beside the {kept_bytes} bytes of {len(kept)} scenes that jobs (or this write) "
+                                "are using; nothing was stored and no scene was evicted")
+            raise StoreFull(f"the scene store keeps at most {self.max_scenes} scenes and jobs (or this write) are using "
+                            f"{len(kept)} of them: {what} cannot be stored beside them; nothing was stored and no "
+                            "scene was evicted")
+        for victim in victims:  # enough of them, by the check above
+            if (self.budget_bytes <= 0 or used + need <= self.budget_bytes) and \
+                    (self.max_scenes <= 0 or count <= self.max_scenes):
+                break
             log.info("store budget: evicting %s (least recently used)", victim)
             if self.delete(victim):
                 self.evictions += 1
-                count -= 1
+            count -= 1  # gone either way (another process may have deleted it first)
             used -= sizes.get(victim, 0)
 
     def write_problem(self, min_free: int = 0) -> str | None:
@@ -386,31 +448,44 @@ class SceneStore:
                           "created_at": meta.get("created_at", time.time())})
         arrays = {f: getattr(gaussians, f).astype(STORED_DTYPES[f], copy=False) for f in _FIELDS}  # float32 ones: no copy
         self._check_margin(sum(a.nbytes for a in arrays.values()) + sum(len(d) for d in (artifacts or {}).values()))
-        staging = self.tmp_dir / f"{scene_id}-{uuid.uuid4().hex}"
-        staging.mkdir()
-        try:
-            _write_file(staging / "gaussians.npz", lambda f: np.savez(f, **arrays))
-            for name, data in (artifacts or {}).items():
-                if "/" in name or name.startswith(".") or name in ("meta.json", "gaussians.npz"):
-                    raise ValueError(f"bad artifact name {name!r}")
-                _write_file(staging / name, lambda f, data=data: f.write(data))
-            text = json.dumps(meta, indent=1, sort_keys=True).encode()
-            _write_file(staging / "meta.json", lambda f: f.write(text))
-            _fsync_dir(staging)
-            with self._room:
-                self._make_room(_tree_bytes(staging))
-                try:
-                    os.replace(staging, final)
-                except OSError:
-                    if (final / "meta.json").is_file():  # a concurrent writer of the same id won
-                        shutil.rmtree(staging, ignore_errors=True)
-                        return self.meta(scene_id)
+        for name in artifacts or {}:
+            if "/" in name or name.startswith(".") or name in ("meta.json", "gaussians.npz"):
+                raise ValueError(f"bad artifact name {name!r}")
+        files = {"gaussians.npz": lambda f: np.savez(f, **arrays),
+                 **{name: (lambda f, data=data: f.write(data)) for name, data in (artifacts or {}).items()},
+                 "meta.json": lambda f, text=json.dumps(meta, indent=1, sort_keys=True).encode(): f.write(text)}
+        for _ in range(_STAGING_ATTEMPTS):
+            staging = self.tmp_dir / f"{scene_id}-{uuid.uuid4().hex}"
+            try:
+                staging.mkdir(parents=True)
+                for name, writer in files.items():
+                    _write_file(staging / name, writer)
+                _fsync_dir(staging)
+                with self._room:
+                    self._make_room(_tree_bytes(staging))
+                    try:
+                        os.replace(staging, final)
+                    except OSError:
+                        if (final / "meta.json").is_file():  # a concurrent writer of the same id won
+                            shutil.rmtree(staging, ignore_errors=True)
+                            return self.meta(scene_id)
+                        raise
+                    self._touch(scene_id)
+                _fsync_dir(self.scenes_dir)
+                break
+            except FileNotFoundError:
+                if staging.is_dir():
+                    shutil.rmtree(staging, ignore_errors=True)
                     raise
-                self._touch(scene_id)
-            _fsync_dir(self.scenes_dir)
-        except BaseException:
-            shutil.rmtree(staging, ignore_errors=True)
-            raise
+                log.warning("store: the staging folder of %s vanished (another process cleared tmp/); writing it again",
+                            scene_id)
+            except BaseException:
+                shutil.rmtree(staging, ignore_errors=True)
+                raise
+        else:
+            raise StoreInterrupted(f"the scene store's staging folder was removed {_STAGING_ATTEMPTS} times while "
+                                   "the scene was written (another process is clearing its tmp/); nothing was "
+                                   "stored; send it again")
         self.cache.put(scene_id, Gaussians(*arrays.values()))  # what reads back from disk, not the unrounded input
         return meta
 
@@ -424,7 +499,8 @@ class SceneStore:
         self._check_margin(len(data))
         try:
             with self._room:
-                self._make_room(len(data) - (target.stat().st_size if target.is_file() else 0), keep=scene_id)
+                self._make_room(len(data) - (target.stat().st_size if target.is_file() else 0), keep=scene_id,
+                                what=f"the file {name}")
                 _write_file(tmp, lambda f: f.write(data))
                 os.replace(tmp, target)
         except FileNotFoundError:  # the scene was deleted meanwhile

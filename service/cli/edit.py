@@ -28,14 +28,24 @@ def _point(text: str) -> list[float]:
 
 
 def _edit_store(args: argparse.Namespace):
+    """The store the server's settings describe (budget, max scenes: OMNISPLAT_*), in ``--store`` if given.
+    It never clears unfinished writes: a running server may be writing them."""
+    from pydantic import ValidationError
+
     from ..config import Settings
+    from ..options import describe_error
     from ..store import SceneStore
 
-    path = args.store or Settings().store_dir
     try:
-        return SceneStore(path)
+        settings = Settings()
+    except ValidationError as exc:
+        raise CliError(describe_error(exc, prefix="OMNISPLAT settings")) from None
+    if args.store is not None:
+        settings = settings.model_copy(update={"store_dir": args.store})
+    try:
+        return SceneStore.from_settings(settings, clean_up=False)
     except OSError as exc:  # e.g. --store names a file
-        raise CliError(f"--store {path}: cannot open the scene store: {exc.strerror or exc}") from None
+        raise CliError(f"--store {settings.store_dir}: cannot open the scene store: {exc.strerror or exc}") from None
 
 
 def _edit_call(fn, *a):

@@ -12,15 +12,17 @@ bounded queue (503 + Retry-After beyond it).
 
 from __future__ import annotations
 
-import asyncio
 from typing import Annotated
 
+import anyio
 from fastapi import APIRouter, Body, Path, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from .. import jobs as work
-from ..deps import KnownQueryParameters, SceneId, SingleQueryValues, StoreDep, UniqueBodyKeys
+from .. import scenes
+from ..deps import KnownQueryParameters, SceneId, SettingsDep, SingleQueryValues, StoreDep, UniqueBodyKeys
 from ..errors import Busy, NotFound
+from ..job_state import ACTIVE
 from ..jobs import RefineRequest
 from ..limits import WorkGate
 from ..references import ReferencesMissing, has_references
@@ -50,8 +52,9 @@ def _gate(request: Request) -> WorkGate:
 
 @router.post("/v1/scenes/{scene_id}/refine", status_code=202, response_model=JobStatus, dependencies=[UniqueBodyKeys],
              summary="Refine the colours on the reference views; runs as a job",
-             responses=error_responses(404, 409, 415, 422, 503))
+             responses=error_responses(404, 409, 415, 422, 503, 507))
 async def refine_scene(scene_id: SceneId, request: Request, response: Response, store: StoreDep,
+                       settings: SettingsDep,
                        body: Annotated[RefineRequest | None, Body()] = None) -> JobStatus:
     params = (body or RefineRequest()).model_dump()
     if not store.exists(scene_id):
@@ -66,14 +69,16 @@ async def refine_scene(scene_id: SceneId, request: Request, response: Response, 
         job, _ = registry.submit(job_id, scene_id, params, done=True)
         return JobStatus(**job.as_json())
     existing = registry.get(job_id)
-    if existing is None or existing.status == "failed":
+    if existing is None or existing.status not in ACTIVE:  # failed, or done with its result gone: a new run
+        # the result is a new scene: refused before any work when the disk is under the margin (as POST /v1/scenes)
+        await anyio.to_thread.run_sync(scenes.check_free_space, store, settings.min_free_store_bytes)
         gate = _gate(request)
         if gate.full:
             gate.reject()
             raise Busy(f"refine queue is full; retry in {gate.retry_after} s", retry_after=gate.retry_after)
     job, created = registry.submit(job_id, scene_id, params)
     if created:
-        job.task = asyncio.get_running_loop().create_task(work.run_job(registry, job, _gate(request), store))
+        job.task = work.start_job(registry, job, _gate(request), store)
     return JobStatus(**job.as_json())
 
 

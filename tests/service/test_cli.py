@@ -641,3 +641,35 @@ def test_serve_setting_errors_name_the_flags_and_variables(tmp_path, capsys, mon
     monkeypatch.setenv("OMNISPLAT_MAX_REQUESTS", "many")
     assert cli.main(["serve", "--no-build"]) == 2
     assert "OMNISPLAT_MAX_REQUESTS: " in capsys.readouterr().err
+
+
+def test_select_and_edit_on_a_server_store_keep_its_writes_and_take_its_settings(tmp_path, capsys, monkeypatch):
+    """The CLI borrows the server's store: it never clears what the server is writing (tmp/, trash/, artifact
+    .tmp files) and keeps the store settings of the environment (budget, max scenes); --store moves the folder."""
+    import os
+
+    from rasterizer.gaussians import Gaussians
+    from service import edits
+    from service.store import SceneStore, content_id
+
+    root = tmp_path / "store"
+    sid = content_id("cli-store")
+    one = np.ones((5, 3), np.float32)
+    SceneStore(root).put(sid, Gaussians(one, one * 0.1, np.tile([1.0, 0, 0, 0], (5, 1)), np.ones(5), one[:, None]), {})
+    staging, trash = root / "tmp" / f"{sid}-0123", root / "trash" / f"{sid}-4567"
+    staging.mkdir()
+    trash.mkdir()
+    artifact = root / "scenes" / sid / ".gaussians.ply.89ab.tmp"
+    artifact.write_bytes(b"half")
+    for path in (staging, trash, artifact):
+        os.utime(path, (0, 0))  # even old ones: the CLI is no server and clears nothing
+    monkeypatch.setenv("OMNISPLAT_MAX_SCENES", "1")
+    monkeypatch.setenv("OMNISPLAT_STORE_BUDGET_BYTES", "40000000")
+    monkeypatch.setenv("OMNISPLAT_STORE_DIR", str(tmp_path / "elsewhere"))
+    seen = []
+    monkeypatch.setattr(edits, "create_selection", lambda store, scene, request: seen.append(store) or {"ok": 1})
+    assert cli.main(["select", sid, "--store", str(root), "--view", "a", "--point", "0.5,0.5"]) == 0
+    assert cli.main(["select", "0" * 32, "--store", str(root), "--segment", "2"]) == 0
+    capsys.readouterr()
+    assert staging.is_dir() and trash.is_dir() and artifact.is_file()
+    assert [(s.root, s.max_scenes, s.budget_bytes) for s in seen] == [(root, 1, 40_000_000)] * 2

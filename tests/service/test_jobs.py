@@ -183,3 +183,117 @@ def test_result_id_depends_on_everything():
     assert base != result_id_for("b" * 32, p, "sha")
     assert base != result_id_for("a" * 32, {"iterations": 2}, "sha")
     assert base != result_id_for("a" * 32, p, "sha2")
+
+
+def test_registry_reruns_a_done_job_whose_result_is_gone():
+    """``done=False`` means the caller found no result scene: a done job is then a new attempt, as a failed one."""
+    reg = JobRegistry()
+    job, _ = reg.submit("a" * 32, "b" * 32, {})
+    reg.mark_done(job)
+    assert reg.submit("a" * 32, "b" * 32, {}, done=True) == (job, False)  # the result is stored: the same job
+    again, created = reg.submit("a" * 32, "b" * 32, {})
+    assert created and again is not job and again.status == "queued"
+
+
+def test_refine_remakes_its_deleted_result(client, scene_id):
+    params = {"iterations": 2, "height": 16, "patience": 0}
+    first = client.post(f"/v1/scenes/{scene_id}/refine", json=params)
+    assert first.status_code == 202, first.text
+    result = _wait(client, first.headers["location"])["scene_id"]
+    assert client.delete(f"/v1/scenes/{result}").status_code == 204
+    again = client.post(f"/v1/scenes/{scene_id}/refine", json=params)
+    assert again.status_code == 202 and again.json()["status"] in ("queued", "running"), again.text
+    assert _wait(client, again.headers["location"])["status"] == "done"
+    assert client.get(f"/v1/scenes/{result}").status_code == 200
+
+
+def _tiny_scene(store, name: str) -> str:
+    from rasterizer.gaussians import Gaussians
+    from service.store import content_id
+
+    one = np.ones((4, 3), np.float32)
+    sid = content_id("jobs-test", name)
+    store.put(sid, Gaussians(one, one * 0.1, np.tile([1.0, 0, 0, 0], (4, 1)), np.ones(4), one[:, None]), {})
+    return sid
+
+
+def test_a_queued_job_holds_its_parent_until_it_ends(tmp_path):
+    """Another write evicts around a queued job's parent (not only a running one's), and every hold is given back
+    however the job ends: cancelled while queued, or failed."""
+    import asyncio
+
+    from service.jobs import start_job
+    from service.limits import WorkGate
+    from service.store import SceneStore
+
+    store = SceneStore(tmp_path, max_scenes=2, budget_bytes=0, min_free_bytes=0)
+    parent = _tiny_scene(store, "parent")
+    other = _tiny_scene(store, "other")
+    store.gaussians(other)  # the parent is now the least recently used scene
+
+    async def scenario() -> None:
+        gate = WorkGate("refine", 1, 4, 5)
+        await gate.limiter.acquire()  # the one slot is busy: the job waits in the queue
+        reg = JobRegistry()
+        job, _ = reg.submit("c" * 32, parent, {})
+        task = start_job(reg, job, gate, store)
+        await asyncio.sleep(0.05)
+        assert job.status == "queued" and store.held() == {parent: 1}
+        _tiny_scene(store, "result of another job")  # one scene must go: not the queued job's parent
+        assert parent in store.ids() and other not in store.ids()
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        assert store.held() == {}
+        gate.limiter.release()
+        failing, _ = reg.submit("d" * 32, parent, {})  # the parent has no references: this job fails
+        await start_job(reg, failing, gate, store)
+        assert failing.status == "failed" and store.held() == {}
+
+    asyncio.run(scenario())
+
+
+def test_refine_on_a_disk_under_the_margin_is_refused_up_front(client, live, scene_id, monkeypatch):
+    """As POST /v1/scenes: 507 before any work, and no job accepted (it would run, then fail store_full)."""
+    done = client.post(f"/v1/scenes/{scene_id}/refine", json={"iterations": 1, "height": 16})
+    assert _wait(client, done.headers["location"])["status"] == "done"
+    monkeypatch.setattr(live.app.state.settings, "min_free_store_bytes", 1 << 62)
+    jobs = live.app.state.jobs.counts()
+    r = client.post(f"/v1/scenes/{scene_id}/refine", json={"iterations": 1, "height": 20})
+    assert r.status_code == 507 and "no work was done" in r.json()["error"]["message"], r.text
+    assert live.app.state.jobs.counts() == jobs  # no job was made
+    again = client.post(f"/v1/scenes/{scene_id}/refine", json={"iterations": 1, "height": 16})
+    assert again.status_code == 202 and again.json()["status"] == "done"  # a stored result needs no disk
+
+
+def test_a_job_cut_by_shutdown_says_so(tmp_path):
+    """Queued (its task cancelled as the loop stops) or running (stopped at its next progress report): the job
+    fails with a message the client can act on, never a bare 'CancelledError'."""
+    import asyncio
+
+    from service.jobs import start_job
+    from service.limits import WorkGate
+    from service.store import SceneStore
+
+    store = SceneStore(tmp_path, min_free_bytes=0)
+    parent = _tiny_scene(store, "parent")
+    result = _tiny_scene(store, "result")  # stored: the job's only step is its last progress report
+
+    async def scenario() -> tuple[dict, dict]:
+        gate = WorkGate("refine", 1, 4, 5)
+        reg = JobRegistry()
+        await gate.limiter.acquire()
+        queued, _ = reg.submit("e" * 32, parent, {})
+        task = start_job(reg, queued, gate, store)
+        await asyncio.sleep(0.05)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        gate.limiter.release()
+        running, _ = reg.submit(result, parent, {})
+        reg.cancel_all()
+        await start_job(reg, running, gate, store)
+        return queued.error, running.error
+
+    for error in asyncio.run(scenario()):
+        assert error == {"code": "server_shutdown",
+                         "message": "the server shut down before the job finished; submit it again"}
+    assert store.held() == {}

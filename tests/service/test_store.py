@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import threading
 import time
 
@@ -12,7 +13,16 @@ import pytest
 
 from rasterizer.gaussians import Gaussians
 from service.errors import BadInput, translate
-from service.store import InvalidSceneId, SceneNotFound, SceneStore, StoreCorrupt, content_id, json_safe, stored_form
+from service.store import (
+    InvalidSceneId,
+    SceneNotFound,
+    SceneStore,
+    StoreCorrupt,
+    StoreInterrupted,
+    content_id,
+    json_safe,
+    stored_form,
+)
 
 
 def _gaussians(n: int, seed: int = 0) -> Gaussians:
@@ -109,6 +119,7 @@ def test_crash_leftovers_are_invisible_and_cleaned(tmp_path):
     staging = tmp_path / "tmp" / f"{sid}-deadbeef"
     staging.mkdir()
     (staging / "gaussians.npz").write_bytes(b"partial")
+    os.utime(staging, (0, 0))  # the crash was longer ago than the grace
     assert not store.exists(sid)
     SceneStore(tmp_path)  # restart
     assert not staging.exists()
@@ -205,14 +216,55 @@ def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
     assert list((tmp_path / "tmp").iterdir()) == [] and list((tmp_path / "scenes").iterdir()) == []
 
 
-def test_shared_store_keeps_young_unfinished_writes(tmp_path):
-    """With tmp_grace_s (replicas sharing a store), a start-up leaves another writer's young staging alone."""
+def test_start_up_keeps_young_unfinished_writes_by_default(tmp_path):
+    """Another process sharing the store (a second server on one volume, the CLI) may be writing into tmp/, trash/
+    or an artifact .tmp: a start-up removes only leftovers older than the grace; 0 removes all of them."""
     SceneStore(tmp_path)
+    sid = content_id("young")
+    SceneStore(tmp_path).put(sid, _gaussians(5), {})
     young, old = tmp_path / "tmp" / "young", tmp_path / "tmp" / "old"
     young.mkdir()
     old.mkdir()
+    trash = tmp_path / "trash" / "young"
+    trash.mkdir()
+    artifact = tmp_path / "scenes" / sid / ".gaussians.ply.0123abcd.tmp"
+    artifact.write_bytes(b"half")
     os.utime(old, (time.time() - 3600, time.time() - 3600))
-    SceneStore(tmp_path, tmp_grace_s=600)
-    assert young.exists() and not old.exists()
-    SceneStore(tmp_path)  # a single process owns its store: everything left is a crash's leftover
-    assert not young.exists()
+    SceneStore(tmp_path)
+    assert young.exists() and trash.exists() and artifact.exists() and not old.exists()
+    SceneStore(tmp_path, clean_up=False, tmp_grace_s=0)  # a client of a server's store clears nothing
+    assert young.exists() and trash.exists() and artifact.exists()
+    SceneStore(tmp_path, tmp_grace_s=0)  # a store no other process uses: everything left is a crash's leftover
+    assert not young.exists() and not trash.exists() and not artifact.exists()
+
+
+def test_put_writes_again_when_its_staging_folder_vanishes(tmp_path, monkeypatch):
+    """Another process clearing tmp/ under a write: the write is staged again, never a FileNotFoundError; when it
+    keeps happening, a StoreInterrupted (retryable) and nothing stored."""
+    store = SceneStore(tmp_path)
+    real = np.savez
+    cleared = []
+
+    def clear_tmp_while_writing(f, **arrays):
+        if len(cleared) < budget:
+            cleared.append(f.name)
+            shutil.rmtree(store.tmp_dir)  # the whole tmp/, as a start-up cleanup of another process does
+        real(f, **arrays)
+
+    monkeypatch.setattr(np, "savez", clear_tmp_while_writing)
+    budget = 1
+    sid = content_id("vanish")
+    store.put(sid, _gaussians(5), {"x": 1}, artifacts={"references.npz": b"refs"})
+    assert store.exists(sid) and store.artifact(sid, "references.npz").read_bytes() == b"refs" and len(cleared) == 1
+    budget = 100
+    with pytest.raises(StoreInterrupted, match="send it again"):
+        store.put(content_id("vanish", "2"), _gaussians(5), {})
+    assert store.ids() == [sid] and list(store.tmp_dir.glob("*")) == []
+
+
+def test_an_interrupted_write_is_a_retryable_503():
+    """The API's answer to a write whose staging folder kept vanishing: 503 with Retry-After, not a 500."""
+    from service.errors import translate
+
+    mapped = translate(StoreInterrupted("the write was interrupted; send it again"))
+    assert mapped.status == 503 and mapped.code == "store_interrupted" and mapped.headers["Retry-After"] == "1"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
 from collections import namedtuple
 
@@ -120,6 +121,7 @@ def test_start_up_removes_interrupted_artifact_writes(tmp_path):
     store.put(sid, _gaussians(10), {})
     leftover = store.scenes_dir / sid / ".gaussians.ply.0123abcd.tmp"
     leftover.write_bytes(b"half a file")
+    os.utime(leftover, (0, 0))  # older than any grace: a crash's, not a live writer's
     SceneStore(tmp_path)
     assert not leftover.exists() and SceneStore(tmp_path).exists(sid)
 
@@ -159,3 +161,31 @@ def test_the_service_builds_its_store_from_the_settings(tmp_path, model_path):
     with TestClient(create_app(settings)) as client:
         store = client.app.state.store
         assert (store.budget_bytes, store.min_free_bytes) == (987654321, 8192)
+
+
+def test_a_write_that_cannot_fit_evicts_nothing(tmp_path):
+    """Decide first, evict after: a scene bigger than the whole budget, or one that does not fit beside the held
+    scenes, is refused with every stored scene still there."""
+    g = _gaussians(2000)
+    probe = SceneStore(tmp_path / "probe")
+    probe.put(content_id("probe"), g, {})
+    one = _scene_bytes(probe, content_id("probe"))
+    store = SceneStore(tmp_path / "s", budget_bytes=int(2.5 * one), min_free_bytes=0)
+    kept = [content_id("keep", str(i)) for i in range(2)]
+    for i, sid in enumerate(kept):
+        store.put(sid, _gaussians(2000, i), {})
+    with pytest.raises(StoreFull) as info:
+        store.put(content_id("huge"), _gaussians(6000, 9), {})
+    assert store.ids() == sorted(kept) and store.evictions == 0
+    assert re.search(r"the new scene alone takes \d+ bytes, more than the scene store's whole budget .*no scene was "
+                     "evicted", str(info.value))
+    with store.hold(kept[0]), pytest.raises(StoreFull, match=r"beside the \d+ bytes of 1 scenes that jobs") as info:
+        store.put(content_id("big"), _gaussians(3600, 8), {})  # fits the budget, not beside the held scene
+    assert "alone" not in str(info.value)
+    assert store.ids() == sorted(kept) and store.evictions == 0 and store.refusals == 2
+    store.put(content_id("fits"), _gaussians(2000, 7), {})  # one eviction makes room: still done
+    assert store.evictions == 1 and len(store.ids()) == 2
+    store.budget_bytes, store.max_scenes = 0, 2
+    with store.hold(*store.ids()), pytest.raises(StoreFull, match="keeps at most 2 scenes and jobs .* are using 2"):
+        store.put(content_id("count"), _gaussians(10), {})
+    assert len(store.ids()) == 2 and store.evictions == 1
