@@ -24,6 +24,7 @@ from .segment import (
     carry_selection,
     normals_from_range,
     region_graph,
+    seed_superpixels,
     select_regions,
     superpixels,
 )
@@ -202,7 +203,8 @@ def select_points(index: SceneIndex, view: int, points, negative=()) -> Selectio
         raise SelectionError("give at least one positive point")
     graph = index.graphs[view]
     lab = graph.labels.ravel()
-    chosen, level = select_regions(graph, lab[pos], lab[neg], index.opts.select_level)
+    seeds = seed_superpixels(graph, index.colour[view], pos, index.opts, exclude=lab[neg])
+    chosen, level = select_regions(graph, seeds, lab[neg], index.opts.select_level)
     masks = np.zeros((2,) + graph.labels.shape, dtype=bool)
     masks[view] = chosen[graph.labels]
     other = 1 - view

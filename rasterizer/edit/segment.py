@@ -6,9 +6,13 @@
    seam, rows meet across each pole) weighted by boundary colour contrast,
    mean-colour difference, the relative range jump and the normal angle
    across the shared boundary (:class:`SegmentOptions` scales each term);
-3. :func:`select_regions`: the superpixels joined to the positive points'
-   ones by edges no heavier than ``level`` (single linkage); negative
-   points lower the level until none of them is joined;
+3. :func:`seed_superpixels`: a positive point's superpixel, plus, when that
+   superpixel is a strip along an edge (the transition band Felzenszwalb
+   leaves between two surfaces), the adjacent non-strip superpixel whose mean
+   colour is nearest the clicked pixel's: the surface the click is on;
+   :func:`select_regions`: the superpixels joined to the seeds by edges no
+   heavier than ``level`` (single linkage); negative points lower the level
+   until none of them is joined;
 4. :func:`carry_selection`: a mask of one view carried to the other through
    the encoder's matches (left-right consistent, unoccluded matches whose two
    pixels have similar colours; then this view's left-right failures whose
@@ -29,6 +33,7 @@ import warnings
 from dataclasses import asdict, dataclass, fields
 
 import numpy as np
+from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -51,7 +56,10 @@ class SegmentOptions:
     colour_tol: RGB distance, depth_tol: relative range jump |r_p - r_q| / min,
     normal_tol: 1 - cos of the normal angle, each worth one unit of edge
     weight. select_level / auto_level: largest edge weight joined by a
-    prompt / by the automatic segmentation. min_votes: matched pixels a
+    prompt / by the automatic segmentation. strip_depth: mean distance in
+    pixels (working ERP) from a superpixel's pixels to its border at or under
+    which it is a strip along an edge, not a surface (:func:`seed_superpixels`;
+    docs/design.md). min_votes: matched pixels a
     superpixel needs to take its label from the other view; photo_tol: RGB
     distance (0..sqrt 3) above which a match's two pixels are too different in
     colour to be the same point (it then counts as inconsistent; m3d_bedroom
@@ -81,6 +89,7 @@ class SegmentOptions:
     normal_tol: float = 0.4
     select_level: float = 1.5
     auto_level: float = 0.5
+    strip_depth: float = 1.25
     min_votes: int = 8
     snap: bool = False
     weak_pull: bool = True
@@ -144,7 +153,9 @@ def _neighbour_pairs(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class RegionGraph:
     """Superpixels of one view and their weighted adjacency.
 
-    labels (H, W) int32; size (n,) pixels; i, j, weight (E,) edges i < j.
+    labels (H, W) int32; size (n,) pixels; i, j, weight (E,) edges i < j; mean_colour (n, 3) RGB in [0, 1]
+    and depth (n,) mean distance of a superpixel's pixels to its border in pixels (both computed from
+    ``labels`` and the colour when not given: :func:`region_graph` gives them).
     """
 
     labels: np.ndarray
@@ -152,6 +163,8 @@ class RegionGraph:
     i: np.ndarray
     j: np.ndarray
     weight: np.ndarray
+    mean_colour: np.ndarray | None = None
+    depth: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -164,6 +177,22 @@ class RegionGraph:
             keep &= nodes[self.i] & nodes[self.j]
         m = coo_matrix((np.ones(int(keep.sum()), dtype=np.int8), (self.i[keep], self.j[keep])), shape=(self.n, self.n))
         return connected_components(m, directed=False)[1]
+
+
+def interior_depth(labels: np.ndarray) -> np.ndarray:
+    """(n,) mean distance in pixels from each superpixel's pixels to its border (a pixel with a 4-neighbour of
+    another superpixel is at 0; longitude wraps at the seam). A strip k pixels wide has about (k - 2) / 4."""
+    pad = 8
+    lab = np.concatenate([labels[:, -pad:], labels, labels[:, :pad]], axis=1)
+    inner = np.ones(lab.shape, dtype=bool)
+    inner[:, 1:] &= lab[:, 1:] == lab[:, :-1]
+    inner[:, :-1] &= lab[:, :-1] == lab[:, 1:]
+    inner[1:] &= lab[1:] == lab[:-1]
+    inner[:-1] &= lab[:-1] == lab[1:]
+    dist = ndimage.distance_transform_edt(inner)[:, pad:-pad]
+    n = int(labels.max()) + 1
+    return (np.bincount(labels.ravel(), weights=dist.ravel(), minlength=n)
+            / np.maximum(np.bincount(labels.ravel(), minlength=n), 1)).astype(np.float32)
 
 
 def region_graph(labels: np.ndarray, colour: np.ndarray, inv_range: np.ndarray, normals: np.ndarray,
@@ -194,7 +223,43 @@ def region_graph(labels: np.ndarray, colour: np.ndarray, inv_range: np.ndarray, 
     i, j = (key // n).astype(np.int64), (key % n).astype(np.int64)
     diff = np.linalg.norm(mean_col[i] - mean_col[j], axis=-1)
     weight = (contrast + diff) / opts.colour_tol + jump / opts.depth_tol + bend / opts.normal_tol
-    return RegionGraph(labels, size, i, j, weight.astype(np.float32))
+    return RegionGraph(labels, size, i, j, weight.astype(np.float32), mean_col.astype(np.float32), interior_depth(labels))
+
+
+def seed_superpixels(graph: RegionGraph, colour: np.ndarray, pixels: np.ndarray, opts: SegmentOptions,
+                     exclude: np.ndarray = ()) -> np.ndarray:
+    """Superpixel ids seeded by flat ``pixels`` (k,) of this view (colour (H, W, 3) in [0, 1]).
+
+    Each pixel seeds its superpixel; when that superpixel is a strip (:attr:`RegionGraph.depth` at most
+    ``opts.strip_depth``: the band of mixed colour and range Felzenszwalb leaves along an edge, whose
+    edges to both sides weigh about half the edge between the sides, i.e. near the level), the adjacent
+    superpixel that is not a strip and whose mean colour is nearest the pixel's own seeds too, unless it
+    is in ``exclude`` (the negative points' ids). Without it a click on a strip selects the strip alone or
+    a whole surface depending on where the strip's border fell.
+    """
+    pixels = np.asarray(pixels, dtype=np.int64).ravel()
+    lab = graph.labels.ravel()
+    ids = lab[pixels]
+    mean_col = graph.mean_colour
+    if mean_col is None:
+        mean_col = np.stack([np.bincount(lab, weights=colour[..., c].ravel(), minlength=graph.n)
+                             for c in range(3)], -1) / np.maximum(graph.size, 1)[:, None]
+    depth = interior_depth(graph.labels) if graph.depth is None else graph.depth
+    strip = depth <= opts.strip_depth
+    # candidate (seed k, neighbour) pairs: edges touching a strip seed whose other end is no strip
+    k_i, e_i = np.nonzero(ids[:, None] == graph.i[None, :])
+    k_j, e_j = np.nonzero(ids[:, None] == graph.j[None, :])
+    k = np.concatenate([k_i, k_j])
+    nb = np.concatenate([graph.j[e_i], graph.i[e_j]])
+    ok = strip[ids[k]] & ~strip[nb]
+    k, nb = k[ok], nb[ok]
+    if k.size == 0:
+        return np.unique(ids)
+    dist = np.linalg.norm(mean_col[nb] - colour.reshape(-1, 3)[pixels[k]], axis=-1)
+    order = np.lexsort((dist, k))  # per seed, nearest first
+    nearest = nb[order][np.r_[True, k[order][1:] != k[order][:-1]]]
+    nearest = nearest[~np.isin(nearest, np.asarray(exclude, dtype=np.int64))]
+    return np.unique(np.concatenate([ids, nearest]))
 
 
 def select_regions(graph: RegionGraph, positive: np.ndarray, negative: np.ndarray, level: float) -> tuple[np.ndarray, float]:
