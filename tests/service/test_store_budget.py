@@ -26,6 +26,13 @@ def _scene_bytes(store: SceneStore, sid: str) -> int:
     return sum(p.stat().st_size for p in folder.iterdir())
 
 
+def _bytes_of_one(tmp_path, g) -> int:
+    """What a scene of ``g`` takes in a store (written to a probe store beside the test's)."""
+    probe = SceneStore(tmp_path / "probe")
+    probe.put(content_id("probe"), g, {})
+    return _scene_bytes(probe, content_id("probe"))
+
+
 def test_stored_scene_takes_float16_where_precision_allows(tmp_path):
     store = SceneStore(tmp_path)
     g = _gaussians(10_000)
@@ -58,9 +65,7 @@ def test_renders_of_a_stored_scene_stay_within_the_stated_tolerance():
 
 def test_budget_evicts_least_recently_used_scenes_no_job_holds(tmp_path):
     g = _gaussians(2000)
-    probe = SceneStore(tmp_path / "probe")
-    probe.put(content_id("probe"), g, {})
-    one = _scene_bytes(probe, content_id("probe"))
+    one = _bytes_of_one(tmp_path, g)
     store = SceneStore(tmp_path / "s", budget_bytes=int(3.5 * one), min_free_bytes=0)
     ids = [content_id("lru", str(i)) for i in range(3)]
     for i, sid in enumerate(ids):
@@ -167,9 +172,7 @@ def test_a_write_that_cannot_fit_evicts_nothing(tmp_path):
     """Decide first, evict after: a scene bigger than the whole budget, or one that does not fit beside the held
     scenes, is refused with every stored scene still there."""
     g = _gaussians(2000)
-    probe = SceneStore(tmp_path / "probe")
-    probe.put(content_id("probe"), g, {})
-    one = _scene_bytes(probe, content_id("probe"))
+    one = _bytes_of_one(tmp_path, g)
     store = SceneStore(tmp_path / "s", budget_bytes=int(2.5 * one), min_free_bytes=0)
     kept = [content_id("keep", str(i)) for i in range(2)]
     for i, sid in enumerate(kept):
