@@ -119,8 +119,11 @@ def ply_bytes(g: Gaussians, *, drop_invalid: bool = True) -> bytes:
 
 
 def write_ply(path: str | os.PathLike, g: Gaussians, *, drop_invalid: bool = True) -> Path:
-    """Write ``g`` to ``path`` atomically (temp file + rename); returns the path."""
+    """Write ``g`` to ``path`` atomically (temp file + rename); returns the path. A symbolic link is written
+    through (its target replaced), as a plain write would, not replaced by a file."""
     path = Path(path)
+    if path.is_symlink():
+        path = path.resolve()
     tmp = path.with_name(path.name + ".tmp")
     try:
         tmp.write_bytes(ply_bytes(g, drop_invalid=drop_invalid))

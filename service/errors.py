@@ -20,7 +20,7 @@ from rasterizer.geometry import PoseError
 from rasterizer.splat import RenderLimitError
 
 from .encoder import EncoderInputError
-from .store import InvalidSceneId, SceneNotFound, StoreCorrupt, StoreInterrupted
+from .store import InvalidSceneId, SceneNotFound, StoreCorrupt, StoreFull, StoreInterrupted
 
 log = logging.getLogger("omnisplat.service")
 
@@ -108,6 +108,8 @@ def _domain_error(exc: Exception) -> ServiceError | None:
         return BadInput(str(exc), code="invalid_input")
     if isinstance(exc, RenderLimitError):
         return PayloadTooLarge(f"render too large for this scene: {exc}", code="render_too_large")
+    if isinstance(exc, StoreFull):  # a store limit (budget, scene count, free-disk margin): its message says which
+        return StoreUnavailable(exc.message, code=exc.code)
     if isinstance(exc, StoreInterrupted):  # another process kept clearing the staging folder: send it again
         log.warning("%s", exc)
         return Busy(exc.message, retry_after=1, code=exc.code)

@@ -33,11 +33,11 @@ from pydantic import BaseModel, ConfigDict, Field
 from rasterizer.splat import RenderLimitError
 
 from .edits import EDIT_ARTIFACT
-from .errors import PayloadTooLarge, StoreUnavailable
+from .errors import PayloadTooLarge
 from .job_state import ACTIVE, HEARTBEAT_S, JobFiles
 from .memory import release_memory
 from .references import REFERENCES_ARTIFACT, load_references, references_artifact
-from .store import SceneNotFound, SceneStore, StoreFull, canonical_json, content_id
+from .store import SceneNotFound, SceneStore, canonical_json, content_id
 
 log = logging.getLogger("omnisplat.jobs")
 
@@ -324,9 +324,7 @@ async def run_job(registry: JobRegistry, job: Job, gate, store: SceneStore) -> N
     def work() -> dict:
         registry.mark_running(job)
         try:
-            return refine_scene(store, job.parent_id, job.id, job.params, report)
-        except StoreFull as exc:  # the job record says which store limit refused the result
-            raise StoreUnavailable(exc.message, code="store_full") from None
+            return refine_scene(store, job.parent_id, job.id, job.params, report)  # StoreFull: a 507 saying which limit
         finally:
             release_memory(force=True)
 

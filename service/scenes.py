@@ -33,7 +33,7 @@ from .pipeline import PipelineOptions, SceneBuild, build_scene
 from .poses import PoseOptions, poses_for_scene
 from .references import REFERENCES_ARTIFACT, load_references, references_bytes
 from .runtime import ModelRuntime
-from .store import SceneStore, StoreFull, content_id
+from .store import SceneStore, content_id
 
 T = TypeVar("T")
 
@@ -42,13 +42,11 @@ NEAR_CULL_PER_SWEEP_NEAR = 0.1
 
 
 def storing(fn: Callable[..., T], *args: Any) -> T:
-    """``fn(*args)``, where a write the store's budget or free-space margin refused
-    (:class:`service.store.StoreFull`) is a 507 saying which limit refused it. Runs in the worker:
-    ``WorkGate.run(storing, fn, ...)``; afterwards free memory goes back to the system."""
+    """``fn(*args)`` in the worker (``WorkGate.run(storing, fn, ...)``), then free memory goes back to the system.
+    A write the store refused (:class:`service.store.StoreFull`) leaves it as the 507 :func:`~service.errors.translate`
+    makes, saying which limit refused it."""
     try:
         return fn(*args)
-    except StoreFull as exc:
-        raise StoreUnavailable(exc.message, code="store_full") from None
     finally:
         release_memory(force=True)  # after a reconstruction or an edit: its arrays are freed now
 

@@ -379,12 +379,21 @@ class SceneStore:
             raise StoreFull(f"the scene store's disk has {free} bytes free; writing {need} more would leave less "
                             f"than the {self.min_free_bytes}-byte margin; nothing was stored")
 
-    def _make_room(self, need: int, keep: str | None = None, what: str = "the new scene") -> None:
+    def check_room(self, like: str, what: str) -> None:
+        """:class:`StoreFull` now, nothing evicted, when a new scene the size of scene ``like`` could not be
+        stored beside the held scenes and ``like`` itself (a refinement's result, checked before it is queued)."""
+        need = _tree_bytes(self.scenes_dir / like)
+        with self._room:
+            self._make_room(need, what=what, also_held=(like,), evict=False)
+
+    def _make_room(self, need: int, keep: str | None = None, what: str = "the new scene", *,
+                   also_held: tuple[str, ...] = (), evict: bool = True) -> None:
         """Evict least recently used scenes (not held, not ``keep``) until ``need`` more bytes fit the budget
         and the scene count fits ``max_scenes``; :class:`StoreFull` when they cannot. Call with ``_room`` held.
 
         Decides first, evicts after: a write that cannot fit even with every evictable scene gone is
-        refused with nothing evicted (``what`` names the write in that message)."""
+        refused with nothing evicted (``what`` names the write in that message). ``also_held``: ids
+        counted as held; ``evict=False`` only decides."""
         if self.budget_bytes <= 0 and self.max_scenes <= 0:
             return
         ids = self.ids()
@@ -392,7 +401,7 @@ class SceneStore:
         used = sum(sizes.values())
         count = len(ids) + (1 if keep is None else 0)  # a new scene counts once it is renamed in
         with self._lock:
-            held = set(self._holds)
+            held = set(self._holds) | set(also_held)
         victims = sorted((i for i in ids if i not in held and i != keep), key=self._last_used)
         kept = [i for i in ids if i in held or i == keep]  # never evicted for this write
         kept_bytes = sum(sizes.get(i, 0) for i in kept)
@@ -409,7 +418,7 @@ class SceneStore:
             raise StoreFull(f"the scene store keeps at most {self.max_scenes} scenes and jobs (or this write) are using "
                             f"{len(kept)} of them: {what} cannot be stored beside them; nothing was stored and no "
                             "scene was evicted")
-        for victim in victims:  # enough of them, by the check above
+        for victim in victims if evict else ():  # enough of them, by the check above
             if (self.budget_bytes <= 0 or used + need <= self.budget_bytes) and \
                     (self.max_scenes <= 0 or count <= self.max_scenes):
                 break

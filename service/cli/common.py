@@ -15,6 +15,61 @@ MODEL_HINT = ("; only the default model (no --model) is built when missing: chec
               "with `omnisplat export PATH.onnx`")
 
 
+def cli_settings(args=None, flags: dict | None = None, *, serving: bool = False, **extra):
+    """The service settings (OMNISPLAT_* variables) with a command's flags over them; a bad value is a one-line
+    CliError naming the flag (with the value typed) or the variable, never a traceback.
+
+    flags: settings field -> (argparse dest, flag) of ``args``; a flag left out (None) keeps the variable.
+    extra: further field values. A command that does not serve binds nothing, so the network's own check (a
+    non-loopback ``host`` needs an API key) does not concern it: it is checked on 127.0.0.1.
+    """
+    from pydantic import ValidationError
+
+    from ..config import Settings
+
+    flags = flags or {}
+    given = {field: getattr(args, dest) for field, (dest, _) in flags.items() if getattr(args, dest) is not None}
+    values = {**given, **extra}
+    if "max_upload_bytes" in values:  # the flag is in MiB
+        values["max_upload_bytes"] = int(values["max_upload_bytes"] * 1024 * 1024)
+    if not serving:
+        values.setdefault("host", "127.0.0.1")
+    try:
+        return Settings(**values)
+    except ValidationError as exc:
+        raise CliError("; ".join(_setting_error(err, args, flags, given) for err in exc.errors(include_url=False))) from None
+    except ValueError as exc:  # a variable that does not parse (pydantic-settings' SettingsError): its first line
+        raise CliError(f"OMNISPLAT_* settings: {str(exc).splitlines()[0]}") from None
+
+
+def _setting_error(err: dict, args, flags: dict, given: dict) -> str:
+    """One settings error in the user's words: the flag and the value typed, or the environment variable."""
+    field = str(err["loc"][0]) if err.get("loc") else ""
+    msg = str(err.get("msg", "invalid")).removeprefix("Value error, ")
+    if field in given:
+        dest, flag = flags[field]
+        units = (" bytes", " MiB") if field == "max_upload_bytes" else ("", "")  # the limit in bytes, the flag in MiB
+        return f"{flag}: {msg}{units[0]} (got {getattr(args, dest)!r}{units[1]})"
+    if not field:  # a rule across settings (its message names them)
+        return f"OMNISPLAT_* settings: {msg}"
+    return f"OMNISPLAT_{field.upper()}: {msg} (got {err.get('input')!r})"
+
+
+def load_encoder(model: Path, threads: int):
+    """The :class:`service.encoder.OnnxEncoder` of ``model``; a file that is no omnisplat model (another ONNX
+    graph, an older exporter's, not ONNX at all) is a one-line CliError naming ``--model``."""
+    from ..encoder import OnnxEncoder
+
+    try:
+        return OnnxEncoder(model, threads=threads)
+    except ValueError as exc:  # an ONNX file that is not an omnisplat encoder, or from an older exporter
+        raise CliError(f"--model {model}: {exc}") from None
+    except Exception as exc:  # onnxruntime's own errors: a file that is no ONNX model
+        if not type(exc).__module__.startswith("onnxruntime"):
+            raise
+        raise CliError(f"--model {model}: not a loadable ONNX model ({str(exc).strip()[:300]})") from None
+
+
 def say(msg: str) -> None:
     """One progress line on stderr (stdout carries the commands' JSON)."""
     print(f"[omnisplat] {msg}", file=sys.stderr, flush=True)

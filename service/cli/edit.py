@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from .common import CliError, as_flags
+from .common import CliError, as_flags, cli_settings
 
 
 def _triple(text: str, name: str) -> list[float]:
@@ -30,18 +30,9 @@ def _point(text: str) -> list[float]:
 def _edit_store(args: argparse.Namespace):
     """The store the server's settings describe (budget, max scenes: OMNISPLAT_*), in ``--store`` if given.
     It never clears unfinished writes: a running server may be writing them."""
-    from pydantic import ValidationError
-
-    from ..config import Settings
-    from ..options import describe_error
     from ..store import SceneStore
 
-    try:
-        settings = Settings()
-    except ValidationError as exc:
-        raise CliError(describe_error(exc, prefix="OMNISPLAT settings")) from None
-    if args.store is not None:
-        settings = settings.model_copy(update={"store_dir": args.store})
+    settings = cli_settings(args, {"store_dir": ("store", "--store")})
     try:
         return SceneStore.from_settings(settings, clean_up=False)
     except OSError as exc:  # e.g. --store names a file

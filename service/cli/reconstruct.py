@@ -7,7 +7,17 @@ import json
 import time
 from pathlib import Path
 
-from .common import MODEL_HINT, CliError, as_flags, check_output, read_panorama, say, write_output
+from .common import (
+    MODEL_HINT,
+    CliError,
+    as_flags,
+    check_output,
+    cli_settings,
+    load_encoder,
+    read_panorama,
+    say,
+    write_output,
+)
 
 #: the layout of a scene folder's scene.json (rasterizer.scene_folder), as an error message shows it
 SCENE_LAYOUT = ('{"convention": "opencv"|"opengl", "frames": [{"name": N, "image": FILE, "c2w": 4x4}, ...], '
@@ -120,7 +130,6 @@ def empty_hint(info: dict) -> str:
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from rasterizer.ply import write_ply
 
-    from ..config import Settings
     from ..model_files import ModelUnavailable, ensure_model
     from ..pipeline import build_scene
 
@@ -160,23 +169,16 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         check_sweep_range(c2w_a, c2w_b, {"near": args.near, "far": args.far})
     except ServiceError as exc:
         raise CliError(option_message(exc.message)) from None
-    settings = Settings(**({"model_path": args.model} if args.model else {}))
+    settings = cli_settings(args, {"model_path": ("model", "--model")})
     try:  # only the default model is built: a named one that is missing is a typo, not a request to build
         model = ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build and settings.model_path is None)
     except ModelUnavailable as exc:
         raise CliError(str(exc) + MODEL_HINT * (settings.model_path is not None)) from None
     say(f"loading model {model}")
-    from ..encoder import EncoderInputError, OnnxEncoder
+    from ..encoder import EncoderInputError
 
     t0 = time.perf_counter()
-    try:
-        encoder = OnnxEncoder(model, threads=args.threads)
-    except ValueError as exc:  # an ONNX file that is not an omnisplat encoder, or from an older exporter
-        raise CliError(f"--model {model}: {exc}") from None
-    except Exception as exc:  # onnxruntime's own errors: a file that is no ONNX model
-        if not type(exc).__module__.startswith("onnxruntime"):
-            raise
-        raise CliError(f"--model {model}: not a loadable ONNX model ({str(exc).strip()[:300]})") from None
+    encoder = load_encoder(model, args.threads)
     load_s = time.perf_counter() - t0
     say(f"reconstructing {erp_a.shape[1]}x{erp_a.shape[0]} + {erp_b.shape[1]}x{erp_b.shape[0]} panoramas")
     t0 = time.perf_counter()

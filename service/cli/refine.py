@@ -45,6 +45,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
         raise CliError(f"--height {args.height}: the reference views of these {len(g)} Gaussians are too large for "
                        f"the renderer ({exc}); give a smaller --height") from None
     try:
+        args.out.parent.mkdir(parents=True, exist_ok=True)  # as check_output promised
         write_ply(args.out, res.gaussians)
     except OSError as exc:
         raise CliError(f"cannot write {args.out}: {exc.strerror or exc}") from None

@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError, as_flags, check_output, read_gaussians, read_panorama, say, write_output
+from .common import CliError, as_flags, check_output, cli_settings, read_gaussians, read_panorama, say, write_output
 
 
 def _pose_from_args(args: argparse.Namespace):
@@ -61,7 +61,6 @@ def cmd_render(args: argparse.Namespace) -> int:
     from rasterizer.render import render, to_uint8
     from rasterizer.splat import ALPHA_MIN, RenderLimitError
 
-    from ..config import Settings
     from ..errors import ServiceError
     from ..images import encode
     from ..inputs import check_render_query
@@ -70,7 +69,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     suffix = check_output(args.output, "-o", (".png", ".jpg", ".jpeg"), "the image format", [args.ply, *(args.rig or ())])
     fmt = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg"}[suffix]
     # as the API renders (the same query and its limits): plain compositing unless --compositing va
-    settings = Settings()
+    settings = cli_settings()
     try:
         query = check_render_query(c2w, args.projection, args.width, args.height,
                                    args.fov_deg, fmt,

@@ -5,9 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pydantic import ValidationError
-
-from .common import MODEL_HINT, CliError, say
+from .common import MODEL_HINT, CliError, cli_settings, load_encoder, say
 
 #: the settings (service.config.Settings fields) that serve's flags set: (argparse dest, flag)
 SETTING_FLAGS = {"host": ("host", "--host"), "port": ("port", "--port"), "store_dir": ("store", "--store"),
@@ -16,32 +14,14 @@ SETTING_FLAGS = {"host": ("host", "--host"), "port": ("port", "--port"), "store_
                  "max_requests": ("max_requests", "--max-requests")}
 
 
-def _setting_error(err: dict, args: argparse.Namespace) -> str:
-    """One settings error in the words the user typed: the flag and its value, or the environment variable."""
-    field = str(err["loc"][0]) if err.get("loc") else ""
-    msg = str(err.get("msg", "invalid")).removeprefix("Value error, ")
-    if field in SETTING_FLAGS and getattr(args, SETTING_FLAGS[field][0]) is not None:
-        dest, flag = SETTING_FLAGS[field]
-        units = (" bytes", " MiB") if field == "max_upload_bytes" else ("", "")  # the limit in bytes, the flag in MiB
-        return f"{flag}: {msg}{units[0]} (got {getattr(args, dest)!r}{units[1]})"
-    return f"OMNISPLAT_{field.upper()}: {msg} (got {err.get('input')!r})"
-
-
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from ..app import create_app
-    from ..config import Settings
     from ..model_files import ModelUnavailable, ensure_model
     from ..server import server_config
 
-    overrides = {field: getattr(args, dest) for field, (dest, _) in SETTING_FLAGS.items() if getattr(args, dest) is not None}
-    if "max_upload_bytes" in overrides:
-        overrides["max_upload_bytes"] = int(overrides["max_upload_bytes"] * 1024 * 1024)
-    try:
-        settings = Settings(**overrides)
-    except ValidationError as exc:
-        raise CliError("; ".join(_setting_error(err, args) for err in exc.errors(include_url=False))) from None
+    settings = cli_settings(args, SETTING_FLAGS, serving=True)
     try:  # the store must be a folder this user can write in, or one it can make
         settings.store_dir.mkdir(parents=True, exist_ok=True)
         import tempfile
@@ -54,6 +34,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build and settings.model_path is None)
     except ModelUnavailable as exc:
         raise CliError(str(exc) + MODEL_HINT * (settings.model_path is not None)) from None
+    if settings.model_path is not None:  # a model of the user's: one that cannot load fails here, in one line
+        load_encoder(settings.resolved_model_path, 1)
     say(f"model {settings.resolved_model_path}; scenes in {settings.store_dir}")
     if args.ray:
         return _serve_ray(args, settings.model_copy(update={"model_path": settings.resolved_model_path}))

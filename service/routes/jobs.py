@@ -72,6 +72,9 @@ async def refine_scene(scene_id: SceneId, request: Request, response: Response, 
     if existing is None or existing.status not in ACTIVE:  # failed, or done with its result gone: a new run
         # the result is a new scene: refused before any work when the disk is under the margin (as POST /v1/scenes)
         await anyio.to_thread.run_sync(scenes.check_free_space, store, settings.min_free_store_bytes)
+        # and when the store's budget or scene count could not take it beside the scenes jobs hold (507 now, not
+        # after the run): the result is about the parent's size
+        await anyio.to_thread.run_sync(store.check_room, scene_id, "the refined scene")
         gate = _gate(request)
         if gate.full:
             gate.reject()

@@ -673,3 +673,47 @@ def test_select_and_edit_on_a_server_store_keep_its_writes_and_take_its_settings
     capsys.readouterr()
     assert staging.is_dir() and trash.is_dir() and artifact.is_file()
     assert [(s.root, s.max_scenes, s.budget_bytes) for s in seen] == [(root, 1, 40_000_000)] * 2
+
+
+@pytest.mark.parametrize("env, command", [
+    ({"OMNISPLAT_CORS_ORIGINS": "x"}, "serve"),  # pydantic-settings' own error: a 41-line traceback
+    ({"OMNISPLAT_CORS_ORIGINS": "x"}, "render"),
+    ({"OMNISPLAT_MAX_SCENES": "-1"}, "select"),
+])
+def test_bad_environment_settings_are_one_line_errors(tmp_path, capsys, monkeypatch, env, command):
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    ply_with_nan(tmp_path / "g.ply", 10, [])
+    argv = {"serve": ["serve", "--no-build"], "render": render_argv(tmp_path, "g.ply"),
+            "select": ["select", "0" * 32, "--store", str(tmp_path / "s"), "--view", "a", "--point", "0.5,0.5"]}[command]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "OMNISPLAT_" in err and "Traceback" not in err, err
+
+
+def test_commands_that_do_not_serve_ignore_the_servers_host_rule(tmp_path, capsys, monkeypatch):
+    """A shell set up for `serve --host 0.0.0.0` (no key) made select refuse and render print a traceback."""
+    monkeypatch.setenv("OMNISPLAT_HOST", "0.0.0.0")
+    ply_with_nan(tmp_path / "g.ply", 10, [])
+    assert cli.main(render_argv(tmp_path, "g.ply")) == 0
+    assert cli.main(["select", "0" * 32, "--store", str(tmp_path / "s"), "--view", "a", "--point", "0.5,0.5"]) == 2
+    assert "scene_not_found" in capsys.readouterr().err  # the store opened; only the scene is missing
+    assert cli.main(["serve", "--no-build", "--model", str(tmp_path / "m.onnx")]) == 2
+    err = capsys.readouterr().err
+    assert "OMNISPLAT_* settings: host '0.0.0.0' is not a loopback address" in err and "{" not in err
+
+
+def test_serve_with_a_model_file_that_is_no_model_is_a_one_line_error(tmp_path, capsys):
+    (tmp_path / "m.onnx").write_bytes(b"\x89PNG not a model")
+    assert cli.main(["serve", "--model", str(tmp_path / "m.onnx"), "--store", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err
+    assert "--model" in err and "not a loadable ONNX model" in err and "Traceback" not in err
+
+
+def test_a_ply_written_to_a_symlink_goes_through_it(tmp_path):
+    from tests.rasterizer._support import toy_scene
+
+    (tmp_path / "real.ply").write_bytes(b"old")
+    (tmp_path / "link.ply").symlink_to(tmp_path / "real.ply")
+    write_ply(tmp_path / "link.ply", toy_scene(1, n=5))
+    assert (tmp_path / "link.ply").is_symlink() and len(read_ply(tmp_path / "real.ply")) == 5

@@ -69,9 +69,11 @@ def test_refine_cli_needs_poses_and_a_writable_output(tmp_path, capsys):
     assert main([str(tmp_path / "in.ply"), *images, "--out", str(tmp_path / "o.ply")]) == 2  # was a PoseError traceback
     assert "--poses" in capsys.readouterr().err
     (tmp_path / "poses.json").write_text(json.dumps({"c2w": [np.eye(4).tolist(), (np.eye(4) + np.eye(4, k=3)).tolist()]}))
-    assert main([str(tmp_path / "in.ply"), *images, "--poses", str(tmp_path / "poses.json"), "--iterations", "1",
-                 "--height", "16", "--out", str(tmp_path / "no" / "such" / "o.ply")]) == 2  # was a traceback
-    assert "cannot write" in capsys.readouterr().err
+    argv = [str(tmp_path / "in.ply"), *images, "--poses", str(tmp_path / "poses.json"), "--iterations", "1", "--height", "16"]
+    assert main([*argv, "--out", str(tmp_path / "in.ply" / "o.ply")]) == 2  # was a traceback, then a refusal after the run
+    assert "is a file, not a folder" in capsys.readouterr().err
+    assert main([*argv, "--out", str(tmp_path / "new" / "sub" / "o.ply")]) == 0  # its folders are made, as reconstruct's
+    assert (tmp_path / "new" / "sub" / "o.ply").is_file()
 
 
 def references(tmp_path):

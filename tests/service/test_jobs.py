@@ -297,3 +297,19 @@ def test_a_job_cut_by_shutdown_says_so(tmp_path):
         assert error == {"code": "server_shutdown",
                          "message": "the server shut down before the job finished; submit it again"}
     assert store.held() == {}
+
+
+def test_check_room_refuses_a_result_that_could_not_be_stored_beside_the_held_scenes(tmp_path):
+    """With one scene allowed, a refinement's result never fits beside its held parent: refused before it is
+    queued (it ran, then failed store_full), nothing evicted; with room it passes."""
+    from service.store import SceneStore, StoreFull
+
+    store = SceneStore(tmp_path, max_scenes=1, budget_bytes=0, min_free_bytes=0)
+    parent = _tiny_scene(store, "parent")
+    with pytest.raises(StoreFull, match="at most 1 scenes"):
+        store.check_room(parent, "the refined scene")
+    assert store.ids() == [parent] and store.evictions == 0
+    roomy = SceneStore(tmp_path / "roomy", max_scenes=2, budget_bytes=0, min_free_bytes=0)
+    one, other = _tiny_scene(roomy, "one"), _tiny_scene(roomy, "other")
+    roomy.check_room(one, "the refined scene")  # the other scene may be evicted for it: room
+    assert sorted(roomy.ids()) == sorted([one, other])  # a check evicts nothing

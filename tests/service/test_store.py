@@ -268,3 +268,13 @@ def test_an_interrupted_write_is_a_retryable_503():
 
     mapped = translate(StoreInterrupted("the write was interrupted; send it again"))
     assert mapped.status == 503 and mapped.code == "store_interrupted" and mapped.headers["Retry-After"] == "1"
+
+
+def test_a_store_limit_is_a_507_naming_it_wherever_it_is_raised():
+    """The CLI's edit, which writes outside the API's handlers, said 'the scene store's disk is full' for a
+    scene-count cap: a StoreFull is an ENOSPC OSError and was taken for a full disk."""
+    from service.errors import translate
+    from service.store import StoreFull
+
+    mapped = translate(StoreFull("the scene store keeps at most 1 scenes"))
+    assert mapped.status == 507 and mapped.code == "store_full" and mapped.message.startswith("the scene store keeps")
