@@ -35,6 +35,9 @@ from rasterizer.render import to_uint8
 from .errors import BadInput, InvalidImage, PayloadTooLarge
 
 ACCEPTED_FORMATS = ("PNG", "JPEG", "WEBP", "TIFF", "BMP")
+#: the first bytes of each accepted format's files (a WebP also has "WEBP" at byte 8)
+_MAGIC = (("PNG", b"\x89PNG\r\n\x1a\n"), ("JPEG", b"\xff\xd8\xff"), ("WEBP", b"RIFF"), ("TIFF", b"II*\x00"),
+          ("TIFF", b"MM\x00*"), ("BMP", b"BM"))
 
 
 @dataclass(frozen=True)
@@ -278,6 +281,11 @@ def _open(data: bytes, field: str, max_pixels: int) -> Image.Image:
         raise PayloadTooLarge(f"{field}: the image has more than the limit of {max_pixels} pixels",
                               code="image_too_many_pixels") from None
     except UnidentifiedImageError:
+        kind = next((name for name, magic in _MAGIC if data.startswith(magic) and (name != "WEBP" or data[8:12] == b"WEBP")),
+                    None)
+        if kind is not None:  # the format is one we take; this file of it is not
+            raise InvalidImage(f"{field}: a {kind} file that cannot be decoded (cut short, damaged, or a sample format "
+                               "such as 32-bit float colour); send 8- or 16-bit RGB") from None
         raise InvalidImage(
             f"{field}: not a readable image (accepted formats: {', '.join(ACCEPTED_FORMATS)})"
         ) from None

@@ -159,3 +159,15 @@ def test_lab_cmyk_and_ycbcr_tiffs_convert_to_their_rgb(mode):
     rgb, header = decode_rgb(buf.getvalue(), "image_a", **LIMITS)
     assert header.format == "TIFF" and rgb.shape == shown.shape
     assert np.abs(rgb.astype(int) - shown).mean() < 2.0
+
+
+def test_a_file_of_an_accepted_format_that_cannot_be_decoded_says_its_format():
+    """A cut-short LZW TIFF was 'not a readable image (accepted formats: ... TIFF ...)'."""
+    buf = io.BytesIO()
+    Image.fromarray(upright()).save(buf, format="TIFF", compression="tiff_lzw")
+    with pytest.raises(InvalidImage) as info:
+        check_header(buf.getvalue()[:-200], "image_a", **LIMITS)
+    assert "a TIFF file that cannot be decoded" in info.value.message
+    with pytest.raises(InvalidImage) as info:
+        check_header(b"not an image at all", "image_a", **LIMITS)
+    assert "not a readable image (accepted formats" in info.value.message
