@@ -21,6 +21,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from ..model_files import ModelUnavailable, ensure_model
     from ..server import server_config
 
+    if args.ray:  # a missing extra is said before anything is checked or loaded
+        _ray_serving()
     settings = cli_settings(args, SETTING_FLAGS, serving=True)
     try:  # the store must be a folder this user can write in, or one it can make
         settings.store_dir.mkdir(parents=True, exist_ok=True)
@@ -44,13 +46,19 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
-def _serve_ray(args: argparse.Namespace, settings) -> int:
+def _ray_serving():
+    """(RayOptions, run) of :mod:`service.serve_ray`; a CliError when the [ray] extra is not installed."""
     try:
         import ray.serve  # noqa: F401  (the [ray] extra)
 
         from ..serve_ray import RayOptions, run
     except ModuleNotFoundError as exc:
         raise CliError(f"--ray needs {exc.name!r}: pip install 'omnisplat[ray]'") from None
+    return RayOptions, run
+
+
+def _serve_ray(args: argparse.Namespace, settings) -> int:
+    RayOptions, run = _ray_serving()
     opts = RayOptions(min_replicas=args.min_replicas, max_replicas=max(args.min_replicas, args.max_replicas),
                       replica_cpus=args.replica_cpus)
     say(f"Ray Serve: {opts.min_replicas}-{opts.max_replicas} replicas of {opts.replica_cpus:g} CPU "
