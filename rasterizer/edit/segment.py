@@ -195,6 +195,14 @@ def interior_depth(labels: np.ndarray) -> np.ndarray:
             / np.maximum(np.bincount(labels.ravel(), minlength=n), 1)).astype(np.float32)
 
 
+def superpixel_means(labels: np.ndarray, colour: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """(n, 3) mean colour of each superpixel of ``labels`` (H, W) from ``colour`` (H, W, 3); ``size`` (n,) their
+    pixel counts (an empty label's mean is 0)."""
+    flat, col = labels.ravel(), colour.reshape(-1, 3)
+    sums = np.stack([np.bincount(flat, weights=col[:, c], minlength=len(size)) for c in range(3)], -1)
+    return sums / np.maximum(size, 1)[:, None]
+
+
 def region_graph(labels: np.ndarray, colour: np.ndarray, inv_range: np.ndarray, normals: np.ndarray,
                  opts: SegmentOptions) -> RegionGraph:
     """Edge weight = boundary colour contrast / colour_tol + mean-colour difference / colour_tol
@@ -211,7 +219,7 @@ def region_graph(labels: np.ndarray, colour: np.ndarray, inv_range: np.ndarray, 
     ir = inv_range.ravel()
     nrm = normals.reshape(-1, 3)
     size = np.bincount(flat, minlength=n)
-    mean_col = np.stack([np.bincount(flat, weights=col[:, c], minlength=n) for c in range(3)], -1) / size[:, None]
+    mean_col = superpixel_means(labels, colour, size)
     counts = np.bincount(inv_key, minlength=key.size)
 
     def mean(v):
@@ -240,10 +248,7 @@ def seed_superpixels(graph: RegionGraph, colour: np.ndarray, pixels: np.ndarray,
     pixels = np.asarray(pixels, dtype=np.int64).ravel()
     lab = graph.labels.ravel()
     ids = lab[pixels]
-    mean_col = graph.mean_colour
-    if mean_col is None:
-        mean_col = np.stack([np.bincount(lab, weights=colour[..., c].ravel(), minlength=graph.n)
-                             for c in range(3)], -1) / np.maximum(graph.size, 1)[:, None]
+    mean_col = superpixel_means(graph.labels, colour, graph.size) if graph.mean_colour is None else graph.mean_colour
     depth = interior_depth(graph.labels) if graph.depth is None else graph.depth
     strip = depth <= opts.strip_depth
     # candidate (seed k, neighbour) pairs: edges touching a strip seed whose other end is no strip
