@@ -123,22 +123,47 @@ def check_output(path: str | Path, flag: str, suffixes: tuple[str, ...], what: s
         folder = folder.parent
     if not folder.is_dir():
         raise CliError(f"{flag} {path}: {folder} is a file, not a folder")
+    if (problem := cannot_write_in(folder)) is not None:
+        raise CliError(f"{flag} {path}: cannot write in {folder}: {problem}")
+    return suffix
+
+
+def cannot_write_in(folder: Path) -> str | None:
+    """Why this user cannot create a file in ``folder`` (an existing folder), probed with a temporary file;
+    None when it can."""
     import tempfile
 
     try:
         with tempfile.NamedTemporaryFile(dir=folder, prefix=".omnisplat-probe-"):
-            pass
+            return None
     except OSError as exc:
-        raise CliError(f"{flag} {path}: cannot write in {folder}: {exc.strerror or exc}") from None
-    return suffix
+        return str(exc.strerror or exc)
 
 
-def write_output(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path``, making its folders; an OSError is a CliError naming the file."""
+def model_file(settings, no_build: bool) -> Path:
+    """The model file ``settings`` name, built first when it is the default one and missing (unless
+    ``no_build``); a named model that is missing is a typo, not a request to build: a CliError with
+    :data:`MODEL_HINT`."""
+    from ..model_files import ModelUnavailable, ensure_model
+
+    try:
+        return ensure_model(settings.resolved_model_path, build_if_missing=not no_build and settings.model_path is None)
+    except ModelUnavailable as exc:
+        raise CliError(str(exc) + MODEL_HINT * (settings.model_path is not None)) from None
+
+
+def write_output(path: str | Path, data) -> None:
+    """Write ``data`` (bytes, or a :class:`rasterizer.gaussians.Gaussians` as a PLY) to ``path``, making its
+    folders (as :func:`check_output` allowed); an OSError is a CliError naming the file."""
     out = Path(path)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_bytes(data)
+        if isinstance(data, bytes):
+            out.write_bytes(data)
+        else:
+            from rasterizer.ply import write_ply
+
+            write_ply(out, data)
     except OSError as exc:
         raise CliError(f"cannot write {out}: {exc.strerror or exc}") from None
 

@@ -8,12 +8,12 @@ import time
 from pathlib import Path
 
 from .common import (
-    MODEL_HINT,
     CliError,
     as_flags,
     check_output,
     cli_settings,
     load_encoder,
+    model_file,
     read_panorama,
     say,
     write_output,
@@ -128,9 +128,6 @@ def empty_hint(info: dict) -> str:
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    from rasterizer.ply import write_ply
-
-    from ..model_files import ModelUnavailable, ensure_model
     from ..pipeline import build_scene
 
     inputs = [*args.inputs, args.poses, *(Path(p) / "scene.json" for p in args.inputs if Path(p).is_dir())]
@@ -170,10 +167,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     except ServiceError as exc:
         raise CliError(option_message(exc.message)) from None
     settings = cli_settings(args, {"model_path": ("model", "--model")})
-    try:  # only the default model is built: a named one that is missing is a typo, not a request to build
-        model = ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build and settings.model_path is None)
-    except ModelUnavailable as exc:
-        raise CliError(str(exc) + MODEL_HINT * (settings.model_path is not None)) from None
+    model = model_file(settings, args.no_build)
     say(f"loading model {model}")
     from ..encoder import EncoderInputError
 
@@ -194,11 +188,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise CliError(exc.message + empty_hint(rec.info)) from None
     total = time.perf_counter() - t0
     out = Path(args.output)
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        write_ply(out, rec.gaussians)
-    except OSError as exc:
-        raise CliError(f"cannot write {out}: {exc.strerror or exc}") from None
+    write_output(out, rec.gaussians)
     from ..store import json_safe
 
     summary = json_safe({

@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import CliError, as_flags, check_output, read_gaussians
+from .common import CliError, as_flags, check_output, read_gaussians, write_output
 from .reconstruct import load_pair
 
 
@@ -15,7 +15,6 @@ def cmd_refine(args: argparse.Namespace) -> int:
     """Colours of a PLY refined on its two references (L1 fit, cross-view guard); JSON summary to stdout."""
     from pydantic import ValidationError
 
-    from rasterizer.ply import write_ply
     from rasterizer.refine import RefineOptions, reference_views, refine
     from rasterizer.splat import RenderLimitError
 
@@ -44,11 +43,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
     except RenderLimitError as exc:  # the API's job fails with render_too_large
         raise CliError(f"--height {args.height}: the reference views of these {len(g)} Gaussians are too large for "
                        f"the renderer ({exc}); give a smaller --height") from None
-    try:
-        args.out.parent.mkdir(parents=True, exist_ok=True)  # as check_output promised
-        write_ply(args.out, res.gaussians)
-    except OSError as exc:
-        raise CliError(f"cannot write {args.out}: {exc.strerror or exc}") from None
+    write_output(args.out, res.gaussians)
     first = res.history[0]
     best = res.history[min(res.best_iteration, len(res.history) - 1)]
     print(json.dumps({"out": str(args.out), "inputs": desc, "num_gaussians": len(res.gaussians),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import MODEL_HINT, CliError, cli_settings, load_encoder, say
+from .common import CliError, cannot_write_in, cli_settings, load_encoder, model_file, say
 
 #: the settings (service.config.Settings fields) that serve's flags set: (argparse dest, flag)
 SETTING_FLAGS = {"host": ("host", "--host"), "port": ("port", "--port"), "store_dir": ("store", "--store"),
@@ -18,7 +18,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from ..app import create_app
-    from ..model_files import ModelUnavailable, ensure_model
     from ..server import server_config
 
     if args.ray:  # a missing extra is said before anything is checked or loaded
@@ -26,16 +25,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
     settings = cli_settings(args, SETTING_FLAGS, serving=True)
     try:  # the store must be a folder this user can write in, or one it can make
         settings.store_dir.mkdir(parents=True, exist_ok=True)
-        import tempfile
-
-        with tempfile.NamedTemporaryFile(dir=settings.store_dir, prefix=".omnisplat-probe-"):
-            pass
+        problem = cannot_write_in(settings.store_dir)
     except OSError as exc:
-        raise CliError(f"--store {settings.store_dir}: cannot keep scenes there: {exc.strerror or exc}") from None
-    try:  # only the default model is built: a named one that is missing is a typo, not a request to build
-        ensure_model(settings.resolved_model_path, build_if_missing=not args.no_build and settings.model_path is None)
-    except ModelUnavailable as exc:
-        raise CliError(str(exc) + MODEL_HINT * (settings.model_path is not None)) from None
+        problem = str(exc.strerror or exc)
+    if problem is not None:
+        raise CliError(f"--store {settings.store_dir}: cannot keep scenes there: {problem}")
+    model_file(settings, args.no_build)
     if settings.model_path is not None:  # a model of the user's: one that cannot load fails here, in one line
         load_encoder(settings.resolved_model_path, 1)
     say(f"model {settings.resolved_model_path}; scenes in {settings.store_dir}")
