@@ -100,21 +100,30 @@ class StoreCorrupt(RuntimeError):
     """A stored scene cannot be read back (disk damage or outside interference)."""
 
 
-class StoreInterrupted(OSError):
-    """A write whose staging folder kept vanishing (another process clearing ``tmp/``); nothing was stored,
-    and sending it again is expected to work."""
+class StoreWriteRefused(OSError):
+    """A store write that did not happen; nothing was written. ``code`` names the reason for the service's
+    answer, ``message`` (also ``str()``) says it to the user, ``errno`` is the class's :attr:`ERRNO`."""
 
-    code = "store_interrupted"
+    code = "store_write_refused"
+    ERRNO = errno.EIO
 
     def __init__(self, message: str) -> None:
-        super().__init__(errno.EAGAIN, message)
+        super().__init__(self.ERRNO, message)
         self.message = message
 
     def __str__(self) -> str:
         return self.message
 
 
-class StoreFull(OSError):
+class StoreInterrupted(StoreWriteRefused):
+    """A write whose staging folder kept vanishing (another process clearing ``tmp/``); nothing was stored,
+    and sending it again is expected to work."""
+
+    code = "store_interrupted"
+    ERRNO = errno.EAGAIN
+
+
+class StoreFull(StoreWriteRefused):
     """A write refused by the store's budget or free-space margin; nothing was written.
 
     An ``ENOSPC`` error, so that any handler of a full disk also handles it; ``code`` and
@@ -122,13 +131,7 @@ class StoreFull(OSError):
     """
 
     code = "store_full"
-
-    def __init__(self, message: str) -> None:
-        super().__init__(errno.ENOSPC, message)
-        self.message = message
-
-    def __str__(self) -> str:
-        return self.message
+    ERRNO = errno.ENOSPC
 
 
 def stored_form(g: Gaussians) -> Gaussians:
