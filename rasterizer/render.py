@@ -79,10 +79,15 @@ def _check_gaussians(gaussians: Gaussians) -> None:
     gaussians.check_finite()
 
 
-def _premultiplied(gaussians: Gaussians, camera: Camera, threads: int = 1):
+def _q_max(cut_sigma: float | None) -> float:
+    """Largest footprint radius^2 (Mahalanobis) of a render: ``cut_sigma`` squared, or the 1/255 rule's Q_MAX."""
+    return splat.Q_MAX if cut_sigma is None else float(cut_sigma) ** 2
+
+
+def _premultiplied(gaussians: Gaussians, camera: Camera, threads: int = 1, cut_sigma: float | None = None):
     """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) of one camera, front to back."""
     pose = splat.shared_pose(gaussians, camera)
-    qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
+    qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians), _q_max(cut_sigma))
 
     def table(index, rank, n):  # colours and rows of the Gaussians the camera keeps only
         colours = sh_to_rgb(gaussians.sh[index], gaussians.means[index], camera.centre)
@@ -91,16 +96,19 @@ def _premultiplied(gaussians: Gaussians, camera: Camera, threads: int = 1):
     return front_to_back.premultiplied(pose, camera, qcut, table, threads=threads)
 
 
-def render_camera(gaussians: Gaussians, camera: Camera, threads: int = 1) -> RenderOutput:
-    """Render one :class:`Camera` (any kind), colour composited over black; ``threads`` row bands side by side."""
+def render_camera(gaussians: Gaussians, camera: Camera, threads: int = 1,
+                  cut_sigma: float | None = None) -> RenderOutput:
+    """Render one :class:`Camera` (any kind), colour composited over black; ``threads`` row bands side by side;
+    ``cut_sigma`` as :func:`render`'s."""
     _check_gaussians(gaussians)
-    colour, alpha, range_sum = _premultiplied(gaussians, camera, threads)
+    colour, alpha, range_sum = _premultiplied(gaussians, camera, threads, cut_sigma)
     return RenderOutput(colour, alpha, normalise_range(range_sum, alpha))
 
 
-def _render_resized(gaussians: Gaussians, camera: Camera, scale: float, threads: int) -> RenderOutput:
+def _render_resized(gaussians: Gaussians, camera: Camera, scale: float, threads: int,
+                    cut_sigma: float | None) -> RenderOutput:
     """``camera``'s view rendered on the pinhole grid ``scale`` times as fine, resized to the camera's size."""
-    colour, alpha, range_sum = _premultiplied(gaussians, reduced_pinhole(camera, scale), threads)
+    colour, alpha, range_sum = _premultiplied(gaussians, reduced_pinhole(camera, scale), threads, cut_sigma)
     stack = resize_pinhole(np.concatenate([colour, alpha[:, :, None], range_sum[:, :, None]], axis=2),
                            camera.width, camera.height)
     alpha = np.clip(stack[:, :, 3], 0.0, 1.0)
@@ -109,7 +117,8 @@ def _render_resized(gaussians: Gaussians, camera: Camera, scale: float, threads:
 
 
 def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: int, near: float,
-                    threads: int, divide: bool = True, scene_resolution: bool = False) -> RenderOutput:
+                    threads: int, divide: bool = True, scene_resolution: bool = False,
+                    cut_sigma: float | None = None) -> RenderOutput:
     h = max(1, int(round(height / 2)))
     full = Camera("yin", 3 * h, h, c2w, near=near)
     pose = splat.shared_pose(gaussians, full)  # Yin and Yang, at any size, share the pose
@@ -124,7 +133,7 @@ def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: i
     w = 3 * h
     cams = [Camera(kind, w, h, c2w, near=near) for kind in ("yin", "yang")]
     colours = sh_to_rgb(gaussians.sh, gaussians.means, cams[0].centre)
-    qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
+    qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians), _q_max(cut_sigma))
 
     def rank_tables():
         return gaussian_table(gaussians.opacities, colours, pose.ranges, pose.order)  # order: a sort of all N
@@ -179,7 +188,7 @@ def _under_backdrop(front: RenderOutput, back: RenderOutput) -> RenderOutput:
 def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, height: int | None = None,
            fov_deg: float = 90.0, method: str = "yinyang", near: float = DEFAULT_NEAR,
            threads: int = 2, normalize: bool | None = None, resolution: Resolution = "exact",
-           backdrop: int = 0) -> RenderOutput:
+           backdrop: int = 0, cut_sigma: float | None = None) -> RenderOutput:
     """Render Gaussians seen from pose ``c2w``.
 
     Parameters
@@ -216,6 +225,12 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
         scene resolution, and composited under the rest (the front's transmittance is 1 - its
         alpha): the shell's wide discs cost about a third of a render at the surfels' resolution.
         0 (default), or a count outside 1..N-1, renders everything in one pass.
+    cut_sigma : ends every footprint this many standard deviations (Mahalanobis radius) from its
+        centre, besides the 1/255 alpha rule, which alone (None, default, as the official rasterizer)
+        reaches 3.33 at opacity 1. A tail beyond the cut carries ``exp(-cut_sigma^2 / 2)`` of the
+        Gaussian's alpha at its centre; in a reconstruction's stacks of overlapping surfels the service's
+        cut (``service.inputs.RENDER_CUT_SIGMA``) leaves renders 47 dB or more from the uncut ones for
+        37% less CPU time (docs/design.md, "Footprint tails").
 
     Returns
     -------
@@ -236,25 +251,27 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
     height = int(height)
     if height <= 0:
         raise ValueError(f"height must be positive, got {height}")
+    if cut_sigma is not None and not (np.isfinite(cut_sigma) and cut_sigma > 0):
+        raise ValueError(f"cut_sigma must be a positive number of standard deviations, got {cut_sigma!r}")
     _check_gaussians(gaussians)
     yinyang = projection == "erp" and method == "yinyang"
     if resolution == "scene" and 0 < int(backdrop) < len(gaussians) and (yinyang or projection == "perspective"):
         out = _render_over_backdrop(gaussians, c2w, len(gaussians) - int(backdrop), projection=projection,
                                     width=width, height=height, fov_deg=fov_deg, method=method, near=near,
-                                    threads=threads, resolution=resolution)
+                                    threads=threads, resolution=resolution, cut_sigma=cut_sigma)
         normalize = yinyang if normalize is None else normalize  # each method's default, as below
     elif yinyang:
         cam = Camera("erp", width, height, c2w, near=near)  # validates pose and sizes
         return _render_yinyang(gaussians, cam.c2w, width, height, near, int(threads),
                                divide=True if normalize is None else bool(normalize),
-                               scene_resolution=resolution == "scene")
+                               scene_resolution=resolution == "scene", cut_sigma=cut_sigma)
     else:
         camera = Camera(projection, width, height, c2w, fov_deg=fov_deg, near=near)
         scale = render_scale(gaussians, camera) if resolution == "scene" and projection == "perspective" else 1.0
         if scale < 1.0:
-            out = _render_resized(gaussians, camera, scale, int(threads))
+            out = _render_resized(gaussians, camera, scale, int(threads), cut_sigma)
         else:
-            out = render_camera(gaussians, camera, int(threads))
+            out = render_camera(gaussians, camera, int(threads), cut_sigma)
     if not normalize:
         return out
     colour = out.colour * _alpha_inverse(out.alpha)[:, :, None]

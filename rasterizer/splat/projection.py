@@ -487,9 +487,15 @@ def _boxes_chunk(cx, cy, cov_a, cov_c, camera: Camera, qcut: np.ndarray):
     return x0, x1 - x0 + 1, y0, y1 - y0 + 1
 
 
-def opacity_cuts(opacity_bound, n: int) -> np.ndarray | None:
-    """Mahalanobis radius^2 of every footprint, (N,) float64; None: Q_MAX for all."""
+def opacity_cuts(opacity_bound, n: int, q_max: float = Q_MAX) -> np.ndarray | None:
+    """Mahalanobis radius^2 of every footprint, (N,) float64; None: Q_MAX for all.
+
+    A footprint ends where ``bound * g`` falls below 1/255 (radius^2 ``2 ln(255 bound)``; -1, culled, for
+    bounds under 1/255), and at ``q_max`` when that is nearer (a cut in standard deviations, squared).
+    """
+    q_max = min(float(q_max), Q_MAX)
     if opacity_bound is None:
-        return None
+        return None if q_max >= Q_MAX else np.full(n, q_max)
     bound = np.clip(np.asarray(opacity_bound, dtype=np.float64), 0.0, 1.0)
-    return np.where(bound >= ALPHA_MIN, 2.0 * np.log(np.maximum(bound, ALPHA_MIN) * 255.0), -1.0)
+    q = np.minimum(2.0 * np.log(np.maximum(bound, ALPHA_MIN) * 255.0), q_max)
+    return np.where(bound >= ALPHA_MIN, q, -1.0)

@@ -84,7 +84,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     except ServiceError as exc:
         flags = "--width" if args.projection != "perspective" else "--width and --height"
         raise CliError(f"{flags}: {exc.message}") from None
-    kwargs = query.render_kwargs(normalize=args.compositing == "va")
+    # a PLY from anywhere: its footprints are not cut short as a reconstruction's are in the API
+    kwargs = query.render_kwargs(normalize=args.compositing == "va", reconstruction=False)
     layer = _rig_layer_from_args(args)
     say(f"rendering {len(gaussians)} Gaussians, {args.projection} {args.width} px wide")
     t0 = time.perf_counter()

@@ -66,6 +66,47 @@ def test_front_to_back_matches_the_slow_reference_loop(kind, tiny_chunks):
     assert np.allclose(out.range, ref[2], atol=1e-4)
 
 
+@pytest.mark.parametrize("kind", ["perspective", "yin", "erp"])
+def test_footprints_cut_in_standard_deviations_match_the_slow_reference_loop(kind, tiny_chunks):
+    """``cut_sigma``: every footprint also ends that many standard deviations out, as the loop cut at q_max."""
+    g = forward_scene(np.random.default_rng(12), 40, opacity=(0.3, 1.0))
+    w, h = {"perspective": (24, 20), "yin": (36, 12), "erp": (48, 24)}[kind]
+    cam = Camera(kind, w, h, np.eye(4))
+    if kind == "erp":
+        pr = project(g, cam)
+        g = g.subset(np.sort(pr.index[polar_rows(pr, cam)[0]]))
+    pr = project(g, cam)
+    sel = pr.index
+    depth = g.means[sel, 2] if kind == "perspective" else None
+    args = (pr.mean, pr.conic, pr.ranges, g.opacities[sel], g.rgb[sel], w, h)
+    kw = dict(period=w if kind == "erp" else None, depths=depth)
+    cut = render_camera(g, cam, cut_sigma=1.5)
+    ref = reference_composite(*args, **kw, q_max=1.5**2)
+    assert np.allclose(cut.colour, ref[0], atol=2e-5) and np.allclose(cut.alpha, ref[1], atol=2e-5)
+    uncut = reference_composite(*args, **kw)
+    assert np.abs(uncut[1] - ref[1]).max() > 0.01  # the cut removed coverage a full footprint has
+    # a cut beyond the 1/255 rule's reach (3.33 sigma at opacity 1) changes nothing
+    far = render_camera(g, cam, cut_sigma=3.5)
+    np.testing.assert_array_equal(far.colour, render_camera(g, cam).colour)
+
+
+@pytest.mark.parametrize("cut", [0.0, -1.0, float("nan"), float("inf")])
+def test_a_cut_that_is_not_a_positive_number_is_refused(cut):
+    with pytest.raises(ValueError, match="cut_sigma"):
+        render(forward_scene(np.random.default_rng(0), 5), np.eye(4), width=16, cut_sigma=cut)
+
+
+def test_opacity_cuts_end_at_the_nearer_of_the_alpha_rule_and_the_cut():
+    bound = np.array([1.0, 0.5, 0.02, 1.0 / 300.0])
+    rule = splat.opacity_cuts(bound, 4)
+    np.testing.assert_allclose(rule[:3], 2.0 * np.log(bound[:3] * 255.0))
+    assert rule[3] < 0  # under 1/255: culled
+    cut = splat.opacity_cuts(bound, 4, q_max=4.0)
+    np.testing.assert_allclose(cut, [4.0, 4.0, rule[2], rule[3]])  # 2 ln(0.02 * 255) = 3.26 stays
+    assert splat.opacity_cuts(None, 3) is None
+    np.testing.assert_array_equal(splat.opacity_cuts(None, 3, q_max=4.0), [4.0, 4.0, 4.0])
+
+
 @st.composite
 def scenes(draw):
     """Small scenes with the hard cases: poles, the ERP seam, points at the camera, tiny and huge

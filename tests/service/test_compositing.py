@@ -12,6 +12,7 @@ from PIL import Image
 from rasterizer.ply import read_ply
 from rasterizer.render import render, to_uint8
 from service import cli
+from service.inputs import RENDER_CUT_SIGMA
 
 from ._support import IDENTITY, LiveServer, make_settings, panorama, post_scene, small_model
 
@@ -59,9 +60,11 @@ def test_api_default_is_plain_and_va_is_explicit(served, params, kwargs, pose):
     plain = client.get(f"/v1/scenes/{scene_id}/render", params={"c2w": pose, **params, "compositing": "plain"})
     va = client.get(f"/v1/scenes/{scene_id}/render", params={"c2w": pose, **params, "compositing": "va"})
     assert default.status_code == plain.status_code == va.status_code == 200
-    # the API renders at the scene's own resolution (rasterizer.scene_resolution), the shell apart
-    expect_plain = to_uint8(render(gaussians, c2w, normalize=False, resolution="scene", backdrop=shell, **kwargs).colour)
-    expect_va = to_uint8(render(gaussians, c2w, normalize=True, resolution="scene", backdrop=shell, **kwargs).colour)
+    # the API renders at the scene's own resolution (rasterizer.scene_resolution), the shell apart, footprints
+    # cut as a reconstruction's
+    kwargs = dict(kwargs, resolution="scene", backdrop=shell, cut_sigma=RENDER_CUT_SIGMA)
+    expect_plain = to_uint8(render(gaussians, c2w, normalize=False, **kwargs).colour)
+    expect_va = to_uint8(render(gaussians, c2w, normalize=True, **kwargs).colour)
     # the PLY round trip (logit/log/quaternion in float32) may move a pixel by one level
     assert _close(_png(default.content), expect_plain)
     assert _close(_png(plain.content), expect_plain)

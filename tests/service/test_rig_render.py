@@ -120,7 +120,9 @@ def test_cli_render_with_rig_images(served, tmp_path, capsys):
     api = _png(client.get(f"/v1/scenes/{rigged}/render", params={"c2w": TURNED, "width": 128, "rig": "true"}).content)
     near = _from_nadir_deg("erp", *out.shape[:2]) < 8.0
     assert np.abs(out[near].astype(int) - RIG_U8).max() <= 2
-    assert np.abs(out.astype(int) - api.astype(int)).mean() < 1.0  # the same rig (the API's references are resampled)
+    diff = np.abs(out.astype(int) - api.astype(int))
+    assert diff[near].mean() < 1.0  # the same rig (the API's references are resampled)
+    assert diff.mean() < 2.0  # the API cuts a reconstruction's footprints short (RENDER_CUT_SIGMA), the CLI any PLY's not
     bare = tmp_path / "bare.png"
     bare.write_bytes(panorama(seed=13))
     assert cli.main([*base, "--rig", str(images / "a.png"), str(bare), "-o", str(tmp_path / "x.png")]) != 0
