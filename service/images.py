@@ -2,7 +2,8 @@
 
 Checks, in order, so that nothing expensive happens before the cheap checks pass:
 the header (format, size, 2:1 aspect as shown after the EXIF orientation, one frame, minimum
-height, pixel cap against decompression bombs), then the full decode (corrupt or truncated data).
+height, pixel cap against decompression bombs), then the full decode (corrupt or truncated data), then
+what the pixels show (a camera's raw dual-fisheye frame is no panorama: :mod:`service.fisheye`).
 
 A PNG's chunk list is walked first (:func:`scan_png`, a loop over chunk headers that stops at
 the first limit passed, no decoding): Pillow keeps every ancillary chunk before the image data
@@ -33,6 +34,7 @@ from PIL import Image, UnidentifiedImageError
 from rasterizer.render import to_uint8
 
 from .errors import BadInput, InvalidImage, PayloadTooLarge
+from .fisheye import check_not_dual_fisheye
 
 ACCEPTED_FORMATS = ("PNG", "JPEG", "WEBP", "TIFF", "BMP")
 #: the first bytes of each accepted format's files (a WebP also has "WEBP" at byte 8)
@@ -350,6 +352,7 @@ def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int) -> 
         im.close()
     if arr.shape != (header.height, header.width, 3):
         raise InvalidImage(f"{field}: decoded to unexpected shape {arr.shape}")
+    check_not_dual_fisheye(arr, field)
     return np.ascontiguousarray(arr), header
 
 
