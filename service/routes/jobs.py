@@ -97,4 +97,12 @@ async def job_status(job_id: Annotated[str, Path(pattern=SCENE_ID_PATTERN)], req
                 return JobStatus(id=job_id, status="done", progress=1.0, scene_id=job_id,
                                  parent_id=meta["parent"], error=None)
         raise NotFound(f"no job with id {job_id!r}", code="job_not_found")
-    return JobStatus(**job.as_json())
+    record = job.as_json()
+    if job.status == "done" and not await anyio.to_thread.run_sync(store.exists, job_id):
+        # done, but its scene has left the store since (evicted for room, or deleted): no link to a 404
+        record.update(scene_id=None, links={"self": record["links"]["self"]},
+                      error={"code": "result_removed",
+                             "message": f"the refined scene {job_id} has been removed from the store since the job "
+                                        "finished (evicted to make room, or deleted); POST the same refine request "
+                                        "to run it again"})
+    return JobStatus(**record)

@@ -201,6 +201,11 @@ def test_refine_remakes_its_deleted_result(client, scene_id):
     assert first.status_code == 202, first.text
     result = _wait(client, first.headers["location"])["scene_id"]
     assert client.delete(f"/v1/scenes/{result}").status_code == 204
+    # the job says its scene is gone and how to get it back, and links to no 404
+    gone = client.get(first.headers["location"])
+    assert gone.status_code == 200 and gone.json()["status"] == "done" and gone.json()["scene_id"] is None
+    assert gone.json()["error"]["code"] == "result_removed" and "POST the same refine request" in gone.text
+    assert set(gone.json()["links"]) == {"self"}
     again = client.post(f"/v1/scenes/{scene_id}/refine", json=params)
     assert again.status_code == 202 and again.json()["status"] in ("queued", "running"), again.text
     assert _wait(client, again.headers["location"])["status"] == "done"
