@@ -21,7 +21,7 @@ def _pose_from_args(args: argparse.Namespace):
             return parse_c2w_query(args.c2w)
         from rasterizer.geometry import PoseError, as_c2w
 
-        obj = json.loads(Path(args.pose).read_text())
+        obj = json.loads(Path(args.pose).read_text(encoding="utf-8-sig"))  # a byte order mark is no error
         unknown = sorted(set(obj) - {"convention", "c2w"}) if isinstance(obj, dict) else []
         if unknown:  # a misspelt "convention" would otherwise mean OpenCV
             raise CliError(f"{args.pose}: unknown key(s) {unknown[:5]}; expected a 4x4 matrix or "

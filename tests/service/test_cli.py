@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -435,6 +436,17 @@ def test_render_pose_file_with_an_unknown_key_is_refused(tmp_path, capsys):
     (tmp_path / "pose.json").write_text('{"convension": "opengl", "c2w": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}')
     assert cli.main(["render", "x.ply", "--pose", str(tmp_path / "pose.json")]) == 2
     assert "convension" in capsys.readouterr().err
+
+
+def test_render_pose_file_may_start_with_a_byte_order_mark(tmp_path):
+    import argparse
+
+    from service.cli.render import _pose_from_args
+
+    m = [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    (tmp_path / "pose.json").write_bytes(b"\xef\xbb\xbf" + json.dumps({"convention": "opencv", "c2w": m}).encode())
+    c2w = _pose_from_args(argparse.Namespace(c2w=None, pose=str(tmp_path / "pose.json")))
+    np.testing.assert_array_equal(c2w, np.array(m, dtype=float))
 
 
 def test_select_and_edit_with_a_store_that_is_a_file_is_a_one_line_error(tmp_path, capsys):
