@@ -37,6 +37,12 @@ def zind_dir() -> Path:
 
 
 @pytest.fixture(scope="session")
+def bedroom_theta_dir() -> Path:
+    """Hand-held Ricoh Theta captures of a bedroom, 2048x1024 (a real camera's panoramas)."""
+    return dev_scene("bedroom_theta")
+
+
+@pytest.fixture(scope="session")
 def zind2k_dir() -> Path:
     """zind_room09 at its 2048x1024 capture size (the same poses)."""
     return dev_scene("zind_room09_2k")
