@@ -105,7 +105,7 @@ def _by_rank(rank: np.ndarray, n_all: int) -> np.ndarray:
 
 
 def premultiplied(pose: splat.SharedPose, camera, qcut_all: np.ndarray | None, table,
-                  threads: int = 1, columns=None):
+                  threads: int = 1, columns=None, cut_sigma: float | None = None):
     """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) float32 of one camera, front to back.
 
     ``pose``: the :class:`~rasterizer.splat.SharedPose` of the camera's pose; ``qcut_all`` (N,)
@@ -117,12 +117,13 @@ def premultiplied(pose: splat.SharedPose, camera, qcut_all: np.ndarray | None, t
     [0, 1]. ``threads`` > 1 splits the rows into that many bands of about equal footprint area,
     composited side by side (numpy releases the GIL in its loops); the bands touch disjoint
     pixels, so the result is the same up to float rounding. ``columns``: the camera's
-    :func:`~rasterizer.splat.projection.project_columns` when the caller has them.
+    :func:`~rasterizer.splat.projection.project_columns` when the caller has them. ``cut_sigma``: footprints
+    are cut short there too (:func:`~rasterizer.splat.key_job`).
     """
     h, w = camera.height, camera.width
     npix = h * w
     sums = np.zeros((npix, 5), dtype=np.float32)
-    job = splat.key_job(pose, camera, qcut_all, columns, own_ranks=callable(table))
+    job = splat.key_job(pose, camera, qcut_all, columns, own_ranks=callable(table), cut_sigma=cut_sigma)
     if job is not None:
         if callable(table):
             table = table(job.cols.index, job.rank, job.n_all)

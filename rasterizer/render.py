@@ -79,21 +79,16 @@ def _check_gaussians(gaussians: Gaussians) -> None:
     gaussians.check_finite()
 
 
-def _q_max(cut_sigma: float | None) -> float:
-    """Largest footprint radius^2 (Mahalanobis) of a render: ``cut_sigma`` squared, or the 1/255 rule's Q_MAX."""
-    return splat.Q_MAX if cut_sigma is None else float(cut_sigma) ** 2
-
-
 def _premultiplied(gaussians: Gaussians, camera: Camera, threads: int = 1, cut_sigma: float | None = None):
     """(colour*alpha (H, W, 3), alpha (H, W), range*alpha (H, W)) of one camera, front to back."""
     pose = splat.shared_pose(gaussians, camera)
-    qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians), _q_max(cut_sigma))
+    qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
 
     def table(index, rank, n):  # colours and rows of the Gaussians the camera keeps only
         colours = sh_to_rgb(gaussians.sh[index], gaussians.means[index], camera.centre)
         return ranked_table(gaussians.opacities[index], colours, pose.ranges[index], rank, n)
 
-    return front_to_back.premultiplied(pose, camera, qcut, table, threads=threads)
+    return front_to_back.premultiplied(pose, camera, qcut, table, threads=threads, cut_sigma=cut_sigma)
 
 
 def render_camera(gaussians: Gaussians, camera: Camera, threads: int = 1,
@@ -133,13 +128,13 @@ def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: i
     w = 3 * h
     cams = [Camera(kind, w, h, c2w, near=near) for kind in ("yin", "yang")]
     colours = sh_to_rgb(gaussians.sh, gaussians.means, cams[0].centre)
-    qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians), _q_max(cut_sigma))
+    qcut = splat.opacity_cuts(gaussians.opacities, len(gaussians))
 
     def rank_tables():
         return gaussian_table(gaussians.opacities, colours, pose.ranges, pose.order)  # order: a sort of all N
 
     def one(cam, tables, columns=None):
-        c, a, r = front_to_back.premultiplied(pose, cam, qcut, tables(), columns=columns)
+        c, a, r = front_to_back.premultiplied(pose, cam, qcut, tables(), columns=columns, cut_sigma=cut_sigma)
         return np.concatenate([c, a[:, :, None], r[:, :, None]], axis=2)
 
     def yin_cols():  # handed over, not kept: Yang's render does not hold Yin's projection
@@ -227,10 +222,12 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
         0 (default), or a count outside 1..N-1, renders everything in one pass.
     cut_sigma : ends every footprint this many standard deviations (Mahalanobis radius) from its
         centre, besides the 1/255 alpha rule, which alone (None, default, as the official rasterizer)
-        reaches 3.33 at opacity 1. A tail beyond the cut carries ``exp(-cut_sigma^2 / 2)`` of the
-        Gaussian's alpha at its centre; in a reconstruction's stacks of overlapping surfels the service's
-        cut (``service.inputs.RENDER_CUT_SIGMA``) leaves renders 47 dB or more from the uncut ones for
-        37% less CPU time (docs/design.md, "Footprint tails").
+        reaches 3.33 at opacity 1; never nearer than 2 px along its narrowest axis, so that a sub-pixel
+        Gaussian's footprint, the pixel filter, is not cut (:func:`rasterizer.splat.projection.sigma_cuts`). A tail
+        beyond the cut carries ``exp(-cut_sigma^2 / 2)`` of the Gaussian's alpha at its centre; in a
+        reconstruction's stacks of overlapping surfels the service's cut
+        (``service.inputs.RENDER_CUT_SIGMA``) leaves renders 47 dB or more from the uncut ones for about
+        a third less CPU time (docs/design.md, "Footprint tails").
 
     Returns
     -------
@@ -251,7 +248,8 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
     height = int(height)
     if height <= 0:
         raise ValueError(f"height must be positive, got {height}")
-    if cut_sigma is not None and not (np.isfinite(cut_sigma) and cut_sigma > 0):
+    if cut_sigma is not None and not (isinstance(cut_sigma, (int, float, np.floating, np.integer))
+                                      and not isinstance(cut_sigma, bool) and np.isfinite(cut_sigma) and cut_sigma > 0):
         raise ValueError(f"cut_sigma must be a positive number of standard deviations, got {cut_sigma!r}")
     _check_gaussians(gaussians)
     yinyang = projection == "erp" and method == "yinyang"

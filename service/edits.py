@@ -34,7 +34,7 @@ from rasterizer.sweep import MAX_SCENE_EXTENT
 
 from .errors import BadInput, NotFound, ServiceError
 from .images import encode
-from .inputs import RenderQuery
+from .inputs import RENDER_CUT_SIGMA, RenderQuery
 from .references import REFERENCES_ARTIFACT, ReferencesMissing, load_references
 from .store import SCENE_ID_PATTERN, SceneNotFound, SceneStore, canonical_json, content_id
 
@@ -329,7 +329,7 @@ def _uncovered(gaussians, masks: np.ndarray, c2ws) -> dict[str, float]:
         if len(gaussians) == 0:
             out[name] = 1.0
             continue
-        alpha = render(gaussians, c2ws[v], width=HOLE_RENDER_WIDTH).alpha
+        alpha = render(gaussians, c2ws[v], width=HOLE_RENDER_WIDTH, cut_sigma=RENDER_CUT_SIGMA).alpha  # as the API shows
         m = _view_image(masks, name, HOLE_RENDER_WIDTH)
         out[name] = float((alpha[m] < 0.5).mean()) if m.any() else 0.0
     return out

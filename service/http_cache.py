@@ -1,14 +1,18 @@
 """Caching headers of the immutable responses (renders, PLYs) and their conditional requests (RFC 9110).
 
-A scene id is a content hash and a render is a function of the scene and its query, so both answers
-never change: they carry ``Cache-Control: immutable`` and an ``ETag``, and a client that sends that
+A scene id is a content hash and a render is a function of the scene, its query and the renderer's code
+(:func:`renderer_digest`), so both answers never change while the code does not: they carry
+``Cache-Control: immutable`` and an ``ETag``, and a client that sends that
 ETag back in ``If-None-Match`` gets ``304 Not Modified`` without the body (and, for a render, without
 rendering). Byte ranges are not served: the answers say ``Accept-Ranges: none``.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import re
+from pathlib import Path
 
 from fastapi import Request, Response
 
@@ -19,6 +23,18 @@ NOT_MODIFIED = {"description": "Not Modified: `If-None-Match` names this answer'
 HEAD_SCOPE_KEY = "omnisplat.head"
 #: an entity tag in an If-None-Match list: optional weak prefix, then a quoted opaque tag (RFC 9110 section 8.8.3)
 _ENTITY_TAG = re.compile(r'\s*(?:W/)?("[^"]*")\s*(?:,|$)')
+
+
+@functools.cache
+def renderer_digest() -> str:
+    """A digest of the rasterizer package's sources: a render's ETag changes with the code that draws it."""
+    import rasterizer
+
+    root = Path(rasterizer.__file__).parent
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
 
 
 def cache_headers(etag: str) -> dict[str, str]:

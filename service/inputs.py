@@ -41,10 +41,11 @@ COMPOSITINGS = ("plain", "va")
 DEFAULT_RENDER_WIDTH = 1024
 #: Horizontal field of view (degrees) of a perspective render when the request names none.
 DEFAULT_FOV_DEG = 90.0
-#: Every footprint of a render ends this many standard deviations from its centre (the 1/255 alpha rule
-#: alone reaches 3.33 at opacity 1; GaussianSplats3D cuts at 2.83): the tails carry at most 8% of a
+#: Every footprint of a plain render of a reconstruction ends this many standard deviations from its centre,
+#: but never nearer than 2 px (the 1/255 alpha rule alone reaches 3.33 at opacity 1; GaussianSplats3D cuts at
+#: 2.83): the tails carry at most 8% of a
 #: Gaussian's centre alpha, which a reconstruction's overlapping surfels hide. Measured on 72 views of the
-#: dev scenes, 47 dB or more from the uncut render for 37% less CPU (docs/design.md, "Footprint tails").
+#: dev scenes, 47 dB or more from the uncut render for 34% less CPU (docs/design.md, "Footprint tails").
 RENDER_CUT_SIGMA = 2.25
 
 
@@ -101,7 +102,9 @@ def without_bom(text: str | bytes) -> str | bytes:
     return text[1:] if text.startswith("\ufeff") else text
 
 
-def _json_object(text: str | bytes, field: str) -> Any:
+def json_value(text: str | bytes, field: str) -> Any:
+    """``text`` parsed as JSON the way every JSON input is: a repeated key, NaN / Infinity, an integer past
+    :data:`MAX_JSON_INT` or nesting too deep is a 422 ``invalid_<field>`` naming ``field``."""
     try:
         return json.loads(text, parse_constant=_reject_constant, parse_int=_bounded_int, object_pairs_hook=_unique_keys)
     except _DuplicateKey as exc:
@@ -135,7 +138,7 @@ def parse_poses(text: str | bytes | None) -> Poses | None:
     text = None if text is None else without_bom(text)
     if text is None or not text.strip():
         return None
-    obj = _json_object(text, "poses")
+    obj = json_value(text, "poses")
     if not isinstance(obj, dict):
         raise BadInput('poses: expected a JSON object {"convention": ..., "c2w": [A, B]}', code="invalid_poses")
     unknown = sorted(set(obj) - POSES_KEYS - POSES_META_KEYS)
@@ -244,7 +247,7 @@ def parse_options(text: str | bytes | None, accepted: set[str] | None = None,
     text = without_bom(text) if isinstance(text, (str, bytes)) else text
     if text is None or (isinstance(text, (str, bytes)) and not text.strip()):
         return {}, PipelineOptions.from_dict({}), PoseOptions()
-    obj = _json_object(text, "options")
+    obj = json_value(text, "options")
     if not isinstance(obj, dict):
         raise BadInput("options: expected a JSON object", code="invalid_options")
     if len(obj) > 32:
@@ -299,13 +302,16 @@ class RenderQuery:
         """Keyword arguments of :func:`rasterizer.render.render` for this query (pose passed apart).
 
         ``reconstruction``: the Gaussians are a scene this service built (or an edit of one), whose
-        overlapping surfels hide their footprints' tails, so footprints end at :data:`RENDER_CUT_SIGMA`;
-        False for any other PLY, whose sparse Gaussians may show their tails (the 1/255 rule alone).
+        overlapping surfels hide their footprints' tails, so a plain composite's footprints end at
+        :data:`RENDER_CUT_SIGMA`; False for any other PLY, whose sparse Gaussians may show their tails (the
+        1/255 rule alone). V/A (``normalize``) is never cut: dividing by alpha shows a tail's colour at full
+        strength wherever nothing else covers the pixel (an isolated object's rim).
         """
         # "scene": a view finer than the scene's Gaussians is rendered at their pitch and resized
         # (rasterizer.scene_resolution; docs/design.md, "At the scene's own resolution")
+        cut = RENDER_CUT_SIGMA if reconstruction and not normalize else None
         kwargs: dict[str, Any] = {"projection": self.projection, "width": self.width, "normalize": normalize,
-                                  "resolution": "scene", "cut_sigma": RENDER_CUT_SIGMA if reconstruction else None}
+                                  "resolution": "scene", "cut_sigma": cut}
         if self.projection == "perspective":
             kwargs.update(height=self.height, fov_deg=self.fov_deg)
         return kwargs

@@ -206,9 +206,10 @@ class JobRegistry:
         """This process's job, else the one another replica recorded (``failed`` if its owner died)."""
         with self._lock:
             job = self._jobs.get(job_id)
-        return job if job is not None else self._recorded(job_id)
+        return job if job is not None else self.recorded(job_id)
 
-    def _recorded(self, job_id: str) -> Job | None:
+    def recorded(self, job_id: str) -> Job | None:
+        """The job as the job files record it (another replica's, or this one's last write); None without them."""
         record = self.files.read(job_id) if self.files is not None else None
         if record is None:
             return None
@@ -247,7 +248,7 @@ class JobRegistry:
             if job is not None and (job.status in ACTIVE or (job.status == "done" and done)):
                 return job, False
             if not done:
-                other = self._recorded(job_id)  # queued/running on another replica
+                other = self.recorded(job_id)  # queued/running on another replica
                 if other is not None and other.status in ACTIVE:
                     return other, False
             job = Job(job_id, parent_id, params, owner=self.files.owner if self.files is not None else None)

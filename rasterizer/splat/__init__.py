@@ -29,8 +29,9 @@ from .projection import (
     opacity_cuts,
     project,
     shared_pose,
+    sigma_cuts,
 )
 
 __all__ = ["ALPHA_MIN", "LOW_PASS", "MAX_CONTRIBUTIONS", "Q_MAX", "Footprints", "KeyJob", "Projected",
            "RenderLimitError", "SharedPose", "footprints", "gaussian_factors", "grid_keep", "job_keys", "key_job",
-           "opacity_cuts", "polar_rows", "project", "shared_pose", "sorted_keys"]
+           "opacity_cuts", "polar_rows", "project", "shared_pose", "sigma_cuts", "sorted_keys"]

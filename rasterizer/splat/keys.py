@@ -36,7 +36,16 @@ import numpy as np
 from ..camera import Camera
 from .blocks import KeyLayout, class_keys
 from .polar import polar_split, sphere_boxes, sphere_ellipses, sphere_keys
-from .projection import Q_MAX, Columns, SharedPose, footprint_boxes, opacity_cuts, project_columns, shared_pose
+from .projection import (
+    Q_MAX,
+    Columns,
+    SharedPose,
+    footprint_boxes,
+    opacity_cuts,
+    project_columns,
+    shared_pose,
+    sigma_cuts,
+)
 
 #: Default memory guard of :func:`footprints`: refuse renders estimated above this many (Gaussian, pixel)
 #: contributions (about 20 bytes each). The environment shell's (rasterizer.shell) large backdrop discs need
@@ -164,10 +173,11 @@ class KeyJob:
 
 
 def key_job(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None,
-            columns: Columns | None = None, own_ranks: bool = False) -> KeyJob | None:
+            columns: Columns | None = None, own_ranks: bool = False, cut_sigma: float | None = None) -> KeyJob | None:
     """The :class:`KeyJob` of ``camera`` (None when no Gaussian projects into it).
 
     ``columns``: the camera's :func:`~.projection.project_columns` when the caller has them.
+    ``cut_sigma``: footprints also end at :func:`~.projection.sigma_cuts` of it (None: ``qcut_all`` alone).
     ``own_ranks``: rank the camera's Gaussians among themselves (the same order; one camera's
     render need not sort all the pose's Gaussians) instead of among all of them.
     Raises :class:`RenderLimitError` when the image and the Gaussian count do not fit the 64-bit key.
@@ -178,6 +188,8 @@ def key_job(pose: SharedPose, camera: Camera, qcut_all: np.ndarray | None,
     if n == 0:
         return None
     qcut = np.full(n, Q_MAX) if qcut_all is None else qcut_all[cols.index]
+    if cut_sigma is not None:
+        qcut = np.minimum(qcut, sigma_cuts(cols.cov_a, cols.cov_b, cols.cov_c, cut_sigma))
     if own_ranks:
         n_all, rank = n, pose.ranks_among(cols.index)
     else:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -12,7 +11,7 @@ from .common import CliError, as_flags, check_output, cli_settings, read_gaussia
 
 def _pose_from_args(args: argparse.Namespace):
     from ..errors import ServiceError
-    from ..inputs import parse_c2w_query
+    from ..inputs import json_value, parse_c2w_query, without_bom
 
     if (args.c2w is None) == (args.pose is None):
         raise CliError("give exactly one of --c2w '16 numbers' or --pose FILE.json")
@@ -21,7 +20,7 @@ def _pose_from_args(args: argparse.Namespace):
             return parse_c2w_query(args.c2w)
         from rasterizer.geometry import PoseError, as_c2w
 
-        obj = json.loads(Path(args.pose).read_text(encoding="utf-8-sig"))  # a byte order mark is no error
+        obj = json_value(without_bom(Path(args.pose).read_bytes()), "--pose")  # as the API reads its JSON fields
         unknown = sorted(set(obj) - {"convention", "c2w"}) if isinstance(obj, dict) else []
         if unknown:  # a misspelt "convention" would otherwise mean OpenCV
             raise CliError(f"{args.pose}: unknown key(s) {unknown[:5]}; expected a 4x4 matrix or "

@@ -99,7 +99,11 @@ async def job_status(job_id: Annotated[str, Path(pattern=SCENE_ID_PATTERN)], req
         raise NotFound(f"no job with id {job_id!r}", code="job_not_found")
     record = job.as_json()
     if job.status == "done" and not await anyio.to_thread.run_sync(store.exists, job_id):
-        # done, but its scene has left the store since (evicted for room, or deleted): no link to a 404
+        # done here, but its scene has left the store since (evicted for room, or deleted): another replica
+        # may be making it again; else say so, with no link to a 404
+        again = await anyio.to_thread.run_sync(_registry(request).recorded, job_id)
+        if again is not None and again.status in ACTIVE:
+            return JobStatus(**again.as_json())
         record.update(scene_id=None, links={"self": record["links"]["self"]},
                       error={"code": "result_removed",
                              "message": f"the refined scene {job_id} has been removed from the store since the job "

@@ -24,7 +24,7 @@ from ..deps import (
     StoreDep,
 )
 from ..errors import BadInput, NotFound
-from ..http_cache import NOT_MODIFIED, cache_headers, is_head, not_modified
+from ..http_cache import NOT_MODIFIED, cache_headers, is_head, not_modified, renderer_digest
 from ..images import MEDIA_TYPES
 from ..inputs import (
     DEFAULT_FOV_DEG,
@@ -175,9 +175,11 @@ async def render_scene(
 
 
 def _render_etag(scene_id: str, query: RenderQuery) -> str:
-    """The quoted ETag of a render: a hash of the scene id (itself a content hash) and the checked query."""
+    """The quoted ETag of a render: a hash of the scene id (itself a content hash), the checked query, the
+    renderer's settings for it and the renderer's code."""
+    settings = sorted(query.render_kwargs(normalize=query.compositing == "va").items())
     key = (f"{scene_id}|{query.c2w.round(9).tolist()}|{query.projection}|{query.width}|{query.height}|"
-           f"{query.fov_deg}|{query.format}|{query.compositing}|{query.rig}")
+           f"{query.fov_deg}|{query.format}|{query.compositing}|{query.rig}|{settings}|{renderer_digest()}")
     return '"' + hashlib.sha256(key.encode()).hexdigest()[:32] + '"'
 
 

@@ -98,7 +98,8 @@ def pose(rng):
 def reference_composite(fp_mean, fp_conic, ranges, opacities, colours, w, h, period=None, depths=None,
                         q_max=np.inf):
     """Slow per-pixel loop: evaluate every Gaussian, sort by range (by ``depths`` if given), apply the 3DGS rules;
-    footprints end at Mahalanobis radius^2 ``q_max`` too (a render's ``cut_sigma`` squared)."""
+    footprints end at Mahalanobis radius^2 ``q_max`` too (a scalar, or one per Gaussian)."""
+    q_max = np.broadcast_to(np.asarray(q_max, dtype=np.float64), (len(opacities),))
     colour = np.zeros((h, w, 3))
     alpha = np.zeros((h, w))
     rng_img = np.zeros((h, w))
@@ -113,7 +114,7 @@ def reference_composite(fp_mean, fp_conic, ranges, opacities, colours, w, h, per
                 dy = r - fp_mean[i, 1]
                 qv = fp_conic[i, 0] * dx * dx + 2 * fp_conic[i, 1] * dx * dy + fp_conic[i, 2] * dy * dy
                 g = np.exp(-0.5 * qv)
-                if g < ALPHA_MIN or qv > q_max:
+                if g < ALPHA_MIN or qv > q_max[i]:
                     continue  # outside the opacity-free footprint
                 a = min(0.99, opacities[i] * g)
                 if a < ALPHA_MIN:

@@ -12,6 +12,7 @@ from rasterizer.camera import Camera
 from rasterizer.composite import accumulate, gaussian_table
 from rasterizer.render import render, render_camera
 from rasterizer.splat import footprints, polar_rows, project
+from rasterizer.splat.projection import CUT_KEEPS_PX
 from tests.rasterizer._support import forward_scene, make_gaussians, pose, random_scene, reference_composite
 
 SIZES = {"erp": (64, 32), "yin": (48, 16), "yang": (48, 16), "perspective": (40, 30)}
@@ -70,6 +71,7 @@ def test_front_to_back_matches_the_slow_reference_loop(kind, tiny_chunks):
 def test_footprints_cut_in_standard_deviations_match_the_slow_reference_loop(kind, tiny_chunks):
     """``cut_sigma``: every footprint also ends that many standard deviations out, as the loop cut at q_max."""
     g = forward_scene(np.random.default_rng(12), 40, opacity=(0.3, 1.0))
+    g = g.with_(scales=g.scales * np.random.default_rng(13).choice([0.3, 8.0], (len(g), 1)))  # sub-pixel and wide
     w, h = {"perspective": (24, 20), "yin": (36, 12), "erp": (48, 24)}[kind]
     cam = Camera(kind, w, h, np.eye(4))
     if kind == "erp":
@@ -80,8 +82,15 @@ def test_footprints_cut_in_standard_deviations_match_the_slow_reference_loop(kin
     depth = g.means[sel, 2] if kind == "perspective" else None
     args = (pr.mean, pr.conic, pr.ranges, g.opacities[sel], g.rgb[sel], w, h)
     kw = dict(period=w if kind == "erp" else None, depths=depth)
+    # the cut's radius^2: 1.5^2, or CUT_KEEPS_PX along the narrowest axis where that is farther (the conic's
+    # largest eigenvalue is 1 / the covariance's smallest)
+    con = pr.conic
+    lam_max = 0.5 * (con[:, 0] + con[:, 2]) + np.sqrt((0.5 * (con[:, 0] - con[:, 2])) ** 2 + con[:, 1] ** 2)
+    q_max = np.maximum(1.5**2, CUT_KEEPS_PX**2 * lam_max)
+    assert (q_max > 1.5**2).any()  # the floor is checked, and the plain cut but in the ERP (whose wide
+    assert kind == "erp" or (q_max == 1.5**2).any()  # footprints take the polar path the loop does not model)
     cut = render_camera(g, cam, cut_sigma=1.5)
-    ref = reference_composite(*args, **kw, q_max=1.5**2)
+    ref = reference_composite(*args, **kw, q_max=q_max)
     assert np.allclose(cut.colour, ref[0], atol=2e-5) and np.allclose(cut.alpha, ref[1], atol=2e-5)
     uncut = reference_composite(*args, **kw)
     assert np.abs(uncut[1] - ref[1]).max() > 0.01  # the cut removed coverage a full footprint has
@@ -90,21 +99,20 @@ def test_footprints_cut_in_standard_deviations_match_the_slow_reference_loop(kin
     np.testing.assert_array_equal(far.colour, render_camera(g, cam).colour)
 
 
-@pytest.mark.parametrize("cut", [0.0, -1.0, float("nan"), float("inf")])
+@pytest.mark.parametrize("cut", [0.0, -1.0, float("nan"), float("inf"), "2", True])
 def test_a_cut_that_is_not_a_positive_number_is_refused(cut):
     with pytest.raises(ValueError, match="cut_sigma"):
         render(forward_scene(np.random.default_rng(0), 5), np.eye(4), width=16, cut_sigma=cut)
 
 
-def test_opacity_cuts_end_at_the_nearer_of_the_alpha_rule_and_the_cut():
-    bound = np.array([1.0, 0.5, 0.02, 1.0 / 300.0])
-    rule = splat.opacity_cuts(bound, 4)
-    np.testing.assert_allclose(rule[:3], 2.0 * np.log(bound[:3] * 255.0))
-    assert rule[3] < 0  # under 1/255: culled
-    cut = splat.opacity_cuts(bound, 4, q_max=4.0)
-    np.testing.assert_allclose(cut, [4.0, 4.0, rule[2], rule[3]])  # 2 ln(0.02 * 255) = 3.26 stays
-    assert splat.opacity_cuts(None, 3) is None
-    np.testing.assert_array_equal(splat.opacity_cuts(None, 3, q_max=4.0), [4.0, 4.0, 4.0])
+def test_a_cut_never_comes_nearer_than_two_pixels():
+    """sigma_cuts: cut_sigma^2, or (2 px)^2 over the covariance's smallest eigenvalue where that is more (the
+    pixel filter alone is then beyond the 1/255 rule's reach: not cut); a huge cut_sigma is no overflow."""
+    a, b, c = np.array([4.0, 0.3, 0.8, 9.0]), np.array([0.0, 0.0, 0.0, 8.2]), np.array([4.0, 0.3, 8.0, 9.0])
+    q = splat.sigma_cuts(a, b, c, 2.0)
+    np.testing.assert_allclose(q, [4.0, 4.0 / 0.3, 4.0 / 0.8, 5.0])  # the last: eigenvalues 17.2 and 0.8
+    assert q[1] > splat.Q_MAX
+    np.testing.assert_allclose(splat.sigma_cuts(a, b, c, 1e200)[0], splat.Q_MAX)
 
 
 @st.composite
@@ -153,7 +161,7 @@ def test_erp_renders_both_methods_match_the_single_sort(scene, normalize, tiny_c
     for method in ("yinyang", "direct"):
         new = render(g, c2w, projection="erp", width=64, method=method, normalize=normalize)
         with pytest.MonkeyPatch.context() as mp:  # the same render through the single global sort
-            mp.setattr(front_to_back, "premultiplied", lambda p, cam, q, t, threads=1, columns=None: old_path(g, cam))
+            mp.setattr(front_to_back, "premultiplied", lambda p, cam, q, t, **kw: old_path(g, cam))
             old = render(g, c2w, projection="erp", width=64, method=method, normalize=normalize)
         # V/A divides by alpha >= 1/255: allow the division's amplification of rounding
         assert_same(new, old, atol=2e-5 if normalize is False or (normalize is None and method == "direct") else 1e-3)

@@ -449,6 +449,18 @@ def test_render_pose_file_may_start_with_a_byte_order_mark(tmp_path):
     np.testing.assert_array_equal(c2w, np.array(m, dtype=float))
 
 
+@pytest.mark.parametrize("text, says", [
+    ('{"c2w": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], "c2w": [[1,0,0,5],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}', "c2w"),
+    ("[" * 100_000 + "]" * 100_000, "not valid JSON"),
+])
+def test_render_pose_file_is_read_as_the_api_reads_json(tmp_path, capsys, text, says):
+    """A repeated key is refused (not the last one taken), too deep a nesting is a one-line error."""
+    (tmp_path / "pose.json").write_text(text)
+    assert cli.main(["render", "x.ply", "--pose", str(tmp_path / "pose.json"), "-o", str(tmp_path / "o.png")]) == 2
+    err = capsys.readouterr().err
+    assert "--pose" in err and says in err and "Traceback" not in err
+
+
 def test_select_and_edit_with_a_store_that_is_a_file_is_a_one_line_error(tmp_path, capsys):
     (tmp_path / "store").write_text("not a folder")  # was a NotADirectoryError traceback
     for argv in (["select", "0" * 32, "--view", "a", "--point", "0.5,0.5"],

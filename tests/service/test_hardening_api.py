@@ -113,6 +113,27 @@ def test_render_304_does_not_render(client, live, scene, monkeypatch):
     assert other.status_code == 500  # another view: its ETag differs, so it renders (here: the stub)
 
 
+def test_a_render_etag_changes_with_the_renderer(client, scene, monkeypatch):
+    """Immutable renders are cached by their ETag: a renderer whose images differ (its settings or its code)
+    must not answer a client's old copy with a 304."""
+    from service import http_cache, inputs
+
+    url = f"/v1/scenes/{scene}/render"
+    etag = client.get(url, params=ERP).headers["etag"]
+    monkeypatch.setattr(inputs, "RENDER_CUT_SIGMA", 3.0)
+    cut = client.get(url, params=ERP, headers={"If-None-Match": etag})
+    assert cut.status_code == 200 and cut.headers["etag"] != etag
+    monkeypatch.undo()
+    from service.routes import scenes as routes
+
+    monkeypatch.setattr(routes, "renderer_digest", lambda: "another renderer")
+    code = client.get(url, params=ERP, headers={"If-None-Match": etag})
+    assert code.status_code == 200 and code.headers["etag"] not in (etag, cut.headers["etag"])
+    monkeypatch.undo()
+    assert client.get(url, params=ERP, headers={"If-None-Match": etag}).status_code == 304
+    assert len(http_cache.renderer_digest()) == 16
+
+
 def test_head_of_a_render_answers_its_headers_without_rendering(client, scene, monkeypatch):
     get = client.get(f"/v1/scenes/{scene}/render", params=PERSPECTIVE + [("format", "jpeg")])
     from service import scenes as work

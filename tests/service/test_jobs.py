@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import time
 
@@ -195,7 +196,7 @@ def test_registry_reruns_a_done_job_whose_result_is_gone():
     assert created and again is not job and again.status == "queued"
 
 
-def test_refine_remakes_its_deleted_result(client, scene_id):
+def test_refine_remakes_its_deleted_result(client, live, scene_id, monkeypatch):
     params = {"iterations": 2, "height": 16, "patience": 0}
     first = client.post(f"/v1/scenes/{scene_id}/refine", json=params)
     assert first.status_code == 202, first.text
@@ -206,6 +207,12 @@ def test_refine_remakes_its_deleted_result(client, scene_id):
     assert gone.status_code == 200 and gone.json()["status"] == "done" and gone.json()["scene_id"] is None
     assert gone.json()["error"]["code"] == "result_removed" and "POST the same refine request" in gone.text
     assert set(gone.json()["links"]) == {"self"}
+    # another replica running it again (its job file says so) answers for it, not the stale "removed"
+    registry = live.app.state.jobs
+    rerun = dataclasses.replace(registry.get(result), status="running", progress=0.25)
+    monkeypatch.setattr(registry, "recorded", lambda job_id: rerun if job_id == result else None)
+    assert client.get(first.headers["location"]).json()["status"] == "running"
+    monkeypatch.undo()
     again = client.post(f"/v1/scenes/{scene_id}/refine", json=params)
     assert again.status_code == 202 and again.json()["status"] in ("queued", "running"), again.text
     assert _wait(client, again.headers["location"])["status"] == "done"
