@@ -33,6 +33,16 @@ def _bytes_of_one(tmp_path, g) -> int:
     return _scene_bytes(probe, content_id("probe"))
 
 
+def _filled_store(tmp_path, budget_scenes: float, tag: str, count: int) -> tuple[SceneStore, list[str]]:
+    """A store whose budget holds ``budget_scenes`` scenes of 2000 Gaussians, with ``count`` of them written."""
+    store = SceneStore(tmp_path / "s", budget_bytes=int(budget_scenes * _bytes_of_one(tmp_path, _gaussians(2000))),
+                       min_free_bytes=0)
+    ids = [content_id(tag, str(i)) for i in range(count)]
+    for i, sid in enumerate(ids):
+        store.put(sid, _gaussians(2000, i), {})
+    return store, ids
+
+
 def test_stored_scene_takes_float16_where_precision_allows(tmp_path):
     store = SceneStore(tmp_path)
     g = _gaussians(10_000)
@@ -64,12 +74,7 @@ def test_renders_of_a_stored_scene_stay_within_the_stated_tolerance():
 
 
 def test_budget_evicts_least_recently_used_scenes_no_job_holds(tmp_path):
-    g = _gaussians(2000)
-    one = _bytes_of_one(tmp_path, g)
-    store = SceneStore(tmp_path / "s", budget_bytes=int(3.5 * one), min_free_bytes=0)
-    ids = [content_id("lru", str(i)) for i in range(3)]
-    for i, sid in enumerate(ids):
-        store.put(sid, _gaussians(2000, i), {})
+    store, ids = _filled_store(tmp_path, 3.5, "lru", 3)
     store.gaussians(ids[0])  # used: now the most recent
     with store.hold(ids[1]):  # a job reads it: never evicted meanwhile
         store.put(content_id("lru", "3"), _gaussians(2000, 3), {})
@@ -171,12 +176,7 @@ def test_the_service_builds_its_store_from_the_settings(tmp_path, model_path):
 def test_a_write_that_cannot_fit_evicts_nothing(tmp_path):
     """Decide first, evict after: a scene bigger than the whole budget, or one that does not fit beside the held
     scenes, is refused with every stored scene still there."""
-    g = _gaussians(2000)
-    one = _bytes_of_one(tmp_path, g)
-    store = SceneStore(tmp_path / "s", budget_bytes=int(2.5 * one), min_free_bytes=0)
-    kept = [content_id("keep", str(i)) for i in range(2)]
-    for i, sid in enumerate(kept):
-        store.put(sid, _gaussians(2000, i), {})
+    store, kept = _filled_store(tmp_path, 2.5, "keep", 2)
     with pytest.raises(StoreFull) as info:
         store.put(content_id("huge"), _gaussians(6000, 9), {})
     assert store.ids() == sorted(kept) and store.evictions == 0
