@@ -14,6 +14,7 @@ import numpy as np
 
 from .camera import sample_erp
 from .geometry import direction_from_lat_lon, project_to_grid
+from .threads import map_threads
 
 
 def _box_sum(img: np.ndarray, r: int) -> np.ndarray:
@@ -106,8 +107,8 @@ def floor_ratio(grey_a: np.ndarray, grey_b: np.ndarray, level_a: np.ndarray, lev
     ``ValueError`` when no peak qualifies. Info: pixel counts, the floor's ``floor_share`` and every strong
     peak's ratio and share (``planes``)."""
     t = np.asarray(t, np.float64)
-    sides = [plane_zncc(grey_a, grey_b, level_a, level_b, R, t, np.array([0.0, 1.0, 0.0]), ratios),
-             plane_zncc(grey_b, grey_a, level_b, level_a, R.T, -R.T @ t, R[1], ratios - t[1])]
+    sides = map_threads(plane_zncc, (grey_a, grey_b), (grey_b, grey_a), (level_a, level_b), (level_b, level_a), (R, R.T),
+                        (t, -R.T @ t), (np.array([0.0, 1.0, 0.0]), R[1]), (ratios, ratios - t[1]))  # the two sides at once
     votes = np.zeros(len(ratios))
     winners, scored = [], 0
     for z in sides:

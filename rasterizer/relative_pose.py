@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .geometry import unit_vectors
+from .threads import map_threads
 
 #: Default inlier threshold on the epipolar angle (degrees).
 INLIER_DEG = 1.0
@@ -140,7 +141,8 @@ def upright_ransac(fa: np.ndarray, fb: np.ndarray, *, threshold_deg: float = INL
     if not len(yaws):
         raise ValueError("no pose hypothesis (degenerate matches)")
     thr = np.radians(threshold_deg)
-    parts = [_score(fa, fb, yaws[i:i + 256], ts[i:i + 256], thr) for i in range(0, len(yaws), 256)]
+    starts = range(0, len(yaws), 256)  # independent blocks of hypotheses, scored two at a time
+    parts = map_threads(lambda i: _score(fa, fb, yaws[i:i + 256], ts[i:i + 256], thr), starts)
     cost, inl, tt = (np.concatenate(x) for x in zip(*parts))
     order = np.argsort(cost)
     b = order[0]

@@ -195,11 +195,20 @@ def features(erp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 _DIST_ROWS = 1024
 
 
+def _row_slices(n: int) -> list[slice]:
+    """Chunks of :data:`_DIST_ROWS` descriptor rows covering ``n``."""
+    return [slice(s, min(s + _DIST_ROWS, n)) for s in range(0, n, _DIST_ROWS)]
+
+
+def _distance_rows(rows: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
+    """Squared RootSIFT distances (len(rows), len(desc_b)) float32 of unit descriptors."""
+    return np.maximum(2.0 - 2.0 * (rows @ desc_b.T), 0.0)
+
+
 def _distances(desc_a: np.ndarray, desc_b: np.ndarray):
     """Yield (rows slice, squared RootSIFT distances (rows, len(desc_b)) float32) in chunks of A's rows."""
-    for s in range(0, len(desc_a), _DIST_ROWS):
-        sl = slice(s, min(s + _DIST_ROWS, len(desc_a)))
-        yield sl, np.maximum(2.0 - 2.0 * (desc_a[sl] @ desc_b.T), 0.0)
+    for sl in _row_slices(len(desc_a)):
+        yield sl, _distance_rows(desc_a[sl], desc_b)
 
 
 def _mutual_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> np.ndarray:
@@ -220,27 +229,37 @@ def _mutual_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> np.
     return np.stack([np.nonzero(keep)[0], best_j[keep]], 1)
 
 
+def _stable_order(major: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Stable argsort by (``major`` index, ``dist``): one 64-bit key of the index above the float32 distance's
+    bits (a non-negative float32's bits order as its value; + 0 turns -0.0 into 0.0), not a three-key lexsort."""
+    bits = (dist.astype(np.float32) + np.float32(0.0)).view(np.uint32)
+    return np.argsort((major.astype(np.uint64) << np.uint64(32)) | bits, kind="stable")
+
+
 def _mutual_among(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, candidates) -> np.ndarray:
     """:func:`_mutual_matches` restricted to the pairs ``candidates(rows)`` ((r, c) index arrays, r local to
     the rows slice) admits: nearest neighbours both ways among them, ratio-tested against the second
     nearest candidate of the row (none: passes). Ties go to the lower index, as ``argmin``'s do; the
     candidates are a few percent of all pairs, so they are sorted instead of scanning dense rows."""
-    rows, cols, vals = [], [], []
-    for sl, d2 in _distances(desc_a, desc_b):
+    def chunk(sl):  # (rows, columns, squared distances) of one chunk's admitted pairs
+        d2 = _distance_rows(desc_a[sl], desc_b)
         r, c = candidates(sl)
-        rows.append(r + sl.start)
-        cols.append(c)
-        vals.append(d2[r, c].astype(np.float64))
-    r, c, v = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+        return r + sl.start, c, d2[r, c]
+
+    parts = map_threads(chunk, _row_slices(len(desc_a)))  # independent chunks: the same pairs, in order
+    r, c, d = (np.concatenate([p[i] for p in parts]) if parts else np.zeros(0, int) for i in range(3))
     if r.size == 0:
         return np.zeros((0, 2), int)
-    o = np.lexsort((c, v, r))  # by row, then distance, then column
+    v = d.astype(np.float64)
+    # the candidates come by row, then column: a stable sort by (row, distance) orders them as
+    # lexsort((c, v, r)) would, and by (column, distance) as lexsort((r, v, c))
+    o = _stable_order(r, d)  # by row, then distance, then column
     r1, c1, v1 = r[o], c[o], v[o]
     first = np.flatnonzero(np.r_[True, r1[1:] != r1[:-1]])
     second = np.full(first.size, np.inf)
     has_two = np.diff(np.r_[first, r1.size]) > 1
     second[has_two] = v1[first[has_two] + 1]
-    o = np.lexsort((r, v, c))  # by column, then distance, then row
+    o = _stable_order(c, d)  # by column, then distance, then row
     c2 = c[o]
     col_first = np.flatnonzero(np.r_[True, c2[1:] != c2[:-1]])
     col_arg = np.full(len(desc_b), -1)

@@ -310,8 +310,12 @@ def test_photometric_score_prefers_the_true_pose_over_a_flip_and_a_turn(room_a):
 
 
 def _masked_dense_matches(desc_a, desc_b, ratio, mask):
-    """Reference for ``_mutual_among``: every distance, inf outside ``mask``, nearest both ways by argmin."""
-    d2 = np.where(mask, np.maximum(2.0 - 2.0 * (desc_a @ desc_b.T), 0.0), np.inf).astype(np.float64)
+    """Reference for ``_mutual_among``: every distance (the same chunks of rows: a GEMM's rounding depends on its
+    shape), inf outside ``mask``, nearest both ways by argmin."""
+    from service.poses import _distances
+
+    dense = np.concatenate([d2 for _, d2 in _distances(desc_a, desc_b)])
+    d2 = np.where(mask, dense, np.inf).astype(np.float64)
     srt = np.sort(d2, axis=1)
     best_d, second = srt[:, 0], srt[:, 1] if d2.shape[1] > 1 else np.full(len(d2), np.inf)
     best_j, col_arg = np.argmin(d2, axis=1), np.argmin(d2, axis=0)
@@ -321,18 +325,22 @@ def _masked_dense_matches(desc_a, desc_b, ratio, mask):
 
 @settings(max_examples=60, deadline=None)
 @given(na=st.integers(1, 40), nb=st.integers(1, 40), density=st.floats(0.0, 1.0), levels=st.sampled_from([2, 3, 256]),
-       seed=st.integers(0, 2**31 - 1))
-def test_sparse_mutual_matches_equal_the_masked_dense_ones(na, nb, density, levels, seed):
+       rows=st.sampled_from([1024, 3, 7]), seed=st.integers(0, 2**31 - 1))
+def test_sparse_mutual_matches_equal_the_masked_dense_ones(na, nb, density, levels, rows, seed):
     """Guided matching sorts its candidate pairs instead of scanning masked dense rows: the same pairs, ties
-    (coarsely quantised descriptors give many) included."""
+    (coarsely quantised descriptors give many) included, whether A's rows are one chunk or several (``rows``),
+    which run on two threads."""
+    from unittest import mock
+
     from service import poses
 
     rng = np.random.default_rng(seed)
     desc_a = np.round(rng.random((na, 8)) * (levels - 1)).astype(np.float32) / levels
     desc_b = np.round(rng.random((nb, 8)) * (levels - 1)).astype(np.float32) / levels
     mask = rng.random((na, nb)) < density
-    got = poses._mutual_among(desc_a, desc_b, 0.9, lambda sl: np.nonzero(mask[sl]))
-    want = _masked_dense_matches(desc_a, desc_b, 0.9, mask)
+    with mock.patch.object(poses, "_DIST_ROWS", rows):
+        got = poses._mutual_among(desc_a, desc_b, 0.9, lambda sl: np.nonzero(mask[sl]))
+        want = _masked_dense_matches(desc_a, desc_b, 0.9, mask)
     assert np.array_equal(got.reshape(-1, 2), want)
 
 
