@@ -48,6 +48,12 @@ DEFAULT_FOV_DEG = 90.0
 #: dev scenes, 47 dB or more from the uncut render for 34% less CPU (docs/design.md, "Footprint tails").
 RENDER_CUT_SIGMA = 2.25
 
+#: Widest perspective view (degrees) whose footprints are cut. Wider views stretch the footprints towards their
+#: rim into radial streaks whose cut tails leave coverage: at 170 deg, views of the dev scenes moved 40-43 dB from
+#: the uncut render (up to 5% of the pixels by more than 8/255), at 160 and 165 deg 45.5 dB or more
+#: (docs/design.md, "Footprint tails").
+CUT_MAX_FOV_DEG = 160.0
+
 
 def _reject_constant(name: str) -> Any:
     raise ValueError(f"{name} is not allowed")
@@ -305,11 +311,13 @@ class RenderQuery:
         overlapping surfels hide their footprints' tails, so a plain composite's footprints end at
         :data:`RENDER_CUT_SIGMA`; False for any other PLY, whose sparse Gaussians may show their tails (the
         1/255 rule alone). V/A (``normalize``) is never cut: dividing by alpha shows a tail's colour at full
-        strength wherever nothing else covers the pixel (an isolated object's rim).
+        strength wherever nothing else covers the pixel (an isolated object's rim), nor is a perspective view
+        wider than :data:`CUT_MAX_FOV_DEG`.
         """
         # "scene": a view finer than the scene's Gaussians is rendered at their pitch and resized
         # (rasterizer.scene_resolution; docs/design.md, "At the scene's own resolution")
-        cut = RENDER_CUT_SIGMA if reconstruction and not normalize else None
+        narrow = self.projection != "perspective" or self.fov_deg <= CUT_MAX_FOV_DEG
+        cut = RENDER_CUT_SIGMA if reconstruction and not normalize and narrow else None
         kwargs: dict[str, Any] = {"projection": self.projection, "width": self.width, "normalize": normalize,
                                   "resolution": "scene", "cut_sigma": cut}
         if self.projection == "perspective":

@@ -76,6 +76,23 @@ def test_api_default_is_plain_and_va_is_explicit(served, params, kwargs, pose):
     assert default.headers["etag"] != va.headers["etag"]
 
 
+@pytest.mark.parametrize("fov, cut", [(160.0, RENDER_CUT_SIGMA), (170.0, None)])
+def test_wide_perspective_views_are_not_cut(served, fov, cut):
+    """The API cuts a reconstruction's footprints in views up to CUT_MAX_FOV_DEG only: wider, the footprints
+    stretched at the rim lose coverage to the cut (dev-scene views moved by 40-43 dB)."""
+    client, scene_id, gaussians, shell = served
+    params = {"projection": "perspective", "width": 160, "height": 120, "fov_deg": fov}
+    r = client.get(f"/v1/scenes/{scene_id}/render", params={"c2w": YAW, **params})
+    assert r.status_code == 200
+    c2w = np.array([float(v) for v in YAW.split(",")]).reshape(4, 4)
+    expect = to_uint8(render(gaussians, c2w, normalize=False, cut_sigma=cut, resolution="scene", backdrop=shell,
+                             **params).colour)
+    other = to_uint8(render(gaussians, c2w, normalize=False, cut_sigma=RENDER_CUT_SIGMA if cut is None else None,
+                            resolution="scene", backdrop=shell, **params).colour)
+    assert not _close(expect, other)  # the two renders differ, so the comparison tells them apart
+    assert _close(_png(r.content), expect)
+
+
 def test_plain_erp_is_the_premultiplied_yin_yang_merge(served):
     _, _, g, _ = served
     plain = render(g, np.eye(4), projection="erp", width=256, normalize=False)
