@@ -49,8 +49,8 @@ DEFAULT_FOV_DEG = 90.0
 RENDER_CUT_SIGMA = 2.25
 
 #: Widest perspective view (degrees) whose footprints are cut. Wider views stretch the footprints towards their
-#: rim into radial streaks whose cut tails leave coverage: at 170 deg, views of the dev scenes moved 40-43 dB from
-#: the uncut render (up to 5% of the pixels by more than 8/255), at 160 and 165 deg 45.5 dB or more
+#: rim into radial streaks that lose coverage when cut: at 170 deg, views of the dev scenes moved 40-43 dB from
+#: the uncut render (up to 5% of the pixels by more than 8/255), at 160 deg 46.9 dB or more
 #: (docs/design.md, "Footprint tails").
 CUT_MAX_FOV_DEG = 160.0
 
