@@ -237,8 +237,8 @@ def _stable_order(major: np.ndarray, dist: np.ndarray) -> np.ndarray:
 
 
 def _mutual_among(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, candidates) -> np.ndarray:
-    """:func:`_mutual_matches` restricted to the pairs ``candidates(rows)`` ((r, c) index arrays, r local to
-    the rows slice) admits: nearest neighbours both ways among them, ratio-tested against the second
+    """:func:`_mutual_matches` restricted to the pairs ``candidates(rows)`` ((r, c) index arrays in row-major
+    order, as ``np.nonzero`` gives them, r local to the rows slice) admits: nearest neighbours both ways among them, ratio-tested against the second
     nearest candidate of the row (none: passes). Ties go to the lower index, as ``argmin``'s do; the
     candidates are a few percent of all pairs, so they are sorted instead of scanning dense rows."""
     def chunk(sl):  # (rows, columns, squared distances) of one chunk's admitted pairs
