@@ -22,7 +22,8 @@ World frame of an estimate: A's levelled frame (origin at A, OpenCV axes, +y alo
 (metres), else ``camera_height`` (metres above the floor: the lowest horizontal plane both images agree
 on in a dense plane sweep, :func:`rasterizer.floor_sweep.floor_ratio`; else the lowest wide plane of
 triangulated points, :func:`rasterizer.relative_pose.floor_scale`; 422 ``scale_failed`` when neither
-finds one), else a baseline of 1. Failures raise :class:`PoseEstimationFailed` (422).
+finds one), else a baseline of 1. Failures raise :class:`PoseEstimationFailed` (422); one panorama flipped
+as a whole against the other (mirrored, upside down) is refused as such (:mod:`service.pose_flips`).
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ from rasterizer.threads import map_threads
 
 from .errors import BadInput
 from .gravity import crop_rotations, panorama_gravity, perspective_crops
+from .pose_flips import FLIP_CHECK_SHARE, flipped
 
 #: Options keys this module reads (not encoder options).
 POSE_OPTION_KEYS = ("camera_height", "baseline", "refine_poses")
@@ -367,6 +369,14 @@ def _guided_refine_general(fa, fb, da, db, R, t):
     return R, t, pairs[inl], err[inl]
 
 
+def _refusal(pa: Panorama, pb: Panorama, message: str, code: str = PoseEstimationFailed.code) -> PoseEstimationFailed:
+    """The refusal to raise: a ``flipped_panorama`` one when B matches A far better flipped
+    (:func:`service.pose_flips.flipped`), else ``message``."""
+    flip = flipped(pa.bearings, pa.descriptors, pb.bearings, pb.descriptors, MIN_INLIERS, MIN_RANSAC_INLIERS,
+                   match=lambda d: _mutual_matches(pa.descriptors, d, SEED_RATIOS[0]))
+    return PoseEstimationFailed(flip or message, code="flipped_panorama" if flip else code)
+
+
 def _floor_share(pa: Panorama, pb: Panorama, yaw: float, t: np.ndarray) -> float:
     """Share of the band below the cameras that lines up through the floor plane of the dense sweep under the
     upright pose (``yaw``, unit ``t``) in A's levelled frame; 0 when the sweep finds no floor."""
@@ -412,8 +422,8 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
         info.update(putative_matches=int(len(pairs)), seed_ratio=ratio)
         if len(pairs) < MIN_INLIERS:
             if last:
-                raise PoseEstimationFailed(f"poses: only {len(pairs)} feature matches between the images "
-                                           f"(need {MIN_INLIERS}); give poses, or images that overlap more")
+                raise _refusal(pa, pb, f"poses: only {len(pairs)} feature matches between the images "
+                                       f"(need {MIN_INLIERS}); give poses, or images that overlap more")
             continue
         ma, mb = fa[pairs[:, 0]], fb[pairs[:, 1]]
         static = rotation_only_fraction(ma, mb)
@@ -425,18 +435,20 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
         try:
             ransac = upright_ransac(ma, mb)
         except ValueError as exc:  # degenerate matches: no hypothesis
-            raise PoseEstimationFailed(f"poses: no relative pose fits the matches ({exc}); give poses") from None
+            raise _refusal(pa, pb, f"poses: no relative pose fits the matches ({exc}); give poses") from None
         elevation = float(np.degrees(np.arcsin(np.clip(abs(ransac.best.t[1]), 0.0, 1.0))))
         if ransac.best.num_inliers >= MIN_RANSAC_INLIERS and elevation <= MAX_TRAVEL_ELEVATION_DEG:
             break
         if last and ransac.best.num_inliers < MIN_RANSAC_INLIERS:
-            raise PoseEstimationFailed(f"poses: only {ransac.best.num_inliers} of {len(pairs)} feature matches agree on "
-                                       f"a relative pose (need {MIN_RANSAC_INLIERS}): the views share too little; "
-                                       "give poses")
+            raise _refusal(pa, pb, f"poses: only {ransac.best.num_inliers} of {len(pairs)} feature matches agree on "
+                                   f"a relative pose (need {MIN_RANSAC_INLIERS}): the views share too little; give poses")
         if last:
-            raise PoseEstimationFailed(f"poses: the matches fit only a travel {elevation:.0f} deg from horizontal "
-                                       f"(at most {MAX_TRAVEL_ELEVATION_DEG:.0f}): not two captures of one room at "
-                                       "about the same height; give poses")
+            raise _refusal(pa, pb, f"poses: the matches fit only a travel {elevation:.0f} deg from horizontal "
+                                   f"(at most {MAX_TRAVEL_ELEVATION_DEG:.0f}): not two captures of one room at "
+                                   "about the same height; give poses")
+    if k > 0 or ransac.best.num_inliers < FLIP_CHECK_SHARE * len(pairs):  # a weak seed: is B flipped?
+        if (refusal := _refusal(pa, pb, "")).code == "flipped_panorama":
+            raise refusal
     yaw, t, inl, err = _guided_refine(fa, fb, da, db, ransac.best.yaw, ransac.best.t)
     method = "sift16-rootsift+levelled+upright3pt-ransac+guided"
     info.update(_support(inl, err, method))
@@ -471,13 +483,13 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
             if best_floor is not None:
                 rival["floor_share"], info["floor_share"] = rival_floor, best_floor
             if not decisive and rival["inliers"] >= RIVAL_SHARE * len(inl):
-                raise PoseEstimationFailed(
-                    f"poses: ambiguous - two relative poses {rival['yaw_gap_deg']:.0f} deg apart in yaw "
+                raise _refusal(
+                    pa, pb, f"poses: ambiguous - two relative poses {rival['yaw_gap_deg']:.0f} deg apart in yaw "
                     f"({rival['t_gap_deg']:.0f} deg in travel direction) fit the matches about equally well "
                     f"({len(inl)} vs {rival['inliers']} inliers) and the images agree about as well under both "
                     f"(photometric {max(best_score, rival_score):.2f} vs {min(best_score, rival_score):.2f}; the "
                     f"floor lines up on {info['floor_share']:.1%} vs {rival['floor_share']:.1%} of the pixels), as "
-                    "in a symmetric room or when the views share little; give poses", code="ambiguous_pose")
+                    "in a symmetric room or when the views share little; give poses", "ambiguous_pose")
     R = yaw_rotation(yaw)
     R5, t5, inl5, err5 = _guided_refine_general(fa, fb, da, db, R, t)
     info["residual_tilt_deg"] = tilt_between(R5)
@@ -486,8 +498,7 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
         info.update(_support(inl, err, method + "+5dof"))
     info["timings"] = {"features": t_feat, "total": time.perf_counter() - t0}
     if len(inl) < MIN_INLIERS:
-        raise PoseEstimationFailed(f"poses: only {len(inl)} matches agree on a relative pose (need {MIN_INLIERS}); "
-                                   "give poses")
+        raise _refusal(pa, pb, f"poses: only {len(inl)} matches agree on a relative pose (need {MIN_INLIERS}); give poses")
     scale, info["scale"] = _scale(pa, pb, inl, R, t, opts)
     info["yaw_deg"] = float(np.degrees(np.arctan2(R[0, 2], R[2, 2])))
     c2w_a = np.eye(4)

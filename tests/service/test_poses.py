@@ -1,4 +1,5 @@
-"""Poses from the images: a textured synthetic box room rendered to ERPs with known poses, and m3d without poses."""
+"""Poses from the images: a textured synthetic box room rendered to ERPs with known poses, and m3d without poses; a
+panorama flipped as a whole against the other is refused as such."""
 
 import json
 
@@ -10,7 +11,8 @@ from hypothesis import strategies as st
 from rasterizer.geometry import direction_from_lat_lon, erp_lat_lon, lat_lon_from_direction
 from rasterizer.relative_pose import yaw_rotation
 from rasterizer.scene_folder import load_scene
-from service.poses import PoseEstimationFailed, PoseOptions, estimate_poses, poses_for_scene
+from service.pose_flips import FLIPS, MIRROR_BINS
+from service.poses import PoseEstimationFailed, PoseOptions, estimate_poses, poses_for_scene, putative_matches
 from tests.service._support import LiveServer, make_settings
 
 ROOM_MIN = np.array([-3.0, -1.2, -3.5])  # camera A at the origin, OpenCV (y down): floor at y = 1.5
@@ -143,10 +145,16 @@ def test_unrelated_and_flat_images_are_refused():
     assert photometric_score(flat, flat, np.eye(3), np.array([1.0, 0, 0])) == 0.0
 
 
-def test_a_mirror_flipped_panorama_is_refused_not_given_a_vertical_baseline():
+def test_a_mirror_flipped_panorama_is_refused_not_given_a_vertical_baseline(monkeypatch):
     """An ERP flipped upside down and turned: every feature moves along its meridian, which a baseline
-    along gravity explains exactly (its epipolar planes are the meridians); no two captures of a room do."""
+    along gravity explains exactly (its epipolar planes are the meridians); no two captures of a room do.
+    The flip check names the flip; without it, the travel's elevation still refuses the pose."""
+    import service.poses as poses
+
     noise = np.random.default_rng(0).integers(0, 255, (256, 512, 3), dtype=np.uint8)
+    with pytest.raises(PoseEstimationFailed, match="flipped top-bottom"):
+        estimate_poses(noise, np.roll(noise[::-1], 77, axis=1), PoseOptions())
+    monkeypatch.setattr(poses, "flipped", lambda *args, **kwargs: None)
     with pytest.raises(PoseEstimationFailed, match="deg from horizontal"):
         estimate_poses(noise, np.roll(noise[::-1], 77, axis=1), PoseOptions())
 
@@ -365,3 +373,41 @@ def test_sift_crops_cover_their_share_of_the_sphere_with_the_margin():
             need = np.degrees(np.arctan(np.abs(local[:, axis] / local[:, 2]).max()))
             half = np.degrees(np.arctan((side / 2) / poses.CROP_FOCAL))
             assert poses.CROP_MARGIN_DEG - 0.2 < half - need < poses.CROP_MARGIN_DEG + 0.5, (k, axis, half, need)
+
+
+def test_mirror_bins_match_sift_of_the_mirrored_image():
+    """SIFT of a left-right mirrored image, its descriptors' bins permuted, matches the image's own keypoints at
+    their mirrored places (without the permutation few match)."""
+    import cv2
+
+    img = room_erp(_pose(20.0, [0.3, 0.0, 0.2]), 256)[40:216, 100:400]
+    gray = np.ascontiguousarray(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY))
+    sift = cv2.SIFT_create(contrastThreshold=0.02)
+    (k1, d1), (k2, d2) = sift.detectAndCompute(gray, None), sift.detectAndCompute(np.ascontiguousarray(gray[:, ::-1]), None)
+    d1, d2 = (np.sqrt(d / d.sum(1, keepdims=True)).astype(np.float32) for d in (d1, d2))
+
+    def at_mirrored_place(pairs):
+        p1 = np.array([k1[i].pt for i in pairs[:, 0]])
+        p2 = np.array([k2[j].pt for j in pairs[:, 1]])
+        return int(np.sum(np.hypot(gray.shape[1] - 1 - p2[:, 0] - p1[:, 0], p2[:, 1] - p1[:, 1]) < 1.5))
+
+    mirrored, plain = putative_matches(d1, d2[:, MIRROR_BINS]), putative_matches(d1, d2)
+    assert at_mirrored_place(mirrored) > 0.8 * len(k1) and at_mirrored_place(plain) < 0.2 * len(k1)
+
+
+@pytest.mark.parametrize("flip, name", [(lambda img: img[:, ::-1], "mirrored left-right"),
+                                        (lambda img: img[::-1, ::-1], "upside down")])
+def test_a_flipped_panorama_is_refused_not_given_a_pose_180_deg_wrong(flip, name):
+    """B 1 m to A's right and turned 90 deg: mirrored, or upside down, the estimate gave a pose 170-180 deg off
+    with 300-370 guided inliers and a baseline off by up to 63%."""
+    img_b = np.ascontiguousarray(flip(room_erp(_pose(90.0, [1.0, 0.0, 0.0]))))
+    with pytest.raises(PoseEstimationFailed) as exc:
+        estimate_poses(room_erp(np.eye(4)), img_b, PoseOptions(camera_height=1.5))
+    assert exc.value.status == 422 and exc.value.code == "flipped_panorama"
+    assert name in exc.value.message and "image_b" in exc.value.message
+
+
+def test_the_flips_are_the_three_whole_image_flips():
+    signs = {n: tuple(s) for n, s, _ in FLIPS}
+    assert signs == {"mirrored left-right": (-1, 1, 1), "upside down": (-1, -1, 1), "flipped top-bottom": (1, -1, 1)}
+    assert sorted(MIRROR_BINS) == list(range(128)) and np.array_equal(MIRROR_BINS[MIRROR_BINS], np.arange(128))
