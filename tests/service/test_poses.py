@@ -162,12 +162,13 @@ def test_a_mirror_flipped_panorama_is_refused_not_given_a_vertical_baseline(monk
 def test_too_few_seed_matches_at_the_first_ratio_retry_at_the_second(room_a, monkeypatch):
     """A wide baseline leaves too few ratio-0.8 matches to seed RANSAC: the guided matching's 0.9 seeds it."""
     import service.poses as poses
+    from service import matching
 
     tried = []
 
     def putative(da, db, ratio=0.8):
         tried.append(ratio)
-        pairs = poses._mutual_matches(da, db, ratio)
+        pairs = matching.mutual_matches(da, db, ratio)
         return pairs[:poses.MIN_INLIERS - 1] if ratio == poses.SEED_RATIOS[0] else pairs
 
     monkeypatch.setattr(poses, "putative_matches", putative)
@@ -320,7 +321,7 @@ def test_photometric_score_prefers_the_true_pose_over_a_flip_and_a_turn(room_a):
 def _masked_dense_matches(desc_a, desc_b, ratio, mask):
     """Reference for ``_mutual_among``: every distance (the same chunks of rows: a GEMM's rounding depends on its
     shape), inf outside ``mask``, nearest both ways by argmin."""
-    from service.poses import _distances
+    from service.matching import _distances
 
     dense = np.concatenate([d2 for _, d2 in _distances(desc_a, desc_b)])
     d2 = np.where(mask, dense, np.inf).astype(np.float64)
@@ -340,14 +341,14 @@ def test_sparse_mutual_matches_equal_the_masked_dense_ones(na, nb, density, leve
     which run on two threads."""
     from unittest import mock
 
-    from service import poses
+    from service import matching
 
     rng = np.random.default_rng(seed)
     desc_a = np.round(rng.random((na, 8)) * (levels - 1)).astype(np.float32) / levels
     desc_b = np.round(rng.random((nb, 8)) * (levels - 1)).astype(np.float32) / levels
     mask = rng.random((na, nb)) < density
-    with mock.patch.object(poses, "_DIST_ROWS", rows):
-        got = poses._mutual_among(desc_a, desc_b, 0.9, lambda sl: np.nonzero(mask[sl]))
+    with mock.patch.object(matching, "_DIST_ROWS", rows):
+        got = matching._mutual_among(desc_a, desc_b, 0.9, lambda sl: np.nonzero(mask[sl]))
         want = _masked_dense_matches(desc_a, desc_b, 0.9, mask)
     assert np.array_equal(got.reshape(-1, 2), want)
 
