@@ -11,8 +11,9 @@ from hypothesis import strategies as st
 from rasterizer.geometry import direction_from_lat_lon, erp_lat_lon, lat_lon_from_direction
 from rasterizer.relative_pose import yaw_rotation
 from rasterizer.scene_folder import load_scene
+from service.matching import putative_matches
 from service.pose_flips import FLIPS, MIRROR_BINS
-from service.poses import PoseEstimationFailed, PoseOptions, estimate_poses, poses_for_scene, putative_matches
+from service.poses import PoseEstimationFailed, PoseOptions, estimate_poses, poses_for_scene
 from tests.service._support import LiveServer, make_settings
 
 ROOM_MIN = np.array([-3.0, -1.2, -3.5])  # camera A at the origin, OpenCV (y down): floor at y = 1.5
@@ -408,7 +409,9 @@ def test_a_flipped_panorama_is_refused_not_given_a_pose_180_deg_wrong(flip, name
     assert name in exc.value.message and "image_b" in exc.value.message
 
 
-def test_the_flips_are_the_three_whole_image_flips():
-    signs = {n: tuple(s) for n, s, _ in FLIPS}
-    assert signs == {"mirrored left-right": (-1, 1, 1), "upside down": (-1, -1, 1), "flipped top-bottom": (1, -1, 1)}
+def test_the_mirror_permutation_undoes_itself_and_each_flip_is_a_reflection_or_a_half_turn():
+    """Mirroring twice is the identity; a flip's bearing signs are a mirror (one axis, descriptors mirrored) or a
+    half turn (two axes, descriptors as they are)."""
     assert sorted(MIRROR_BINS) == list(range(128)) and np.array_equal(MIRROR_BINS[MIRROR_BINS], np.arange(128))
+    for _, sign, mirror in FLIPS:
+        assert np.all(np.abs(sign) == 1) and (np.prod(sign) < 0) == mirror
