@@ -18,20 +18,16 @@ from typing import Any
 
 import numpy as np
 
-from rasterizer.geometry import lat_lon_from_direction, pinhole_intrinsics, pinhole_rays
+from rasterizer.geometry import lat_lon_from_direction, pinhole_rays
 from rasterizer.gravity import down_from_pitch_roll, line_support, tilt_deg, vertical_from_lines
 from rasterizer.relative_pose import yaw_rotation
 
 from .images import file_orientation
 
-#: Line crops (:data:`LINE_CROPS`): 100-deg FOV, this many pixels a side.
-LINE_CROP_SIZE = 800
-LINE_CROP_FOV_DEG = 100.0
-#: Their intrinsics (fx, fy, cx, cy) in pixels, and the focal length alone.
-LINE_CROP_INTRINSICS = pinhole_intrinsics(LINE_CROP_SIZE, LINE_CROP_SIZE, LINE_CROP_FOV_DEG)
-LINE_CROP_FOCAL = LINE_CROP_INTRINSICS[0]
-#: Segments shorter than this share of the crop side are too imprecise to vote.
-MIN_SEGMENT_SHARE = 0.04
+#: Line crops' focal length in pixels: 4.1 px per degree at a crop's centre, a 100-deg view 560 px across.
+LINE_CROP_FOCAL = 235.0
+#: Segments shorter than this (pixels of a line crop, about 5.5 deg at its centre) are too imprecise to vote.
+MIN_SEGMENT_PX = 22.4
 #: Segments below this latitude (deg) are dropped: a tripod, a selfie stick, the photographer.
 LOW_LAT_DEG = -55.0
 #: A line segment agrees with the camera's reading when its great circle passes this close (deg) to it.
@@ -63,9 +59,18 @@ def xmp_pitch_roll(data: bytes | None) -> tuple[float, float] | None:
     return out[0], out[1]
 
 
-#: Line crops as (pitch, yaws, (width, height)) in degrees and pixels: 8 on the horizon and 4 at +45 deg pitch.
-LINE_CROPS = ((0.0, tuple(45.0 * k for k in range(8)), (LINE_CROP_SIZE, LINE_CROP_SIZE)),
-              (45.0, tuple(22.5 + 90.0 * k for k in range(4)), (LINE_CROP_SIZE, LINE_CROP_SIZE)))
+def _line_crop_size(half_x_deg: float, half_y_deg: float) -> tuple[int, int]:
+    """(width, height) in pixels of a line crop reaching ``half_*_deg`` from its axis."""
+    return tuple(int(round(2 * LINE_CROP_FOCAL * np.tan(np.radians(a)))) for a in (half_x_deg, half_y_deg))
+
+
+#: Line crops as (pitch, yaws, (width, height)) in degrees and pixels: 8 on the horizon and 4 looking 45 deg down
+#: (+45 deg pitch). Gravity votes with near-vertical segments, and a crop keeps those whose midpoint is nearer its
+#: axis than any other's: the horizon ring's crops reach 30 deg to the sides (their own 22.5 and a margin) and
+#: 50 up and down, so a wall's vertical edge lies whole in one crop; the lower ring's reach 40 deg, a little past
+#: their own share (down to :data:`LOW_LAT_DEG`). Segments around the zenith, above 48 deg, are not looked for.
+LINE_CROPS = ((0.0, tuple(45.0 * k for k in range(8)), _line_crop_size(30.0, 50.0)),
+              (45.0, tuple(22.5 + 90.0 * k for k in range(4)), _line_crop_size(40.0, 40.0)))
 
 
 def _pitch_rotation(pitch_deg: float) -> np.ndarray:
@@ -109,20 +114,21 @@ def line_normals(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     lengths (N,) in radians; each segment is kept by the crop whose axis is nearest its midpoint."""
     import cv2
 
-    size = LINE_CROP_SIZE
     lsd = cv2.createLineSegmentDetector()
-    fx, fy, cx, cy = LINE_CROP_INTRINSICS
+    f = LINE_CROP_FOCAL
+    sizes = [size for _, yaws, size in LINE_CROPS for _ in yaws]
     axes = LINE_CROP_ROTATIONS[:, :, 2]
     normals, lengths = [], []
-    for k, crop in enumerate(perspective_crops(gray, LINE_CROPS, LINE_CROP_FOCAL)):
-        rot = LINE_CROP_ROTATIONS[k]
+    for k, crop in enumerate(perspective_crops(gray, LINE_CROPS, f)):
+        rot, (w, h) = LINE_CROP_ROTATIONS[k], sizes[k]
+        cx, cy = (w - 1) / 2, (h - 1) / 2
         segs = lsd.detect(crop)[0]
         if segs is None:
             continue
         s = segs.reshape(-1, 4).astype(np.float64)
-        s = s[np.hypot(s[:, 2] - s[:, 0], s[:, 3] - s[:, 1]) >= MIN_SEGMENT_SHARE * size]
-        p1 = np.stack([(s[:, 0] - cx) / fx, (s[:, 1] - cy) / fy, np.ones(len(s))], -1) @ rot.T
-        p2 = np.stack([(s[:, 2] - cx) / fx, (s[:, 3] - cy) / fy, np.ones(len(s))], -1) @ rot.T
+        s = s[np.hypot(s[:, 2] - s[:, 0], s[:, 3] - s[:, 1]) >= MIN_SEGMENT_PX]
+        p1 = np.stack([(s[:, 0] - cx) / f, (s[:, 1] - cy) / f, np.ones(len(s))], -1) @ rot.T
+        p2 = np.stack([(s[:, 2] - cx) / f, (s[:, 3] - cy) / f, np.ones(len(s))], -1) @ rot.T
         p1 /= np.linalg.norm(p1, axis=-1, keepdims=True)
         p2 /= np.linalg.norm(p2, axis=-1, keepdims=True)
         mid = p1 + p2

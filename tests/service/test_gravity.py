@@ -9,6 +9,7 @@ from PIL import Image
 
 from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction, pinhole_rays
 from rasterizer.gravity import down_from_pitch_roll, level_rotation
+from service import gravity
 from service.gravity import crop_rotations, panorama_gravity, perspective_crops, xmp_pitch_roll
 
 
@@ -116,3 +117,25 @@ def test_crops_shifted_per_yaw_equal_the_crops_of_their_own_rotation():
         my = ((np.pi / 2 - lat) / np.pi * h - 0.5).astype(np.float32)
         direct = cv2.remap(erp, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
         assert np.array_equal(crop, direct)
+
+
+def test_line_crops_hold_their_share_of_the_sphere():
+    """A line crop keeps the segments whose midpoint is nearer its axis than any other's: every such direction
+    between LOW_LAT_DEG and 45 deg up lies inside its crop, at least 2.5 deg from the sides it spans."""
+    n = 200_000
+    i = np.arange(n) + 0.5
+    z = 1 - 2 * i / n
+    phi = np.pi * (1 + 5**0.5) * i
+    d = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], -1)
+    lat = np.degrees(lat_lon_from_direction(d)[0])
+    d = d[(lat > gravity.LOW_LAT_DEG) & (lat < 45.0)]
+    rotations = gravity.LINE_CROP_ROTATIONS
+    own = np.argmax(d @ rotations[:, :, 2].T, axis=1)
+    sizes = [size for _, yaws, size in gravity.LINE_CROPS for _ in yaws]
+    for k, (w, h) in enumerate(sizes):
+        local = d[own == k] @ rotations[k]
+        assert local.size and np.all(local[:, 2] > 0)
+        for axis, side in ((0, w), (1, h)):
+            need = np.degrees(np.arctan(np.abs(local[:, axis] / local[:, 2]).max()))
+            half = np.degrees(np.arctan((side / 2) / gravity.LINE_CROP_FOCAL))
+            assert half - need > 2.5, (k, axis, half, need)
