@@ -1,7 +1,8 @@
 """Descriptor matching of two panoramas' features (numpy only): nearest neighbours both ways with Lowe's ratio
 test, over all pairs (:func:`putative_matches`) or over the pairs whose bearings fit a relative pose
 (:func:`guided_matches`). Distances are computed in chunks of rows; the chunks are independent and run on two
-threads, so results are those of one pass.
+threads, so results are those of one pass. One estimate matches the same two descriptor sets six to ten times
+(seeds, guided rounds under several poses), so :class:`Distances` keeps each chunk once it is computed.
 """
 
 from __future__ import annotations
@@ -24,19 +25,34 @@ def _distance_rows(rows: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
     return np.maximum(2.0 - 2.0 * (rows @ desc_b.T), 0.0)
 
 
-def _distances(desc_a: np.ndarray, desc_b: np.ndarray):
-    """Yield (rows slice, squared RootSIFT distances (rows, len(desc_b)) float32) in chunks of A's rows."""
-    for sl in _row_slices(len(desc_a)):
-        yield sl, _distance_rows(desc_a[sl], desc_b)
+class Distances:
+    """Squared RootSIFT distances between descriptor sets ``a`` (Na, 128) and ``b`` (Nb, 128) float32, unit
+    rows, computed per chunk of :data:`_DIST_ROWS` rows of ``a`` when first asked for and kept (4 Na Nb bytes at
+    most). Chunks are independent, so two threads may ask for different ones at once."""
+
+    def __init__(self, a: np.ndarray, b: np.ndarray):
+        self.a, self.b = a, b
+        self._chunks: dict[int, np.ndarray] = {}
+
+    def rows(self, sl: slice) -> np.ndarray:
+        """(rows, Nb) distances of ``sl``, one of :func:`_row_slices` (len(a))."""
+        if sl.start not in self._chunks:
+            self._chunks[sl.start] = _distance_rows(self.a[sl], self.b)
+        return self._chunks[sl.start]
+
+    def chunks(self):
+        """Yield (rows slice, distances) over all of ``a``."""
+        for sl in _row_slices(len(self.a)):
+            yield sl, self.rows(sl)
 
 
-def mutual_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> np.ndarray:
+def mutual_matches(dist: Distances, ratio: float) -> np.ndarray:
     """(M, 2) index pairs: nearest neighbours both ways passing Lowe's ratio test."""
-    na, nb = len(desc_a), len(desc_b)
+    na, nb = len(dist.a), len(dist.b)
     best_d, second = np.full(na, np.inf), np.full(na, np.inf)
     best_j = np.zeros(na, int)
     col_best, col_arg = np.full(nb, np.inf), np.zeros(nb, int)
-    for sl, d2 in _distances(desc_a, desc_b):
+    for sl, d2 in dist.chunks():
         part = np.partition(d2, 1, axis=1)[:, :2] if nb > 1 else np.concatenate([d2, d2 + np.inf], 1)
         best_d[sl], second[sl] = part[:, 0], part[:, 1]
         best_j[sl] = np.argmin(d2, axis=1)
@@ -55,18 +71,18 @@ def _stable_order(major: np.ndarray, dist: np.ndarray) -> np.ndarray:
     return np.argsort((major.astype(np.uint64) << np.uint64(32)) | bits, kind="stable")
 
 
-def _mutual_among(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, candidates) -> np.ndarray:
+def _mutual_among(dist: Distances, ratio: float, candidates) -> np.ndarray:
     """:func:`mutual_matches` restricted to the pairs ``candidates(rows)`` ((r, c) index arrays in row-major
     order, as ``np.nonzero`` gives them, r local to the rows slice) admits: nearest neighbours both ways among
     them, ratio-tested against the second nearest candidate of the row (none: passes). Ties go to the lower
     index, as ``argmin``'s do; the candidates are a few percent of all pairs, so they are sorted instead of
     scanning dense rows."""
     def chunk(sl):  # (rows, columns, squared distances) of one chunk's admitted pairs
-        d2 = _distance_rows(desc_a[sl], desc_b)
+        d2 = dist.rows(sl)
         r, c = candidates(sl)
         return r + sl.start, c, d2[r, c]
 
-    parts = map_threads(chunk, _row_slices(len(desc_a)))  # independent chunks: the same pairs, in order
+    parts = map_threads(chunk, _row_slices(len(dist.a)))  # independent chunks: the same pairs, in order
     r, c, d = (np.concatenate([p[i] for p in parts]) if parts else np.zeros(0, int) for i in range(3))
     if r.size == 0:
         return np.zeros((0, 2), int)
@@ -82,21 +98,21 @@ def _mutual_among(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, candidat
     o = _stable_order(c, d)  # by column, then distance, then row
     c2 = c[o]
     col_first = np.flatnonzero(np.r_[True, c2[1:] != c2[:-1]])
-    col_arg = np.full(len(desc_b), -1)
+    col_arg = np.full(len(dist.b), -1)
     col_arg[c2[col_first]] = r[o][col_first]
     best_row, best_j = r1[first], c1[first]
     keep = (v1[first] < ratio * ratio * second) & (col_arg[best_j] == best_row)
     return np.stack([best_row[keep], best_j[keep]], 1)
 
 
-def putative_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8) -> np.ndarray:
+def putative_matches(dist: Distances, ratio: float = 0.8) -> np.ndarray:
     """(M, 2) index pairs: nearest neighbours both ways passing Lowe's ratio test."""
-    if len(desc_a) < 2 or len(desc_b) < 2:
+    if len(dist.a) < 2 or len(dist.b) < 2:
         return np.zeros((0, 2), int)
-    return mutual_matches(desc_a, desc_b, ratio)
+    return mutual_matches(dist, ratio)
 
 
-def guided_matches(fa, fb, desc_a, desc_b, R, t, *, max_deg: float, ratio: float = 0.9) -> np.ndarray:
+def guided_matches(fa, fb, dist: Distances, R, t, *, max_deg: float, ratio: float = 0.9) -> np.ndarray:
     """Pairs whose bearings fit the pose (epipolar angle < ``max_deg``, in front of both cameras),
     nearest in descriptor among those candidates, ratio-tested and mutual; (M, 2)."""
     sin_thr = np.sin(np.radians(max_deg))
@@ -119,4 +135,4 @@ def guided_matches(fa, fb, desc_a, desc_b, R, t, *, max_deg: float, ratio: float
         ok = (sin_b < sin_thr) & ((a_t - k * g_t) / den > 0) & ((k * a_t - g_t) / den > 0)
         return r[ok], c[ok]
 
-    return _mutual_among(desc_a, desc_b, ratio, fits_pose)
+    return _mutual_among(dist, ratio, fits_pose)

@@ -53,7 +53,7 @@ from rasterizer.threads import map_threads
 
 from .errors import BadInput
 from .gravity import crop_rotations, panorama_gravity, perspective_crops
-from .matching import guided_matches, mutual_matches, putative_matches
+from .matching import Distances, guided_matches, mutual_matches, putative_matches
 from .pose_flips import FLIP_CHECK_SHARE, flipped
 
 #: Options keys this module reads (not encoder options).
@@ -194,13 +194,13 @@ def features(erp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(bearings), np.concatenate(descs)
 
 
-def _guided_refine(fa, fb, da, db, yaw, t, R0=None):
+def _guided_refine(fa, fb, dist: Distances, yaw, t, R0=None):
     """Two rounds of guided matching + refinement; returns (yaw, t, inlier pairs, residuals deg)."""
     R0 = np.eye(3) if R0 is None else R0
     pairs = np.zeros((0, 2), int)
     for max_deg in (3.0, 1.5):
         R = R0 @ yaw_rotation(yaw)
-        pairs = guided_matches(fa, fb, da, db, R, t, max_deg=max_deg)
+        pairs = guided_matches(fa, fb, dist, R, t, max_deg=max_deg)
         if len(pairs) >= 5:
             yaw, t = refine_upright(fa[pairs[:, 0]], fb[pairs[:, 1]], yaw, t, R0=R0)
     R = R0 @ yaw_rotation(yaw)
@@ -247,11 +247,11 @@ def prepare(erp: np.ndarray, data: bytes | None = None) -> Panorama:
     return Panorama(gray, f @ level.T, d, level, {**ginfo, "down": [float(v) for v in down], "applied": bool(applied)})
 
 
-def _guided_refine_general(fa, fb, da, db, R, t):
+def _guided_refine_general(fa, fb, dist: Distances, R, t):
     """Guided matching + 5-dof refinement in two rounds; returns (R, t, inlier pairs, residuals deg)."""
     pairs = np.zeros((0, 2), int)
     for max_deg in (3.0, 1.5):
-        pairs = guided_matches(fa, fb, da, db, R, t, max_deg=max_deg)
+        pairs = guided_matches(fa, fb, dist, R, t, max_deg=max_deg)
         if len(pairs) >= 5:
             R, t = refine_general(fa[pairs[:, 0]], fb[pairs[:, 1]], R, t)
     err = np.degrees(epipolar_error(fa[pairs[:, 0]], fb[pairs[:, 1]], R, t)) if len(pairs) else np.zeros(0)
@@ -263,7 +263,7 @@ def _refusal(pa: Panorama, pb: Panorama, message: str, code: str = PoseEstimatio
     """The refusal to raise: a ``flipped_panorama`` one when B matches A far better flipped
     (:func:`service.pose_flips.flipped`), else ``message``."""
     flip = flipped(pa.bearings, pa.descriptors, pb.bearings, pb.descriptors, MIN_INLIERS, MIN_RANSAC_INLIERS,
-                   match=lambda d: mutual_matches(pa.descriptors, d, SEED_RATIOS[0]))
+                   match=lambda d: mutual_matches(Distances(pa.descriptors, d), SEED_RATIOS[0]))
     return PoseEstimationFailed(flip or message, code="flipped_panorama" if flip else code)
 
 
@@ -303,12 +303,13 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
     both panoramas already through :func:`prepare` (the images are then not read again)."""
     t0 = time.perf_counter()
     pa, pb = prepared if prepared is not None else map_threads(prepare, (erp_a, erp_b), data)
-    fa, da, fb, db = pa.bearings, pa.descriptors, pb.bearings, pb.descriptors
+    fa, fb = pa.bearings, pb.bearings
+    dist = Distances(pa.descriptors, pb.descriptors)  # every matching below reads it
     t_feat = time.perf_counter() - t0
     info: dict[str, Any] = {"features": [int(len(fa)), int(len(fb))], "gravity": [pa.gravity, pb.gravity]}
     for k, ratio in enumerate(SEED_RATIOS):
         last = k == len(SEED_RATIOS) - 1
-        pairs = putative_matches(da, db, ratio)
+        pairs = putative_matches(dist, ratio)
         info.update(putative_matches=int(len(pairs)), seed_ratio=ratio)
         if len(pairs) < MIN_INLIERS:
             if last:
@@ -339,7 +340,7 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
     if k > 0 or ransac.best.num_inliers < FLIP_CHECK_SHARE * len(pairs):  # a weak seed: is B flipped?
         if (refusal := _refusal(pa, pb, "")).code == "flipped_panorama":
             raise refusal
-    yaw, t, inl, err = _guided_refine(fa, fb, da, db, ransac.best.yaw, ransac.best.t)
+    yaw, t, inl, err = _guided_refine(fa, fb, dist, ransac.best.yaw, ransac.best.t)
     method = "sift16-rootsift+levelled+upright3pt-ransac+guided"
     info.update(_support(inl, err, method))
     info["ransac_inliers"] = ransac.best.num_inliers
@@ -348,7 +349,7 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
         return photometric_score(pa.gray, pb.gray, pa.level.T @ yaw_rotation(yaw_) @ pb.level, pa.level.T @ t_)
 
     if ransac.rival is not None and ransac.rival.num_inliers >= 0.5 * ransac.best.num_inliers:
-        ryaw, rt, rinl, rerr = _guided_refine(fa, fb, da, db, ransac.rival.yaw, ransac.rival.t)
+        ryaw, rt, rinl, rerr = _guided_refine(fa, fb, dist, ransac.rival.yaw, ransac.rival.t)
         rival = {"inliers": int(len(rinl)), "yaw_deg": float(np.degrees(ryaw)),
                  "yaw_gap_deg": float(np.degrees(abs(np.angle(np.exp(1j * (ryaw - yaw)))))),
                  "t_gap_deg": float(np.degrees(np.arccos(np.clip(rt @ t, -1, 1))))}
@@ -381,7 +382,7 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
                     f"floor lines up on {info['floor_share']:.1%} vs {rival['floor_share']:.1%} of the pixels), as "
                     "in a symmetric room or when the views share little; give poses", "ambiguous_pose")
     R = yaw_rotation(yaw)
-    R5, t5, inl5, err5 = _guided_refine_general(fa, fb, da, db, R, t)
+    R5, t5, inl5, err5 = _guided_refine_general(fa, fb, dist, R, t)
     info["residual_tilt_deg"] = tilt_between(R5)
     if info["residual_tilt_deg"] > RESIDUAL_TILT_DEG and len(inl5) >= MIN_INLIERS:
         R, t, inl, err = R5, t5, inl5, err5
@@ -430,7 +431,7 @@ def refine_poses(erp_a: np.ndarray, erp_b: np.ndarray, c2w_a: np.ndarray, c2w_b:
     rel = np.linalg.inv(c2w_a) @ c2w_b
     R0, t_rel = rel[:3, :3], rel[:3, 3]
     length = float(np.linalg.norm(t_rel))
-    yaw, t, inl, err = _guided_refine(fa, fb, da, db, 0.0, t_rel / length, R0=R0)
+    yaw, t, inl, err = _guided_refine(fa, fb, Distances(da, db), 0.0, t_rel / length, R0=R0)
     info = _support(inl, err, "sift16-rootsift+guided-upright-refine")
     if len(inl) < MIN_INLIERS:
         info["applied"] = False

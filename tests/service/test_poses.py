@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from rasterizer.geometry import direction_from_lat_lon, erp_lat_lon, lat_lon_from_direction
 from rasterizer.relative_pose import yaw_rotation
 from rasterizer.scene_folder import load_scene
-from service.matching import putative_matches
+from service.matching import Distances, putative_matches
 from service.pose_flips import FLIPS, MIRROR_BINS
 from service.poses import PoseEstimationFailed, PoseOptions, estimate_poses, poses_for_scene
 from tests.service._support import LiveServer, make_settings
@@ -167,9 +167,9 @@ def test_too_few_seed_matches_at_the_first_ratio_retry_at_the_second(room_a, mon
 
     tried = []
 
-    def putative(da, db, ratio=0.8):
+    def putative(dist, ratio=0.8):
         tried.append(ratio)
-        pairs = matching.mutual_matches(da, db, ratio)
+        pairs = matching.mutual_matches(dist, ratio)
         return pairs[:poses.MIN_INLIERS - 1] if ratio == poses.SEED_RATIOS[0] else pairs
 
     monkeypatch.setattr(poses, "putative_matches", putative)
@@ -322,9 +322,9 @@ def test_photometric_score_prefers_the_true_pose_over_a_flip_and_a_turn(room_a):
 def _masked_dense_matches(desc_a, desc_b, ratio, mask):
     """Reference for ``_mutual_among``: every distance (the same chunks of rows: a GEMM's rounding depends on its
     shape), inf outside ``mask``, nearest both ways by argmin."""
-    from service.matching import _distances
+    from service.matching import Distances
 
-    dense = np.concatenate([d2 for _, d2 in _distances(desc_a, desc_b)])
+    dense = np.concatenate([d2 for _, d2 in Distances(desc_a, desc_b).chunks()])
     d2 = np.where(mask, dense, np.inf).astype(np.float64)
     srt = np.sort(d2, axis=1)
     best_d, second = srt[:, 0], srt[:, 1] if d2.shape[1] > 1 else np.full(len(d2), np.inf)
@@ -349,9 +349,36 @@ def test_sparse_mutual_matches_equal_the_masked_dense_ones(na, nb, density, leve
     desc_b = np.round(rng.random((nb, 8)) * (levels - 1)).astype(np.float32) / levels
     mask = rng.random((na, nb)) < density
     with mock.patch.object(matching, "_DIST_ROWS", rows):
-        got = matching._mutual_among(desc_a, desc_b, 0.9, lambda sl: np.nonzero(mask[sl]))
+        got = matching._mutual_among(matching.Distances(desc_a, desc_b), 0.9, lambda sl: np.nonzero(mask[sl]))
         want = _masked_dense_matches(desc_a, desc_b, 0.9, mask)
     assert np.array_equal(got.reshape(-1, 2), want)
+
+
+def test_distances_are_computed_once_per_chunk_and_match_fresh_ones(monkeypatch):
+    """One estimate matches the same descriptors many times: a Distances computes each chunk of rows once, and
+    every matching through it gives the pairs a fresh computation gives."""
+    from service import matching
+
+    rng = np.random.default_rng(3)
+    desc_a, desc_b = (rng.random((n, 16)).astype(np.float32) for n in (70, 50))
+    desc_a /= np.linalg.norm(desc_a, axis=1, keepdims=True)
+    desc_b /= np.linalg.norm(desc_b, axis=1, keepdims=True)
+    fa, fb = (rng.normal(size=(n, 3)) for n in (70, 50))
+    fa /= np.linalg.norm(fa, axis=1, keepdims=True)
+    fb /= np.linalg.norm(fb, axis=1, keepdims=True)
+    R, t = np.eye(3), np.array([1.0, 0.0, 0.0])
+    monkeypatch.setattr(matching, "_DIST_ROWS", 16)
+    fresh = [matching.putative_matches(matching.Distances(desc_a, desc_b), 0.9),
+             matching.guided_matches(fa, fb, matching.Distances(desc_a, desc_b), R, t, max_deg=20.0)]
+    calls = []
+    compute = matching._distance_rows
+    monkeypatch.setattr(matching, "_distance_rows", lambda rows, b: calls.append(len(rows)) or compute(rows, b))
+    dist = matching.Distances(desc_a, desc_b)
+    for _ in range(2):
+        shared = [matching.putative_matches(dist, 0.9), matching.guided_matches(fa, fb, dist, R, t, max_deg=20.0)]
+        assert all(np.array_equal(x, y) for x, y in zip(shared, fresh, strict=True))
+    assert calls == [16, 16, 16, 16, 6]
+    assert len(fresh[1]) > 0
 
 
 def test_sift_crops_cover_their_share_of_the_sphere_with_the_margin():
@@ -393,7 +420,7 @@ def test_mirror_bins_match_sift_of_the_mirrored_image():
         p2 = np.array([k2[j].pt for j in pairs[:, 1]])
         return int(np.sum(np.hypot(gray.shape[1] - 1 - p2[:, 0] - p1[:, 0], p2[:, 1] - p1[:, 1]) < 1.5))
 
-    mirrored, plain = putative_matches(d1, d2[:, MIRROR_BINS]), putative_matches(d1, d2)
+    mirrored, plain = putative_matches(Distances(d1, d2[:, MIRROR_BINS])), putative_matches(Distances(d1, d2))
     assert at_mirrored_place(mirrored) > 0.8 * len(k1) and at_mirrored_place(plain) < 0.2 * len(k1)
 
 
