@@ -59,9 +59,10 @@ def xmp_pitch_roll(data: bytes | None) -> tuple[float, float] | None:
     return out[0], out[1]
 
 
-def _line_crop_size(half_x_deg: float, half_y_deg: float) -> tuple[int, int]:
-    """(width, height) in pixels of a line crop reaching ``half_*_deg`` from its axis."""
-    return tuple(int(round(2 * LINE_CROP_FOCAL * np.tan(np.radians(a)))) for a in (half_x_deg, half_y_deg))
+def crop_size(focal: float, half_x_deg: float, half_y_deg: float) -> tuple[int, int]:
+    """(width, height) in pixels of a pinhole crop of ``focal`` pixels reaching ``half_*_deg`` from its axis."""
+    w, h = (int(round(2 * focal * np.tan(np.radians(a)))) for a in (half_x_deg, half_y_deg))
+    return w, h
 
 
 #: Line crops as (pitch, yaws, (width, height)) in degrees and pixels: 8 on the horizon and 4 looking 45 deg down
@@ -69,8 +70,8 @@ def _line_crop_size(half_x_deg: float, half_y_deg: float) -> tuple[int, int]:
 #: axis than any other's: the horizon ring's crops reach 30 deg to the sides (their own 22.5 and a margin) and
 #: 50 up and down, so a wall's vertical edge lies whole in one crop; the lower ring's reach 40 deg, a little past
 #: their own share (down to :data:`LOW_LAT_DEG`). Segments around the zenith, above 48 deg, are not looked for.
-LINE_CROPS = ((0.0, tuple(45.0 * k for k in range(8)), _line_crop_size(30.0, 50.0)),
-              (45.0, tuple(22.5 + 90.0 * k for k in range(4)), _line_crop_size(40.0, 40.0)))
+LINE_CROPS = ((0.0, tuple(45.0 * k for k in range(8)), crop_size(LINE_CROP_FOCAL, 30.0, 50.0)),
+              (45.0, tuple(22.5 + 90.0 * k for k in range(4)), crop_size(LINE_CROP_FOCAL, 40.0, 40.0)))
 
 
 def _pitch_rotation(pitch_deg: float) -> np.ndarray:

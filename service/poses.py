@@ -52,7 +52,7 @@ from rasterizer.relative_pose import (
 from rasterizer.threads import map_threads
 
 from .errors import BadInput
-from .gravity import crop_rotations, panorama_gravity, perspective_crops
+from .gravity import crop_rotations, crop_size, panorama_gravity, perspective_crops
 from .matching import Distances, guided_matches, mutual_matches, putative_matches
 from .pose_flips import FLIP_CHECK_SHARE, flipped
 
@@ -131,8 +131,7 @@ class PoseOptions:
 
 def _crop_size(half_x_deg: float, half_y_deg: float) -> tuple[int, int]:
     """(width, height) in pixels of a crop reaching ``half_*_deg`` + :data:`CROP_MARGIN_DEG` from its axis."""
-    w, h = (int(round(2 * CROP_FOCAL * np.tan(np.radians(a + CROP_MARGIN_DEG)))) for a in (half_x_deg, half_y_deg))
-    return w, h
+    return crop_size(CROP_FOCAL, half_x_deg + CROP_MARGIN_DEG, half_y_deg + CROP_MARGIN_DEG)
 
 
 #: SIFT crops as (pitch, yaws, (width, height)) in degrees and pixels: 8 on the horizon, 4 at +50 and 4 at -50
