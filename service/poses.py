@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from rasterizer.floor_sweep import floor_ratio
+from rasterizer.floor_sweep import FloorHidden, floor_ratio
 from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction
 from rasterizer.gravity import level_rotation
 from rasterizer.relative_pose import (
@@ -269,10 +269,11 @@ def _refusal(pa: Panorama, pb: Panorama, message: str, code: str = PoseEstimatio
 
 def _floor_share(pa: Panorama, pb: Panorama, yaw: float, t: np.ndarray) -> float:
     """Share of the band below the cameras that lines up through the floor plane of the dense sweep under the
-    upright pose (``yaw``, unit ``t``) in A's levelled frame; 0 when the sweep finds no floor."""
+    upright pose (``yaw``, unit ``t``) in A's levelled frame; 0 when the sweep finds no floor. A share compares
+    two poses, not a scale: the floor need not be seen near the cameras (``near_deg=None``)."""
     try:
         return float(floor_ratio(small_gray(pa.gray, FLOOR_SWEEP_HEIGHT), small_gray(pb.gray, FLOOR_SWEEP_HEIGHT),
-                                 pa.level, pb.level, yaw_rotation(yaw), t)[1]["floor_share"])
+                                 pa.level, pb.level, yaw_rotation(yaw), t, near_deg=None)[1]["floor_share"])
     except ValueError:
         return 0.0
 
@@ -399,7 +400,8 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
 def _scale(pa: Panorama, pb: Panorama, inl: np.ndarray, R: np.ndarray, t: np.ndarray, opts: PoseOptions) -> tuple[float, dict]:
     """Metres per unit of the unit-baseline pose: the given baseline; else the camera height over the floor's
     distance below A: from the dense floor sweep, else from the triangulated inliers ``inl`` (M, 2)
-    (:func:`rasterizer.relative_pose.floor_scale`); else 1."""
+    (:func:`rasterizer.relative_pose.floor_scale`); else 1. When the sweep finds the floor hidden near the
+    cameras (:class:`rasterizer.floor_sweep.FloorHidden`) the points cannot see it either: 422 ``scale_failed``."""
     if opts.baseline is not None:
         return opts.baseline, {"source": "baseline", "baseline_m": opts.baseline}
     if opts.camera_height is None:
@@ -410,6 +412,9 @@ def _scale(pa: Panorama, pb: Panorama, inl: np.ndarray, R: np.ndarray, t: np.nda
         d, extra = floor_ratio(small_gray(pa.gray, FLOOR_SWEEP_HEIGHT), small_gray(pb.gray, FLOOR_SWEEP_HEIGHT),
                                pa.level, pb.level, R, t)
         s, floor = opts.camera_height / d, "dense"
+    except FloorHidden as exc:
+        raise PoseEstimationFailed(f"poses: camera_height given but {exc}; give baseline (the distance between the "
+                                   "two cameras, metres) or poses instead", code="scale_failed") from None
     except ValueError as dense_exc:
         fa, fb = pa.bearings[inl[:, 0]], pb.bearings[inl[:, 1]]
         la, _ = triangulate(fa, fb, R, t)

@@ -230,6 +230,31 @@ def test_camera_height_floor_dense_then_points_then_refused(room_a, monkeypatch)
     assert exc.value.status == 422 and exc.value.code == "scale_failed"
 
 
+def test_camera_height_with_the_floor_hidden_near_the_cameras_is_refused_with_a_way_out(room_a, monkeypatch):
+    """A black 60-deg nadir cap on both panoramas hides the floor near the cameras: the scale is refused (the sweep's
+    deepest plane left was a bed top on bedroom_theta 2+5, a baseline 1.7x) and the message names the way out; the
+    points' floor, hidden the same way, is not asked."""
+    import service.poses as poses
+
+    def capped(img):
+        out = img.copy()
+        out[int(img.shape[0] * (1 - 60 / 180)):] = 0
+        return out
+
+    def points_floor(*args, **kwargs):
+        raise AssertionError("the points' floor was asked")
+
+    monkeypatch.setattr(poses, "floor_scale", points_floor)
+    room_b = room_erp(_pose(-40.0, [0.9, 0.0, -0.8]))
+    with pytest.raises(PoseEstimationFailed) as exc:
+        estimate_poses(capped(room_a), capped(room_b), PoseOptions(camera_height=1.5))
+    assert exc.value.code == "scale_failed", exc.value.message
+    assert "not seen well enough" in exc.value.message and "give baseline" in exc.value.message
+    assert "or poses" in exc.value.message
+    _, c2w_b, info = estimate_poses(capped(room_a), capped(room_b), PoseOptions(baseline=1.2))  # the way out
+    assert abs(np.linalg.norm(c2w_b[:3, 3]) - 1.2) < 1e-9 and info["scale"]["source"] == "baseline"
+
+
 def test_refine_given_poses_moves_a_wrong_yaw_back(room_a):
     from service.inputs import Poses
 
