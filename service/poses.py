@@ -259,12 +259,30 @@ def _guided_refine_general(fa, fb, da, db, R, t):
     return R, t, pairs[inl], err[inl]
 
 
-def _refusal(pa: Panorama, pb: Panorama, message: str, code: str = PoseEstimationFailed.code) -> PoseEstimationFailed:
-    """The refusal to raise: a ``flipped_panorama`` one when B matches A far better flipped
-    (:func:`service.pose_flips.flipped`), else ``message``."""
-    flip = flipped(pa.bearings, pa.descriptors, pb.bearings, pb.descriptors, MIN_INLIERS, MIN_RANSAC_INLIERS,
-                   match=lambda d: mutual_matches(pa.descriptors, d, SEED_RATIOS[0]))
-    return PoseEstimationFailed(flip or message, code="flipped_panorama" if flip else code)
+class _FlipVerdict:
+    """Whether B matches A far better flipped (:func:`service.pose_flips.flipped`'s message, or None), found at most
+    once per estimate: a weak seed asks, and so may a refusal after it. B's putative matches as sent are the seed's
+    at the first ratio (``plain``, set by the estimate once it has them), not matched again."""
+
+    def __init__(self, pa: Panorama, pb: Panorama):
+        self.pa, self.pb = pa, pb
+        self.plain: np.ndarray | None = None
+        self._found: tuple[str | None] | None = None
+
+    def __call__(self) -> str | None:
+        if self._found is None:
+            pa, pb = self.pa, self.pb
+            self._found = (flipped(pa.bearings, pa.descriptors, pb.bearings, pb.descriptors, MIN_INLIERS,
+                                   MIN_RANSAC_INLIERS, match=lambda d: mutual_matches(pa.descriptors, d, SEED_RATIOS[0]),
+                                   plain=self.plain),)
+        return self._found[0]
+
+
+def _refusal(flip: _FlipVerdict, message: str, code: str = PoseEstimationFailed.code) -> PoseEstimationFailed:
+    """The refusal to raise: a ``flipped_panorama`` one when B matches A far better flipped (``flip()``), else
+    ``message``."""
+    found = flip()
+    return PoseEstimationFailed(found or message, code="flipped_panorama" if found else code)
 
 
 def _floor_share(pa: Panorama, pb: Panorama, yaw: float, t: np.ndarray) -> float:
@@ -307,13 +325,16 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
     fa, da, fb, db = pa.bearings, pa.descriptors, pb.bearings, pb.descriptors
     t_feat = time.perf_counter() - t0
     info: dict[str, Any] = {"features": [int(len(fa)), int(len(fb))], "gravity": [pa.gravity, pb.gravity]}
+    flip = _FlipVerdict(pa, pb)
     for k, ratio in enumerate(SEED_RATIOS):
         last = k == len(SEED_RATIOS) - 1
         pairs = putative_matches(da, db, ratio)
+        if ratio == SEED_RATIOS[0]:
+            flip.plain = pairs
         info.update(putative_matches=int(len(pairs)), seed_ratio=ratio)
         if len(pairs) < MIN_INLIERS:
             if last:
-                raise _refusal(pa, pb, f"poses: only {len(pairs)} feature matches between the images "
+                raise _refusal(flip, f"poses: only {len(pairs)} feature matches between the images "
                                        f"(need {MIN_INLIERS}); give poses, or images that overlap more")
             continue
         ma, mb = fa[pairs[:, 0]], fb[pairs[:, 1]]
@@ -326,19 +347,19 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
         try:
             ransac = upright_ransac(ma, mb)
         except ValueError as exc:  # degenerate matches: no hypothesis
-            raise _refusal(pa, pb, f"poses: no relative pose fits the matches ({exc}); give poses") from None
+            raise _refusal(flip, f"poses: no relative pose fits the matches ({exc}); give poses") from None
         elevation = float(np.degrees(np.arcsin(np.clip(abs(ransac.best.t[1]), 0.0, 1.0))))
         if ransac.best.num_inliers >= MIN_RANSAC_INLIERS and elevation <= MAX_TRAVEL_ELEVATION_DEG:
             break
         if last and ransac.best.num_inliers < MIN_RANSAC_INLIERS:
-            raise _refusal(pa, pb, f"poses: only {ransac.best.num_inliers} of {len(pairs)} feature matches agree on "
+            raise _refusal(flip, f"poses: only {ransac.best.num_inliers} of {len(pairs)} feature matches agree on "
                                    f"a relative pose (need {MIN_RANSAC_INLIERS}): the views share too little; give poses")
         if last:
-            raise _refusal(pa, pb, f"poses: the matches fit only a travel {elevation:.0f} deg from horizontal "
+            raise _refusal(flip, f"poses: the matches fit only a travel {elevation:.0f} deg from horizontal "
                                    f"(at most {MAX_TRAVEL_ELEVATION_DEG:.0f}): not two captures of one room at "
                                    "about the same height; give poses")
     if k > 0 or ransac.best.num_inliers < FLIP_CHECK_SHARE * len(pairs):  # a weak seed: is B flipped?
-        if (refusal := _refusal(pa, pb, "")).code == "flipped_panorama":
+        if (refusal := _refusal(flip, "")).code == "flipped_panorama":
             raise refusal
     yaw, t, inl, err = _guided_refine(fa, fb, da, db, ransac.best.yaw, ransac.best.t)
     method = "sift16-rootsift+levelled+upright3pt-ransac+guided"
@@ -375,7 +396,7 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
                 rival["floor_share"], info["floor_share"] = rival_floor, best_floor
             if not decisive and rival["inliers"] >= RIVAL_SHARE * len(inl):
                 raise _refusal(
-                    pa, pb, f"poses: ambiguous - two relative poses {rival['yaw_gap_deg']:.0f} deg apart in yaw "
+                    flip, f"poses: ambiguous - two relative poses {rival['yaw_gap_deg']:.0f} deg apart in yaw "
                     f"({rival['t_gap_deg']:.0f} deg in travel direction) fit the matches about equally well "
                     f"({len(inl)} vs {rival['inliers']} inliers) and the images agree about as well under both "
                     f"(photometric {max(best_score, rival_score):.2f} vs {min(best_score, rival_score):.2f}; the "
@@ -389,7 +410,7 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
         info.update(_support(inl, err, method + "+5dof"))
     info["timings"] = {"features": t_feat, "total": time.perf_counter() - t0}
     if len(inl) < MIN_INLIERS:
-        raise _refusal(pa, pb, f"poses: only {len(inl)} matches agree on a relative pose (need {MIN_INLIERS}); give poses")
+        raise _refusal(flip, f"poses: only {len(inl)} matches agree on a relative pose (need {MIN_INLIERS}); give poses")
     scale, info["scale"] = _scale(pa, pb, inl, R, t, opts)
     info["yaw_deg"] = float(np.degrees(np.arctan2(R[0, 2], R[2, 2])))
     c2w_a = np.eye(4)

@@ -160,6 +160,42 @@ def test_a_mirror_flipped_panorama_is_refused_not_given_a_vertical_baseline(monk
         estimate_poses(noise, np.roll(noise[::-1], 77, axis=1), PoseOptions())
 
 
+def test_the_flip_check_runs_once_per_estimate_on_the_seed_matches(room_a, monkeypatch):
+    """A weak seed asks whether B is flipped, and so does a refusal after it: the verdict is found once, and B's
+    descriptors as sent are matched once (the seed's matches), only the mirrored ones for the check."""
+    import service.pose_flips as pose_flips
+    import service.poses as poses
+    from service import matching
+
+    checks, matched = [], []
+
+    def counted(fn, log):
+        def wrapper(*args, **kwargs):
+            log.append(args[2:])
+            return fn(*args, **kwargs)
+        return wrapper
+
+    mutual = matching.mutual_matches
+    monkeypatch.setattr(pose_flips, "flip_supports", counted(pose_flips.flip_supports, checks))
+    monkeypatch.setattr(matching, "mutual_matches", counted(mutual, matched))
+    monkeypatch.setattr(poses, "mutual_matches", counted(mutual, matched))
+    monkeypatch.setattr(poses, "FLIP_CHECK_SHARE", 1.01)  # every seed is weak: the check runs before guiding
+    monkeypatch.setattr(poses, "RESIDUAL_TILT_DEG", 90.0)
+    guided = poses._guided_refine
+
+    def few(*args, **kwargs):  # too few guided inliers: the estimate refuses after the check
+        yaw, t, inl, err = guided(*args, **kwargs)
+        return yaw, t, inl[:5], err[:5]
+
+    monkeypatch.setattr(poses, "_guided_refine", few)
+    room_b = room_erp(_pose(-40.0, [0.9, 0.0, -0.8]))
+    with pytest.raises(PoseEstimationFailed, match="only 5 matches agree") as exc:
+        estimate_poses(room_a, room_b, PoseOptions())
+    assert exc.value.code == "pose_estimation_failed"
+    assert len(checks) == 1
+    assert matched == [(poses.SEED_RATIOS[0],)] * 2, matched  # B as sent (the seed's), B mirrored (the check's)
+
+
 def test_too_few_seed_matches_at_the_first_ratio_retry_at_the_second(room_a, monkeypatch):
     """A wide baseline leaves too few ratio-0.8 matches to seed RANSAC: the guided matching's 0.9 seeds it."""
     import service.poses as poses
