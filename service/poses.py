@@ -52,7 +52,7 @@ from rasterizer.relative_pose import (
 from rasterizer.threads import map_threads
 
 from .errors import BadInput
-from .gravity import crop_rotations, panorama_gravity, perspective_crops
+from .gravity import MAX_TILT_DEG, crop_rotations, panorama_gravity, perspective_crops
 from .matching import guided_matches, mutual_matches, putative_matches
 from .pose_flips import FLIP_CHECK_SHARE, flipped
 
@@ -285,6 +285,23 @@ def _refusal(flip: _FlipVerdict, message: str, code: str = PoseEstimationFailed.
     return PoseEstimationFailed(found or message, code="flipped_panorama" if found else code)
 
 
+def _tilted_beyond_search(pa: Panorama, pb: Panorama) -> str:
+    """A refusal's message naming the panoramas whose lines meet beyond the tilts searched
+    (:func:`service.gravity.panorama_gravity`'s ``beyond_search_deg``), or "" when none does. Such a panorama is
+    levelled wrong or not at all, and the pose from it fails in any way: m3d 00+02 with B pitched 25 deg was
+    ambiguous "as in a symmetric room", pitched 30 deg (no vanishing point found, taken as level) posed 29 deg off,
+    bedroom_theta 2+5 with B rolled 30 deg 14 deg off, both kept by the 5-dof refinement."""
+    tilted = [(name, p.gravity.get("lines", {}).get("beyond_search_deg")) for name, p in (("image_a", pa), ("image_b", pb))]
+    tilted = [(name, deg) for name, deg in tilted if deg is not None]
+    if not tilted:
+        return ""
+    names, degs = " and ".join(n for n, _ in tilted), " and ".join(f"{d:.0f}" for _, d in tilted)
+    one = len(tilted) == 1
+    return (f"poses: {names} {'seems' if one else 'seem'} tilted by {degs} deg, beyond the {MAX_TILT_DEG:.0f} deg "
+            f"searched ({'its' if one else 'their'} vertical lines meet there): level {'it' if one else 'them'} "
+            "(hold the camera upright, or turn the panorama upright) or give poses")
+
+
 def _floor_share(pa: Panorama, pb: Panorama, yaw: float, t: np.ndarray) -> float:
     """Share of the band below the cameras that lines up through the floor plane of the dense sweep under the
     upright pose (``yaw``, unit ``t``) in A's levelled frame; 0 when the sweep finds no floor. A share compares
@@ -325,6 +342,8 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
     fa, da, fb, db = pa.bearings, pa.descriptors, pb.bearings, pb.descriptors
     t_feat = time.perf_counter() - t0
     info: dict[str, Any] = {"features": [int(len(fa)), int(len(fb))], "gravity": [pa.gravity, pb.gravity]}
+    if tilted := _tilted_beyond_search(pa, pb):
+        raise PoseEstimationFailed(tilted)
     flip = _FlipVerdict(pa, pb)
     for k, ratio in enumerate(SEED_RATIOS):
         last = k == len(SEED_RATIOS) - 1

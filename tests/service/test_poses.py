@@ -196,6 +196,27 @@ def test_the_flip_check_runs_once_per_estimate_on_the_seed_matches(room_a, monke
     assert matched == [(poses.SEED_RATIOS[0],)] * 2, matched  # B as sent (the seed's), B mirrored (the check's)
 
 
+def test_a_tilt_beyond_the_search_is_refused_as_such():
+    """A panorama tilted beyond the gravity search is levelled wrong or not at all, and its pose fails in any way
+    (m3d 00+02 with B pitched 25 deg was refused as "ambiguous ... as in a symmetric room", pitched 30 deg posed
+    29 deg off): it is refused before matching, naming the tilt and the way out."""
+    from service.poses import Panorama
+
+    def pano(gravity):
+        return Panorama(np.zeros((4, 8), np.uint8), np.zeros((0, 3)), np.zeros((0, 128), np.float32), np.eye(3), gravity)
+
+    level = {"source": "lines", "tilt_deg": 0.5, "lines": {"inliers": 30}}
+    wrong = {"source": "lines", "tilt_deg": 12.8, "lines": {"inliers": 11, "beyond_search_deg": 25.2}}
+    unlevelled = {"source": "none", "tilt_deg": 0.0, "lines": {"error": "only 5 line segments meet", "beyond_search_deg": 29.9}}
+    with pytest.raises(PoseEstimationFailed) as exc:
+        estimate_poses(None, None, PoseOptions(), prepared=(pano(level), pano(wrong)))
+    assert exc.value.code == "pose_estimation_failed"
+    assert exc.value.message.startswith("poses: image_b seems tilted by 25 deg, beyond the 20 deg searched")
+    assert "level it" in exc.value.message and "give poses" in exc.value.message
+    with pytest.raises(PoseEstimationFailed, match="image_a and image_b seem tilted by 30 and 25 deg"):
+        estimate_poses(None, None, PoseOptions(), prepared=(pano(unlevelled), pano(wrong)))
+
+
 def test_too_few_seed_matches_at_the_first_ratio_retry_at_the_second(room_a, monkeypatch):
     """A wide baseline leaves too few ratio-0.8 matches to seed RANSAC: the guided matching's 0.9 seeds it."""
     import service.poses as poses
