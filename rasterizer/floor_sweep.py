@@ -47,19 +47,21 @@ def _zncc(a: np.ndarray, a_stats: tuple[np.ndarray, np.ndarray], b: np.ndarray, 
 
 
 #: A pixel lies in a uniform area when some (2 r + 1)-pixel square around it, r this, holds one grey value: a black
-#: nadir cap, a grey fill, a logo. No window of a real capture's floor band is that flat at this size (the dev
-#: scenes' panoramas have none), while a cap's edge is the same curve in both views under any plane far enough
-#: below, and its windows voted for such planes.
+#: nadir cap, a grey fill, a logo. No window of the dev scenes' floor bands is that flat at this size (their few
+#: such areas, blown-out lamps and windows, lie near or above the horizon), while a cap's edge is the same curve in
+#: both views under any plane far enough below, and its windows voted for such planes.
 UNIFORM_RADIUS = 3
 
 
 def near_uniform(img: np.ndarray, r: int) -> np.ndarray | None:
-    """Pixels (H, W) bool of ``img`` within ``r`` of a uniform area (:data:`UNIFORM_RADIUS`), None when it has
-    none: windows of radius ``r`` there are not compared."""
+    """Pixels (H, W) bool of ``img`` within ``r`` of a uniform area (:data:`UNIFORM_RADIUS`) below the horizon
+    (where the band and the planes' points below the cameras lie), None when it has none: windows of radius ``r``
+    there are not compared."""
     g = np.asarray(img, np.float64)
     n = (2 * UNIFORM_RADIUS + 1) ** 2
     mean = _box_sum(g, UNIFORM_RADIUS) / n
     flat = _box_sum(g * g, UNIFORM_RADIUS) / n - mean * mean < 1e-8  # one step of 1/255 is 3e-7
+    flat[:g.shape[0] // 2] = False
     if not flat.any():
         return None
     return _box_sum(flat.astype(np.float64), UNIFORM_RADIUS + r) > 0.5
