@@ -69,10 +69,13 @@ class HeadAsGet:
                 scope["route"] = inner["route"]
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    """Build the app; the model is loaded when the app starts (lifespan), not here."""
+def create_app(settings: Settings | None = None, *, encoder=None) -> FastAPI:
+    """Build the app; the model is loaded when the app starts (lifespan), not here. ``encoder``: the settings'
+    model already loaded (``omnisplat serve --model`` loads it to check it), which the first start takes instead
+    of loading the file again."""
     settings = settings or get_settings()
     metrics = ServiceMetrics()
+    preloaded = [encoder] if encoder is not None else []
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -95,7 +98,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                            limiter=state.inference_gate.limiter)
         # job records beside the scenes: every replica sharing the store answers them
         state.jobs = JobRegistry(files=JobFiles(state.store.root / "jobs", identity(settings.replica_id)))
-        runtime = ModelRuntime(model_path, threads=settings.ort_threads)
+        runtime = ModelRuntime(model_path, threads=settings.ort_threads, encoder=preloaded.pop() if preloaded else None)
         state.runtime = runtime
 
         async def load() -> None:

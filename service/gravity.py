@@ -34,6 +34,13 @@ LOW_LAT_DEG = -55.0
 XMP_AGREE_DEG = 1.5
 #: Tilts beyond this (deg) are not searched for: a panorama is held roughly upright.
 MAX_TILT_DEG = 20.0
+#: The lines are searched again this far (deg), only to tell a tilt beyond MAX_TILT_DEG (the pose estimate refuses
+#: such a panorama, naming it; nothing is levelled by it): its vanishing point counts when it lies beyond
+#: MAX_TILT_DEG and gathers this many times the inliers of the searched one (or that one was not found). m3d 00+02
+#: with B pitched 25 deg: the search found 12.8 deg with 11 segments, the wide one 25.2 deg with 27; pitched 30 deg:
+#: none, and 29.9 deg with 26. Tilted 15-20 deg (m3d, bedroom_theta, zind) or level (the 20 dev panoramas): none.
+WIDE_TILT_DEG = 45.0
+BEYOND_TILT_MARGIN = 1.5
 
 _XMP_NUMBER = r"\s*=?\s*[\"']?\s*>?\s*(-?\d+(?:\.\d+)?)"
 
@@ -151,6 +158,8 @@ def panorama_gravity(gray: np.ndarray, data: bytes | None = None) -> tuple[np.nd
     The lines' vanishing point wins when found: on a hand-held set its tilts agree with structure from
     motion within 0.2 deg rms against the camera's readings' 1.5 deg. The camera's reading is used when
     the image has too few vertical lines for a vanishing point but most of those it has agree with it.
+    ``info["lines"]["beyond_search_deg"]``: the tilt of a clearly stronger vanishing point beyond
+    :data:`MAX_TILT_DEG` (up to :data:`WIDE_TILT_DEG`), when there is one; the pose estimate refuses it.
     """
     info: dict[str, Any] = {}
     reading = xmp_pitch_roll(data)
@@ -166,6 +175,13 @@ def panorama_gravity(gray: np.ndarray, data: bytes | None = None) -> tuple[np.nd
         info["lines"] = {**linfo, "tilt_deg": tilt_deg(lines_down)}
     except ValueError as exc:
         info["lines"] = {"error": str(exc)}
+    try:
+        wide_down, winfo = vertical_from_lines(normals, lengths, max_tilt_deg=WIDE_TILT_DEG)
+    except ValueError:
+        wide_down = None
+    if wide_down is not None and tilt_deg(wide_down) > MAX_TILT_DEG and \
+            winfo["inliers"] >= BEYOND_TILT_MARGIN * info["lines"].get("inliers", 0):
+        info["lines"]["beyond_search_deg"] = tilt_deg(wide_down)  # told, not used to level
     if reading is not None:
         xmp_down = down_from_pitch_roll(*reading)
         info["xmp"] = {"pitch_deg": reading[0], "roll_deg": reading[1]}

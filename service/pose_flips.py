@@ -59,13 +59,15 @@ def flip_supports(fa: np.ndarray, fb: np.ndarray, plain: np.ndarray, mirrored: n
 
 
 def flipped(fa: np.ndarray, da: np.ndarray, fb: np.ndarray, db: np.ndarray, min_pairs: int, min_support: int, *,
-            match: Callable[[np.ndarray], np.ndarray]) -> str | None:
+            match: Callable[[np.ndarray], np.ndarray], plain: np.ndarray | None = None) -> str | None:
     """A refusal's message when B (bearings ``fb``, descriptors ``db``) matches A far better flipped than as it is:
     the best flip's seed support at least ``min_support`` and :data:`FLIP_MARGIN` times B's as sent; else None.
-    ``match(descriptors)``: the putative matches (M, 2) of A's descriptors with those."""
+    ``match(descriptors)``: the putative matches (M, 2) of A's descriptors with those; ``plain``: ``match(db)`` when
+    the caller has it already."""
     if min(len(da), len(db)) < min_pairs:  # too few features for a pose either way
         return None
-    plain, mirrored = match(db), match(db[:, MIRROR_BINS])
+    plain = match(db) if plain is None else plain
+    mirrored = match(db[:, MIRROR_BINS])
     as_is, name, best = flip_supports(fa, fb, plain, mirrored, min_pairs)
     if best < min_support or best < FLIP_MARGIN * as_is:
         return None

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from rasterizer.floor_sweep import floor_ratio
+from rasterizer.floor_sweep import FloorHidden, floor_ratio
 from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction
 from rasterizer.gravity import level_rotation
 from rasterizer.relative_pose import (
@@ -52,7 +52,7 @@ from rasterizer.relative_pose import (
 from rasterizer.threads import map_threads
 
 from .errors import BadInput
-from .gravity import crop_rotations, crop_size, panorama_gravity, perspective_crops
+from .gravity import MAX_TILT_DEG, crop_rotations, crop_size, panorama_gravity, perspective_crops
 from .matching import Distances, guided_matches, mutual_matches, putative_matches
 from .pose_flips import FLIP_CHECK_SHARE, flipped
 
@@ -258,20 +258,56 @@ def _guided_refine_general(fa, fb, dist: Distances, R, t):
     return R, t, pairs[inl], err[inl]
 
 
-def _refusal(pa: Panorama, pb: Panorama, message: str, code: str = PoseEstimationFailed.code) -> PoseEstimationFailed:
-    """The refusal to raise: a ``flipped_panorama`` one when B matches A far better flipped
-    (:func:`service.pose_flips.flipped`), else ``message``."""
-    flip = flipped(pa.bearings, pa.descriptors, pb.bearings, pb.descriptors, MIN_INLIERS, MIN_RANSAC_INLIERS,
-                   match=lambda d: mutual_matches(Distances(pa.descriptors, d), SEED_RATIOS[0]))
-    return PoseEstimationFailed(flip or message, code="flipped_panorama" if flip else code)
+class _FlipVerdict:
+    """Whether B matches A far better flipped (:func:`service.pose_flips.flipped`'s message, or None), found at most
+    once per estimate: a weak seed asks, and so may a refusal after it. B's putative matches as sent are the seed's
+    at the first ratio (``plain``, set by the estimate once it has them), not matched again."""
+
+    def __init__(self, pa: Panorama, pb: Panorama):
+        self.pa, self.pb = pa, pb
+        self.plain: np.ndarray | None = None
+        self._found: tuple[str | None] | None = None
+
+    def __call__(self) -> str | None:
+        if self._found is None:
+            pa, pb = self.pa, self.pb
+            self._found = (flipped(pa.bearings, pa.descriptors, pb.bearings, pb.descriptors, MIN_INLIERS,
+                                   MIN_RANSAC_INLIERS, plain=self.plain,
+                                   match=lambda d: mutual_matches(Distances(pa.descriptors, d), SEED_RATIOS[0])),)
+        return self._found[0]
+
+
+def _refusal(flip: _FlipVerdict, message: str, code: str = PoseEstimationFailed.code) -> PoseEstimationFailed:
+    """The refusal to raise: a ``flipped_panorama`` one when B matches A far better flipped (``flip()``), else
+    ``message``."""
+    found = flip()
+    return PoseEstimationFailed(found or message, code="flipped_panorama" if found else code)
+
+
+def _tilted_beyond_search(pa: Panorama, pb: Panorama) -> str:
+    """A refusal's message naming the panoramas whose lines meet beyond the tilts searched
+    (:func:`service.gravity.panorama_gravity`'s ``beyond_search_deg``), or "" when none does. Such a panorama is
+    levelled wrong or not at all, and the pose from it fails in any way: m3d 00+02 with B pitched 25 deg was
+    ambiguous "as in a symmetric room", pitched 30 deg (no vanishing point found, taken as level) posed 29 deg off,
+    bedroom_theta 2+5 with B rolled 30 deg 14 deg off, both kept by the 5-dof refinement."""
+    tilted = [(name, p.gravity.get("lines", {}).get("beyond_search_deg")) for name, p in (("image_a", pa), ("image_b", pb))]
+    tilted = [(name, deg) for name, deg in tilted if deg is not None]
+    if not tilted:
+        return ""
+    names, degs = " and ".join(n for n, _ in tilted), " and ".join(f"{d:.0f}" for _, d in tilted)
+    one = len(tilted) == 1
+    return (f"poses: {names} {'seems' if one else 'seem'} tilted by {degs} deg, beyond the {MAX_TILT_DEG:.0f} deg "
+            f"searched ({'its' if one else 'their'} vertical lines meet there): level {'it' if one else 'them'} "
+            "(hold the camera upright, or turn the panorama upright) or give poses")
 
 
 def _floor_share(pa: Panorama, pb: Panorama, yaw: float, t: np.ndarray) -> float:
     """Share of the band below the cameras that lines up through the floor plane of the dense sweep under the
-    upright pose (``yaw``, unit ``t``) in A's levelled frame; 0 when the sweep finds no floor."""
+    upright pose (``yaw``, unit ``t``) in A's levelled frame; 0 when the sweep finds no floor. A share compares
+    two poses, not a scale: the floor need not be seen near the cameras (``near_deg=None``)."""
     try:
         return float(floor_ratio(small_gray(pa.gray, FLOOR_SWEEP_HEIGHT), small_gray(pb.gray, FLOOR_SWEEP_HEIGHT),
-                                 pa.level, pb.level, yaw_rotation(yaw), t)[1]["floor_share"])
+                                 pa.level, pb.level, yaw_rotation(yaw), t, near_deg=None)[1]["floor_share"])
     except ValueError:
         return 0.0
 
@@ -306,13 +342,18 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
     dist = Distances(pa.descriptors, pb.descriptors)  # every matching below reads it
     t_feat = time.perf_counter() - t0
     info: dict[str, Any] = {"features": [int(len(fa)), int(len(fb))], "gravity": [pa.gravity, pb.gravity]}
+    if tilted := _tilted_beyond_search(pa, pb):
+        raise PoseEstimationFailed(tilted)
+    flip = _FlipVerdict(pa, pb)
     for k, ratio in enumerate(SEED_RATIOS):
         last = k == len(SEED_RATIOS) - 1
         pairs = putative_matches(dist, ratio)
+        if ratio == SEED_RATIOS[0]:
+            flip.plain = pairs
         info.update(putative_matches=int(len(pairs)), seed_ratio=ratio)
         if len(pairs) < MIN_INLIERS:
             if last:
-                raise _refusal(pa, pb, f"poses: only {len(pairs)} feature matches between the images "
+                raise _refusal(flip, f"poses: only {len(pairs)} feature matches between the images "
                                        f"(need {MIN_INLIERS}); give poses, or images that overlap more")
             continue
         ma, mb = fa[pairs[:, 0]], fb[pairs[:, 1]]
@@ -325,19 +366,19 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
         try:
             ransac = upright_ransac(ma, mb)
         except ValueError as exc:  # degenerate matches: no hypothesis
-            raise _refusal(pa, pb, f"poses: no relative pose fits the matches ({exc}); give poses") from None
+            raise _refusal(flip, f"poses: no relative pose fits the matches ({exc}); give poses") from None
         elevation = float(np.degrees(np.arcsin(np.clip(abs(ransac.best.t[1]), 0.0, 1.0))))
         if ransac.best.num_inliers >= MIN_RANSAC_INLIERS and elevation <= MAX_TRAVEL_ELEVATION_DEG:
             break
         if last and ransac.best.num_inliers < MIN_RANSAC_INLIERS:
-            raise _refusal(pa, pb, f"poses: only {ransac.best.num_inliers} of {len(pairs)} feature matches agree on "
+            raise _refusal(flip, f"poses: only {ransac.best.num_inliers} of {len(pairs)} feature matches agree on "
                                    f"a relative pose (need {MIN_RANSAC_INLIERS}): the views share too little; give poses")
         if last:
-            raise _refusal(pa, pb, f"poses: the matches fit only a travel {elevation:.0f} deg from horizontal "
+            raise _refusal(flip, f"poses: the matches fit only a travel {elevation:.0f} deg from horizontal "
                                    f"(at most {MAX_TRAVEL_ELEVATION_DEG:.0f}): not two captures of one room at "
                                    "about the same height; give poses")
     if k > 0 or ransac.best.num_inliers < FLIP_CHECK_SHARE * len(pairs):  # a weak seed: is B flipped?
-        if (refusal := _refusal(pa, pb, "")).code == "flipped_panorama":
+        if (refusal := _refusal(flip, "")).code == "flipped_panorama":
             raise refusal
     yaw, t, inl, err = _guided_refine(fa, fb, dist, ransac.best.yaw, ransac.best.t)
     method = "sift16-rootsift+levelled+upright3pt-ransac+guided"
@@ -374,7 +415,7 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
                 rival["floor_share"], info["floor_share"] = rival_floor, best_floor
             if not decisive and rival["inliers"] >= RIVAL_SHARE * len(inl):
                 raise _refusal(
-                    pa, pb, f"poses: ambiguous - two relative poses {rival['yaw_gap_deg']:.0f} deg apart in yaw "
+                    flip, f"poses: ambiguous - two relative poses {rival['yaw_gap_deg']:.0f} deg apart in yaw "
                     f"({rival['t_gap_deg']:.0f} deg in travel direction) fit the matches about equally well "
                     f"({len(inl)} vs {rival['inliers']} inliers) and the images agree about as well under both "
                     f"(photometric {max(best_score, rival_score):.2f} vs {min(best_score, rival_score):.2f}; the "
@@ -388,7 +429,7 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
         info.update(_support(inl, err, method + "+5dof"))
     info["timings"] = {"features": t_feat, "total": time.perf_counter() - t0}
     if len(inl) < MIN_INLIERS:
-        raise _refusal(pa, pb, f"poses: only {len(inl)} matches agree on a relative pose (need {MIN_INLIERS}); give poses")
+        raise _refusal(flip, f"poses: only {len(inl)} matches agree on a relative pose (need {MIN_INLIERS}); give poses")
     scale, info["scale"] = _scale(pa, pb, inl, R, t, opts)
     info["yaw_deg"] = float(np.degrees(np.arctan2(R[0, 2], R[2, 2])))
     c2w_a = np.eye(4)
@@ -399,7 +440,8 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
 def _scale(pa: Panorama, pb: Panorama, inl: np.ndarray, R: np.ndarray, t: np.ndarray, opts: PoseOptions) -> tuple[float, dict]:
     """Metres per unit of the unit-baseline pose: the given baseline; else the camera height over the floor's
     distance below A: from the dense floor sweep, else from the triangulated inliers ``inl`` (M, 2)
-    (:func:`rasterizer.relative_pose.floor_scale`); else 1."""
+    (:func:`rasterizer.relative_pose.floor_scale`); else 1. When the sweep finds the floor hidden near the
+    cameras (:class:`rasterizer.floor_sweep.FloorHidden`) the points cannot see it either: 422 ``scale_failed``."""
     if opts.baseline is not None:
         return opts.baseline, {"source": "baseline", "baseline_m": opts.baseline}
     if opts.camera_height is None:
@@ -410,6 +452,9 @@ def _scale(pa: Panorama, pb: Panorama, inl: np.ndarray, R: np.ndarray, t: np.nda
         d, extra = floor_ratio(small_gray(pa.gray, FLOOR_SWEEP_HEIGHT), small_gray(pb.gray, FLOOR_SWEEP_HEIGHT),
                                pa.level, pb.level, R, t)
         s, floor = opts.camera_height / d, "dense"
+    except FloorHidden as exc:
+        raise PoseEstimationFailed(f"poses: camera_height given but {exc}; give baseline (the distance between the "
+                                   "two cameras, metres) or poses instead", code="scale_failed") from None
     except ValueError as dense_exc:
         fa, fb = pa.bearings[inl[:, 0]], pb.bearings[inl[:, 1]]
         la, _ = triangulate(fa, fb, R, t)

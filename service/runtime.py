@@ -27,12 +27,14 @@ class ModelRuntime:
     warmup_seconds: float | None = None
 
     def load(self, warmup: bool = True) -> None:
-        """Create the onnxruntime session (explicit CPU settings inside OnnxEncoder) and warm it up."""
+        """Create the onnxruntime session (explicit CPU settings inside OnnxEncoder), unless ``encoder`` is one
+        already, and warm it up."""
         try:
             start = time.perf_counter()
             from .encoder import OnnxEncoder
 
-            self.encoder = OnnxEncoder(self.model_path, threads=self.threads)
+            if self.encoder is None:
+                self.encoder = OnnxEncoder(self.model_path, threads=self.threads)
             meta = dict(self.encoder.metadata)
             meta.setdefault("name", self.model_path.stem)
             meta.setdefault("version", "unknown")

@@ -31,13 +31,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if problem is not None:
         raise CliError(f"--store {settings.store_dir}: cannot keep scenes there: {problem}")
     model_file(settings, args.no_build)
+    encoder = None
     if settings.model_path is not None:  # a model of the user's: one that cannot load fails here, in one line
-        load_encoder(settings.resolved_model_path, 1)
+        encoder = load_encoder(settings.resolved_model_path, settings.ort_threads)
     say(f"model {settings.resolved_model_path}; scenes in {settings.store_dir}")
-    if args.ray:
+    if args.ray:  # the replicas load their own: this one is not held while they serve
+        encoder = None
         return _serve_ray(args, settings.model_copy(update={"model_path": settings.resolved_model_path}))
     say(f"serving on http://{settings.host}:{settings.port} (docs at /docs; /readyz turns 200 after warm-up)")
-    uvicorn.Server(server_config(create_app(settings), settings, log_level=args.log_level)).run()
+    app = create_app(settings, encoder=encoder)  # the checked model is the served one: loaded once
+    uvicorn.Server(server_config(app, settings, log_level=args.log_level)).run()
     return 0
 
 

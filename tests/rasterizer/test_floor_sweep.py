@@ -78,18 +78,89 @@ def test_votes_piled_at_the_deepest_candidate_are_not_a_floor_there(monkeypatch)
     gave a baseline 20x too small. The floor is the deepest peak inside the candidates."""
     import rasterizer.floor_sweep as fs
 
-    k, h, w = len(fs.FLOOR_RATIOS), 40, 80
+    height = 80
+    k, (h, w) = len(fs.FLOOR_RATIOS), fs.band_directions(height, fs.BAND_DEG).shape[:2]
     floor, rng = 40, np.random.default_rng(0)
 
     def zncc(ref, other, level_ref, level_other, R, t, normal, offsets, **_):
         z = rng.uniform(-0.2, 0.5, (k, h, w)).astype(np.float32)
-        z[floor, :10] = 0.9  # a quarter of the band agrees on the floor's plane
-        z[k - 1, 10:14] = 0.9  # a tenth on the deepest candidate, the strongest pile
-        z[k - 2, 10:14] = 0.8
+        z[floor, -h // 4:] = 0.9  # a quarter of the band, nearest the nadir, agrees on the floor's plane
+        z[k - 1, :h // 10] = 0.9  # a tenth on the deepest candidate, the strongest pile
+        z[k - 2, :h // 10] = 0.8
         return z
 
     monkeypatch.setattr(fs, "plane_zncc", zncc)
-    d, info = fs.floor_ratio(np.zeros((8, 16)), np.zeros((8, 16)), np.eye(3), np.eye(3), np.eye(3),
-                             np.array([1.0, 0.0, 0.0]))
+    d, info = fs.floor_ratio(np.zeros((height, 2 * height)), np.zeros((height, 2 * height)), np.eye(3), np.eye(3),
+                             np.eye(3), np.array([1.0, 0.0, 0.0]))
     assert abs(np.log(d / fs.FLOOR_RATIOS[floor])) < 0.06, (d, info)
     assert all(p["ratio"] < fs.FLOOR_RATIOS[-1] for p in info["planes"]), info
+
+
+def _black_cap(img: np.ndarray, deg: float) -> np.ndarray:
+    """``img`` with the rows within ``deg`` of the nadir black (a camera's nadir logo or a masked tripod)."""
+    out = img.copy()
+    out[int(round(img.shape[0] * (1 - deg / 180))):] = 0.0
+    return out
+
+
+def test_windows_reaching_a_uniform_area_are_not_scored():
+    """A black nadir cap's edge is the same curve in both views under any plane far enough below, so its windows
+    voted for deep planes (bedroom_theta 1+9 with a 30-deg cap: a baseline 0.07x). Windows of either view that
+    reach a uniform area are not compared; on a capture without one nothing changes."""
+    from rasterizer.floor_sweep import FLOOR_RATIOS, near_uniform, plane_zncc
+
+    ((a, level_a), (b, level_b)), R, t = _case(30.0, [0.8, 0.0, 0.6])
+    t = t / np.linalg.norm(t)
+    assert near_uniform(a, 2) is None and near_uniform(b, 2) is None
+    ca, cb = _black_cap(a, 30.0), _black_cap(b, 30.0)
+    args = (level_a, level_b, R, t, np.array([0.0, 1.0, 0.0]), FLOOR_RATIOS)
+    plain, capped = plane_zncc(a, b, *args), plane_zncc(ca, cb, *args)
+    height = a.shape[0]
+    lat = np.pi / 2 - (np.arange(height) + 0.5) / height * np.pi
+    in_band = (lat >= np.radians(20.0) - np.pi / 2 - 0.05) & (lat <= np.radians(80.0) - np.pi / 2 + 0.05)
+    cap_row = int(round(height * (1 - 30.0 / 180)))
+    edge = (np.arange(height) >= cap_row - 2) & (np.arange(height) < cap_row)  # not black; their 5x5 windows reach it
+    assert np.isfinite(plain[:, edge[in_band]]).any()
+    assert not np.isfinite(capped[:, edge[in_band]]).any()
+    far = (lat > np.radians(-45.0))[in_band]  # clear of the cap and its margin: mostly scored as before
+    assert np.isfinite(capped[:, far]).sum() > 0.5 * np.isfinite(plain[:, far]).sum()
+
+
+@pytest.mark.parametrize("cap_deg", [45.0, 60.0])
+def test_a_floor_hidden_near_the_cameras_is_refused(cap_deg):
+    """With the band within NEAR_FLOOR_DEG of both nadirs mostly (45 deg) or wholly (60 deg) black, no plane is
+    trusted as the floor (bedroom_theta 2+5 with a 60-deg cap took a bed top: a baseline 1.7x; 1+9 with a 45-deg
+    cap a pile of far votes: 0.33x); the sweep still compares poses without the rule."""
+    from rasterizer.floor_sweep import FloorHidden
+
+    ((a, level_a), (b, level_b)), R, t = _case(30.0, [0.8, 0.0, 0.6])
+    ca, cb = _black_cap(a, cap_deg), _black_cap(b, cap_deg)
+    with pytest.raises(FloorHidden, match="not seen well enough"):
+        floor_ratio(ca, cb, level_a, level_b, R, t / np.linalg.norm(t))
+    d, info = floor_ratio(ca, cb, level_a, level_b, R, t / np.linalg.norm(t), near_deg=None)
+    assert d > 0 and "near_floor_scored" not in info
+
+
+def test_a_deep_peak_voted_only_far_from_the_nadir_is_not_the_floor(monkeypatch):
+    """Votes from the band's rows near the horizon only (far content) can pile on a plane below the floor that no
+    candidate end censors (bedroom_theta 1+9 with a 30-deg cap, after the cap's edge was masked: a baseline 0.33x).
+    The floor is the deepest peak that the rows near a nadir vote for."""
+    import rasterizer.floor_sweep as fs
+
+    k, height = len(fs.FLOOR_RATIOS), 40
+    h, w = fs.band_directions(height, fs.BAND_DEG).shape[:2]
+    ang = np.degrees(np.arccos(np.clip(fs.band_directions(height, fs.BAND_DEG)[..., 1], -1, 1)))
+    floor, deep, rng = 30, 60, np.random.default_rng(0)
+
+    def zncc(ref, other, level_ref, level_other, R, t, normal, offsets, **_):
+        z = rng.uniform(-0.2, 0.5, (k, h, w)).astype(np.float32)
+        z[floor, (ang < 45)[:, 0], :12] = 0.9  # the floor, seen near the nadir
+        z[deep, (ang > 70)[:, 0], :] = 0.9  # a pile from the rows near the horizon
+        return z
+
+    monkeypatch.setattr(fs, "plane_zncc", zncc)
+    args = (np.zeros((height, 2 * height)), np.zeros((height, 2 * height)), np.eye(3), np.eye(3), np.eye(3),
+            np.array([1.0, 0.0, 0.0]))
+    d, info = fs.floor_ratio(*args)
+    assert abs(np.log(d / fs.FLOOR_RATIOS[floor])) < 0.06, (d, info)
+    assert any(abs(np.log(p["ratio"] / fs.FLOOR_RATIOS[deep])) < 0.06 for p in info["planes"]), info  # a strong peak

@@ -734,6 +734,47 @@ def test_serve_with_a_model_file_that_is_no_model_is_a_one_line_error(tmp_path, 
     assert "--model" in err and "not a loadable ONNX model" in err and "Traceback" not in err
 
 
+def test_serve_with_a_model_loads_it_once(tmp_path, monkeypatch):
+    """`serve --model FILE` loaded the file to check it, dropped that session and loaded the file again as the app
+    started: the checked encoder is the one the app serves, with the served thread count."""
+    import time
+
+    import uvicorn
+    from fastapi.testclient import TestClient
+
+    import service.encoder as encoder_module
+
+    loads, served = [], {}
+
+    class Encoder:  # an OnnxEncoder's face, without onnxruntime
+        metadata = {"name": "fake", "version": "1"}
+        height, width = 4, 8
+
+        def __init__(self, path, *, threads=2):
+            loads.append((Path(path), threads))
+
+    class Server:  # starts the app and stops once its model is loaded
+        def __init__(self, config):
+            self.app = config.app
+
+        def run(self):
+            with TestClient(self.app):
+                deadline = time.monotonic() + 60
+                while not (self.app.state.runtime.ready or self.app.state.runtime.error) and time.monotonic() < deadline:
+                    time.sleep(0.02)
+                served["runtime"] = self.app.state.runtime
+
+    monkeypatch.setattr(encoder_module, "OnnxEncoder", Encoder)
+    monkeypatch.setattr(uvicorn, "Server", Server)
+    monkeypatch.setenv("OMNISPLAT_WARMUP", "false")
+    (tmp_path / "m.onnx").write_bytes(b"stands for a model")
+    argv = ["serve", "--model", str(tmp_path / "m.onnx"), "--store", str(tmp_path / "s"), "--threads", "3"]
+    assert cli.main(argv) == 0
+    runtime = served["runtime"]
+    assert runtime.ready and runtime.error is None and runtime.metadata["name"] == "fake"
+    assert loads == [(tmp_path / "m.onnx", 3)]
+
+
 def test_a_ply_written_to_a_symlink_goes_through_it(tmp_path):
     from tests.rasterizer._support import toy_scene
 

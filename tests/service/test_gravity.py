@@ -139,3 +139,19 @@ def test_line_crops_hold_their_share_of_the_sphere():
             need = np.degrees(np.arctan(np.abs(local[:, axis] / local[:, 2]).max()))
             half = np.degrees(np.arctan((side / 2) / gravity.LINE_CROP_FOCAL))
             assert half - need > 2.5, (k, axis, half, need)
+
+
+@pytest.mark.parametrize("pitch, beyond", [(12.0, False), (30.0, True)])
+def test_a_tilt_beyond_the_search_is_named_not_levelled(pitch, beyond):
+    """Tilts up to MAX_TILT_DEG are searched and levelled as before; the lines of a panorama tilted further meet
+    beyond the search, and that tilt is reported (for a refusal to name) without levelling by it."""
+    from service.gravity import MAX_TILT_DEG
+
+    down = down_from_pitch_roll(pitch, 0.0)
+    est, info = panorama_gravity(_room_erp(down))
+    assert ("beyond_search_deg" in info["lines"]) == beyond, info
+    if beyond:
+        assert abs(info["lines"]["beyond_search_deg"] - pitch) < 1.0
+        assert info["tilt_deg"] <= MAX_TILT_DEG + 5 or info["source"] == "none"  # not levelled by the wide search
+    else:
+        assert info["source"] == "lines" and np.degrees(np.arccos(np.clip(est @ down, -1, 1))) < 0.3

@@ -160,6 +160,63 @@ def test_a_mirror_flipped_panorama_is_refused_not_given_a_vertical_baseline(monk
         estimate_poses(noise, np.roll(noise[::-1], 77, axis=1), PoseOptions())
 
 
+def test_the_flip_check_runs_once_per_estimate_on_the_seed_matches(room_a, monkeypatch):
+    """A weak seed asks whether B is flipped, and so does a refusal after it: the verdict is found once, and B's
+    descriptors as sent are matched once (the seed's matches), only the mirrored ones for the check."""
+    import service.pose_flips as pose_flips
+    import service.poses as poses
+    from service import matching
+
+    checks, matched = [], []
+
+    def counted(fn, log, skip):
+        def wrapper(*args, **kwargs):
+            log.append(args[skip:])
+            return fn(*args, **kwargs)
+        return wrapper
+
+    mutual = matching.mutual_matches
+    monkeypatch.setattr(pose_flips, "flip_supports", counted(pose_flips.flip_supports, checks, 2))
+    monkeypatch.setattr(matching, "mutual_matches", counted(mutual, matched, 1))
+    monkeypatch.setattr(poses, "mutual_matches", counted(mutual, matched, 1))
+    monkeypatch.setattr(poses, "FLIP_CHECK_SHARE", 1.01)  # every seed is weak: the check runs before guiding
+    monkeypatch.setattr(poses, "RESIDUAL_TILT_DEG", 90.0)
+    guided = poses._guided_refine
+
+    def few(*args, **kwargs):  # too few guided inliers: the estimate refuses after the check
+        yaw, t, inl, err = guided(*args, **kwargs)
+        return yaw, t, inl[:5], err[:5]
+
+    monkeypatch.setattr(poses, "_guided_refine", few)
+    room_b = room_erp(_pose(-40.0, [0.9, 0.0, -0.8]))
+    with pytest.raises(PoseEstimationFailed, match="only 5 matches agree") as exc:
+        estimate_poses(room_a, room_b, PoseOptions())
+    assert exc.value.code == "pose_estimation_failed"
+    assert len(checks) == 1
+    assert matched == [(poses.SEED_RATIOS[0],)] * 2, matched  # B as sent (the seed's), B mirrored (the check's)
+
+
+def test_a_tilt_beyond_the_search_is_refused_as_such():
+    """A panorama tilted beyond the gravity search is levelled wrong or not at all, and its pose fails in any way
+    (m3d 00+02 with B pitched 25 deg was refused as "ambiguous ... as in a symmetric room", pitched 30 deg posed
+    29 deg off): it is refused before matching, naming the tilt and the way out."""
+    from service.poses import Panorama
+
+    def pano(gravity):
+        return Panorama(np.zeros((4, 8), np.uint8), np.zeros((0, 3)), np.zeros((0, 128), np.float32), np.eye(3), gravity)
+
+    level = {"source": "lines", "tilt_deg": 0.5, "lines": {"inliers": 30}}
+    wrong = {"source": "lines", "tilt_deg": 12.8, "lines": {"inliers": 11, "beyond_search_deg": 25.2}}
+    unlevelled = {"source": "none", "tilt_deg": 0.0, "lines": {"error": "only 5 line segments meet", "beyond_search_deg": 29.9}}
+    with pytest.raises(PoseEstimationFailed) as exc:
+        estimate_poses(None, None, PoseOptions(), prepared=(pano(level), pano(wrong)))
+    assert exc.value.code == "pose_estimation_failed"
+    assert exc.value.message.startswith("poses: image_b seems tilted by 25 deg, beyond the 20 deg searched")
+    assert "level it" in exc.value.message and "give poses" in exc.value.message
+    with pytest.raises(PoseEstimationFailed, match="image_a and image_b seem tilted by 30 and 25 deg"):
+        estimate_poses(None, None, PoseOptions(), prepared=(pano(unlevelled), pano(wrong)))
+
+
 def test_too_few_seed_matches_at_the_first_ratio_retry_at_the_second(room_a, monkeypatch):
     """A wide baseline leaves too few ratio-0.8 matches to seed RANSAC: the guided matching's 0.9 seeds it."""
     import service.poses as poses
@@ -228,6 +285,31 @@ def test_camera_height_floor_dense_then_points_then_refused(room_a, monkeypatch)
     with pytest.raises(PoseEstimationFailed) as exc:
         baseline_and_floor()
     assert exc.value.status == 422 and exc.value.code == "scale_failed"
+
+
+def test_camera_height_with_the_floor_hidden_near_the_cameras_is_refused_with_a_way_out(room_a, monkeypatch):
+    """A black 60-deg nadir cap on both panoramas hides the floor near the cameras: the scale is refused (the sweep's
+    deepest plane left was a bed top on bedroom_theta 2+5, a baseline 1.7x) and the message names the way out; the
+    points' floor, hidden the same way, is not asked."""
+    import service.poses as poses
+
+    def capped(img):
+        out = img.copy()
+        out[int(img.shape[0] * (1 - 60 / 180)):] = 0
+        return out
+
+    def points_floor(*args, **kwargs):
+        raise AssertionError("the points' floor was asked")
+
+    monkeypatch.setattr(poses, "floor_scale", points_floor)
+    room_b = room_erp(_pose(-40.0, [0.9, 0.0, -0.8]))
+    with pytest.raises(PoseEstimationFailed) as exc:
+        estimate_poses(capped(room_a), capped(room_b), PoseOptions(camera_height=1.5))
+    assert exc.value.code == "scale_failed", exc.value.message
+    assert "not seen well enough" in exc.value.message and "give baseline" in exc.value.message
+    assert "or poses" in exc.value.message
+    _, c2w_b, info = estimate_poses(capped(room_a), capped(room_b), PoseOptions(baseline=1.2))  # the way out
+    assert abs(np.linalg.norm(c2w_b[:3, 3]) - 1.2) < 1e-9 and info["scale"]["source"] == "baseline"
 
 
 def test_refine_given_poses_moves_a_wrong_yaw_back(room_a):
