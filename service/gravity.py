@@ -36,9 +36,8 @@ XMP_AGREE_DEG = 1.5
 MAX_TILT_DEG = 20.0
 #: The lines are searched again this far (deg), only to tell a tilt beyond MAX_TILT_DEG (the pose estimate refuses
 #: such a panorama, naming it; nothing is levelled by it): its vanishing point counts when it lies beyond
-#: MAX_TILT_DEG and gathers this many times the inliers of the searched one (or that one was not found). m3d 00+02
-#: with B pitched 25 deg: the search found 12.8 deg with 11 segments, the wide one 25.2 deg with 27; pitched 30 deg:
-#: none, and 29.9 deg with 26. Tilted 15-20 deg (m3d, bedroom_theta, zind) or level (the 20 dev panoramas): none.
+#: MAX_TILT_DEG and gathers this many times the inliers of the searched one (or that one was not found). None of the
+#: 20 dev panoramas, level or turned by 15-20 deg, has one (docs/design.md, "A tilt beyond the search").
 WIDE_TILT_DEG = 45.0
 BEYOND_TILT_MARGIN = 1.5
 

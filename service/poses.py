@@ -287,9 +287,8 @@ def _refusal(flip: _FlipVerdict, message: str, code: str = PoseEstimationFailed.
 def _tilted_beyond_search(pa: Panorama, pb: Panorama) -> str:
     """A refusal's message naming the panoramas whose lines meet beyond the tilts searched
     (:func:`service.gravity.panorama_gravity`'s ``beyond_search_deg``), or "" when none does. Such a panorama is
-    levelled wrong or not at all, and the pose from it fails in any way: m3d 00+02 with B pitched 25 deg was
-    ambiguous "as in a symmetric room", pitched 30 deg (no vanishing point found, taken as level) posed 29 deg off,
-    bedroom_theta 2+5 with B rolled 30 deg 14 deg off, both kept by the 5-dof refinement."""
+    levelled wrong or not at all, and a pose from it can be many degrees off (docs/design.md, "A tilt beyond the
+    search is refused, not levelled")."""
     tilted = [(name, p.gravity.get("lines", {}).get("beyond_search_deg")) for name, p in (("image_a", pa), ("image_b", pb))]
     tilted = [(name, deg) for name, deg in tilted if deg is not None]
     if not tilted:
