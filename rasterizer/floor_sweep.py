@@ -99,13 +99,13 @@ def plane_zncc(ref: np.ndarray, other: np.ndarray, level_ref: np.ndarray, level_
     dirs = band_directions(height, band_deg)
     cos_n = dirs @ np.asarray(normal, np.float64)
     ang = np.arccos(np.clip(cos_n, -1.0, 1.0))
-    a = sample_erp(ref.astype(np.float32)[..., None], *project_to_grid("erp", dirs @ level_ref, height, 2 * height))[..., 0]
+    in_ref = project_to_grid("erp", dirs @ level_ref, height, 2 * height)  # the band's pixels in ref
+    a = sample_erp(ref.astype(np.float32)[..., None], *in_ref)[..., 0]
     stats = _window_stats(a, radius)
     keep = (ang >= lo) & (ang <= hi) & (stats[1] >= min_std ** 2)
     ref_uniform, other_uniform = near_uniform(ref, radius), near_uniform(other, radius)
     if ref_uniform is not None:
-        keep &= sample_erp(ref_uniform.astype(np.float32)[..., None],
-                           *project_to_grid("erp", dirs @ level_ref, height, 2 * height))[..., 0] == 0
+        keep &= sample_erp(ref_uniform.astype(np.float32)[..., None], *in_ref)[..., 0] == 0
     out = np.full((len(offsets),) + a.shape, np.nan, np.float32)
     cos_nadir = np.cos(np.radians(nadir_deg))
     ray = (dirs / np.maximum(cos_n, 1e-3)[..., None]).astype(np.float32)  # meets the plane at offset 1
@@ -167,12 +167,13 @@ def floor_ratio(grey_a: np.ndarray, grey_b: np.ndarray, level_a: np.ndarray, lev
     ``ValueError`` when no peak qualifies. Info: pixel counts, the floor's ``floor_share`` and every strong
     peak's ratio and share (``planes``)."""
     t = np.asarray(t, np.float64)
+    normals = (np.array([0.0, 1.0, 0.0]), R[1])  # the floor's normal in A's and in B's levelled frame
     sides = map_threads(plane_zncc, (grey_a, grey_b), (grey_b, grey_a), (level_a, level_b), (level_b, level_a), (R, R.T),
-                        (t, -R.T @ t), (np.array([0.0, 1.0, 0.0]), R[1]), (ratios, ratios - t[1]))  # the two sides at once
+                        (t, -R.T @ t), normals, (ratios, ratios - t[1]))  # the two sides at once
     votes = np.zeros(len(ratios))
     winners, scored, near = [], 0, []
     dirs = band_directions(grey_a.shape[0], BAND_DEG) if near_deg is not None else None
-    for z, normal in zip(sides, (np.array([0.0, 1.0, 0.0]), R[1])):
+    for z, normal in zip(sides, normals, strict=True):
         filled = np.where(np.isnan(z), -2.0, z)
         arg, best = filled.argmax(0), filled.max(0)
         good = best > min_zncc
