@@ -40,16 +40,30 @@ def epipolar_error(fa: np.ndarray, fb: np.ndarray, R: np.ndarray, t: np.ndarray)
 
     fa, fb: (..., N, 3) unit bearings; R: (..., 3, 3); t: (..., 3).
     """
-    g = np.einsum("...ij,...nj->...ni", R, fb)
+    return _epipolar_error_turned(fa, _turned(R, fb), t)
+
+
+def _turned(R: np.ndarray, fb: np.ndarray) -> np.ndarray:
+    """B's bearings in A's frame, ``R f_b`` (..., N, 3)."""
+    return np.einsum("...ij,...nj->...ni", R, fb)
+
+
+def _epipolar_error_turned(fa: np.ndarray, g: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """:func:`epipolar_error` of B's bearings already turned into A's frame (``g`` = :func:`_turned`)."""
     t = np.asarray(t)[..., None, :]
-    triple = np.abs(np.einsum("...ni,...ni->...n", fa, np.cross(t, g)))
-    den = np.minimum(np.linalg.norm(np.cross(t, g), axis=-1), np.linalg.norm(np.cross(t, fa), axis=-1))
+    normal = np.cross(t, g)  # of the epipolar plane through B's bearing
+    triple = np.abs(np.einsum("...ni,...ni->...n", fa, normal))
+    den = np.minimum(np.linalg.norm(normal, axis=-1), np.linalg.norm(np.cross(t, fa), axis=-1))
     return np.arcsin(np.clip(triple / np.maximum(den, _EPS), 0.0, 1.0))
 
 
 def triangulate(fa: np.ndarray, fb: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Midpoint ranges ``(lam_a, lam_b)`` (..., N) with ``lam_a f_a ~ lam_b R f_b + t``; NaN-free (0 if parallel)."""
-    g = np.einsum("...ij,...nj->...ni", R, fb)
+    return _triangulate_turned(fa, _turned(R, fb), t)
+
+
+def _triangulate_turned(fa: np.ndarray, g: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`triangulate` of B's bearings already turned into A's frame (``g`` = :func:`_turned`)."""
     t = np.asarray(t)[..., None, :]
     k = np.einsum("...ni,...ni->...n", fa, g)
     at, gt = np.sum(fa * t, -1), np.sum(g * t, -1)
@@ -111,10 +125,10 @@ def _minimal_hypotheses(fa: np.ndarray, fb: np.ndarray, triples: np.ndarray, yaw
 
 def _score(fa, fb, yaws, ts, thr):
     """MSAC cost (H,), inliers (H, N) and ``t`` with the sign most inliers see in front of both cameras."""
-    R = yaw_rotation(yaws)
-    err = epipolar_error(fa[None], fb[None], R, ts)
+    g = _turned(yaw_rotation(yaws), fb[None])  # (H, N, 3), shared by the error and the ranges
+    err = _epipolar_error_turned(fa[None], g, ts)
     inl = err < thr
-    la, lb = triangulate(fa[None], fb[None], R, ts)
+    la, lb = _triangulate_turned(fa[None], g, ts)
     front = (la > 0) & (lb > 0)
     back = (la < 0) & (lb < 0)
     flip = np.sum(back & inl, 1) > np.sum(front & inl, 1)
