@@ -30,6 +30,7 @@ from .limits import check_render_budget
 from .memory import release_memory
 from .model_files import build_code_hash
 from .pipeline import PipelineOptions, SceneBuild, build_scene
+from .pose_check import check_given_poses
 from .poses import PoseOptions, poses_for_scene
 from .references import REFERENCES_ARTIFACT, load_references, references_bytes
 from .runtime import ModelRuntime
@@ -132,6 +133,8 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     timings.update(stages)
     timings.setdefault("reconstruct", time.perf_counter() - t0)
     check_not_empty(build)
+    if poses is not None:  # given: do they belong to these images?
+        check_given_poses(erp_a, erp_b, c2w_a, c2w_b, build.info.get("mean_confidence"))
     gaussians = build.gaussians
 
     meta = {

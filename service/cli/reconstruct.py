@@ -186,6 +186,13 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         check_not_empty(rec)
     except ServiceError as exc:
         raise CliError(exc.message + empty_hint(rec.info)) from None
+    if given is not None:  # the API's 422 poses_mismatch
+        from ..pose_check import check_given_poses
+
+        try:
+            check_given_poses(erp_a, erp_b, c2w_a, c2w_b, rec.info.get("mean_confidence"))
+        except ServiceError as exc:
+            raise CliError(exc.message) from None
     total = time.perf_counter() - t0
     out = Path(args.output)
     write_output(out, rec.gaussians)
