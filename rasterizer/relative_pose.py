@@ -72,11 +72,19 @@ def _triangulate_turned(fa: np.ndarray, g: np.ndarray, t: np.ndarray) -> tuple[n
 
 
 def rotation_only_fraction(fa: np.ndarray, fb: np.ndarray, *, threshold_deg: float = 0.5, yaw_step_deg: float = 0.5) -> float:
-    """Largest fraction of matches a pure yaw (no translation) explains within ``threshold_deg``: ~1 means no parallax."""
+    """Largest fraction of matches a pure yaw (no translation) explains within ``threshold_deg``: ~1 means no parallax.
+
+    ``f_a . R(yaw) f_b = cos(yaw) (x_a x_b + z_a z_b) + sin(yaw) (x_a z_b - z_a x_b) + y_a y_b``: three numbers per
+    match, then one (yaws, N) pass, instead of turning every bearing by every yaw."""
+    if not len(fa):
+        return 0.0
     yaws = np.radians(np.arange(0.0, 360.0, yaw_step_deg))
     cos_thr = np.cos(np.radians(threshold_deg))
-    g = np.einsum("yij,nj->yni", yaw_rotation(yaws), fb)
-    return float(np.max(np.mean(np.sum(g * fa, -1) > cos_thr, axis=1))) if len(fa) else 0.0
+    along = fa[:, 0] * fb[:, 0] + fa[:, 2] * fb[:, 2]
+    across = fa[:, 0] * fb[:, 2] - fa[:, 2] * fb[:, 0]
+    dots = np.cos(yaws)[:, None] * along + np.sin(yaws)[:, None] * across
+    dots += fa[:, 1] * fb[:, 1]
+    return float(np.max(np.mean(dots > cos_thr, axis=1)))
 
 
 @dataclass

@@ -85,6 +85,18 @@ def test_rotation_only_fraction_tells_parallax_apart():
     assert rotation_only_fraction(fa2, fb2) > 0.95
 
 
+def test_rotation_only_fraction_is_the_share_of_matches_some_yaw_turns_onto_each_other():
+    """Against its definition: every bearing of B turned by every yaw of the 0.5-deg search."""
+    rng = np.random.default_rng(3)
+    fa, fb = _matches(-70.0, np.zeros(3), outliers=0.3)
+    fb = fb + rng.normal(scale=0.004, size=fb.shape)  # some within the 0.5 deg, some not
+    fb /= np.linalg.norm(fb, axis=1, keepdims=True)
+    turned = np.einsum("yij,nj->yni", yaw_rotation(np.radians(np.arange(0.0, 360.0, 0.5))), fb)
+    expected = np.max(np.mean(np.sum(turned * fa, -1) > np.cos(np.radians(0.5)), axis=1))
+    assert rotation_only_fraction(fa, fb) == expected and 0.2 < expected < 0.9
+    assert rotation_only_fraction(fa[:0], fb[:0]) == 0.0
+
+
 def test_ransac_reports_a_rival_mode():
     fa, fb = _matches(10.0, np.array([1.0, 0, 0.2]), outliers=0.0)
     res = upright_ransac(fa, fb)
