@@ -25,6 +25,8 @@ CHECK_BELOW_CONFIDENCE = 0.15
 MISMATCH_RATIO = 1.3
 #: ... and agree on at least this share of the textured pixels (flat images agree with nothing).
 MIN_AGREEMENT = 0.15
+#: The refusal names every alternative within this fraction of the best one's agreement.
+SAME_AGREEMENT = 0.9
 
 _FLIP_YZ = np.diag([1.0, -1.0, -1.0])  # OpenCV <-> OpenGL camera axes
 
@@ -47,14 +49,17 @@ def check_given_poses(erp_a: np.ndarray, erp_b: np.ndarray, c2w_a: np.ndarray, c
     names, poses = zip(*readings(np.asarray(c2w_a, np.float64), np.asarray(c2w_b, np.float64)).items())
     scores = dict(zip(names, map_threads(lambda pose: photometric_score(erp_a, erp_b, *pose), poses)))
     best = max(names[1:], key=scores.get)
-    if scores[best] >= MIN_AGREEMENT and scores[best] >= MISMATCH_RATIO * scores["given"]:
-        if best == "swapped":
-            reading = "of the two images swapped"
-            fix = "check that image_a is the panorama taken at the first pose and image_b the one at the second"
-        else:
-            reading = "read in the other axis convention"
-            fix = 'check "convention": OpenCV cameras look along +z with +y down, OpenGL ones along -z with +y up'
-        raise BadInput(f"poses: the images agree far better with the poses {reading} ({scores[best]:.0%} of the "
-                       f"textured pixels find their match, {scores['given']:.0%} as sent; the reconstruction's mean "
-                       f"confidence is {mean_confidence:.2f}): {fix}", code="poses_mismatch")
-    return scores
+    if scores[best] < MIN_AGREEMENT or scores[best] < MISMATCH_RATIO * scores["given"]:
+        return scores
+    # both alternatives as good: for some camera layouts the two readings are nearly the same relative pose
+    named = [name for name in names[1:] if scores[name] >= SAME_AGREEMENT * scores[best]]
+    raise BadInput(f"poses: the images agree far better with the poses {' or '.join(_READING[n] for n in named)} "
+                   f"({scores[best]:.0%} of the textured pixels find their match, {scores['given']:.0%} as sent; the "
+                   f"reconstruction's mean confidence is {mean_confidence:.2f}): "
+                   f"{'; '.join(_FIX[n] for n in named)}", code="poses_mismatch")
+
+
+_READING = {"swapped": "of the two images swapped", "other convention": "read in the other axis convention"}
+_FIX = {"swapped": "check that image_a is the panorama taken at the first pose and image_b the one at the second",
+        "other convention": 'check "convention": OpenCV cameras look along +z with +y down, OpenGL ones along -z '
+                            "with +y up"}

@@ -114,3 +114,15 @@ def test_cli_reconstruct_refuses_the_swapped_images_as_the_api_does(bedroom_thet
     assert cli.main(["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--poses",
                      str(tmp_path / "poses.json"), "--model", str(model_path), "--no-build", "-o", str(out)]) == 2
     assert "two images swapped" in capsys.readouterr().err and not out.exists()
+
+
+def test_when_both_readings_fit_as_well_the_refusal_names_both(m3d_dir):
+    """m3d's cameras are level and 1 m apart along a horizontal axis: the pair swapped and the pair read in
+    OpenGL's axes are almost the same relative pose, so a refusal cannot tell which mistake was made."""
+    scene = load_scene(m3d_dir)
+    fa, fb = scene.frames["00"], scene.frames["02"]
+    img_a, img_b = _small(fa.image()), _small(fb.image())
+    with pytest.raises(BadInput, match="two images swapped or read in the other axis convention") as exc:
+        check_given_poses(img_b, img_a, fa.c2w, fb.c2w, 0.0)
+    assert "image_a is the panorama taken at the first pose" in exc.value.message
+    assert 'check "convention"' in exc.value.message
