@@ -134,7 +134,9 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     timings.setdefault("reconstruct", time.perf_counter() - t0)
     check_not_empty(build)
     if poses is not None:  # given: do they belong to these images?
-        check_given_poses(erp_a, erp_b, c2w_a, c2w_b, build.info.get("mean_confidence"))
+        t0 = time.perf_counter()
+        if check_given_poses(erp_a, erp_b, c2w_a, c2w_b, build.info.get("mean_confidence")) is not None:
+            timings["pose_check"] = time.perf_counter() - t0
     gaussians = build.gaussians
 
     meta = {

@@ -93,6 +93,7 @@ def test_post_with_the_images_swapped_is_a_422_and_stores_nothing(bedroom_theta_
         assert stored_scene_count(store) == 0
         right = post_scene(client, a, b, poses)
         assert right.status_code == 201, right.text
+        assert right.json()["timings"]["pose_check"] > 0  # the check ran, and its time is reported
 
 
 def test_cli_reconstruct_refuses_the_swapped_images_as_the_api_does(bedroom_theta_dir, model_path, tmp_path,
