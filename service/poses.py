@@ -554,7 +554,7 @@ def photometric_score(erp_a: np.ndarray, erp_b: np.ndarray, R: np.ndarray, t: np
 
 def _erp_pixels(x: np.ndarray, y: np.ndarray, z: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
     """ERP pixel coordinates (column, row), float32, of the camera-frame directions ``(x, y, z)`` (float32
-    arrays of one shape, last axis > 1) on a ``height`` x ``2 height`` panorama, as
+    arrays of one shape, at least 1-D) on a ``height`` x ``2 height`` panorama, as
     :func:`rasterizer.geometry.lat_lon_from_direction` and ``project_to_grid("erp")`` place them.
 
     OpenCV's vectorised ``cartToPolar`` and ``phase`` stand in for numpy's ``arctan2``, which took most of
