@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from rasterizer.geometry import OPENGL_TO_OPENCV, rigid_inverse
 from rasterizer.threads import map_threads
 
 from .errors import BadInput
@@ -28,15 +29,16 @@ MIN_AGREEMENT = 0.15
 #: The refusal names every alternative within this fraction of the best one's agreement.
 SAME_AGREEMENT = 0.9
 
-_FLIP_YZ = np.diag([1.0, -1.0, -1.0])  # OpenCV <-> OpenGL camera axes
-
-
 def readings(c2w_a: np.ndarray, c2w_b: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """B's pose ``(R, t)`` in A's camera frame (``X_a = R X_b + t``) under each reading of two OpenCV c2w:
     as given, with the images swapped (A taken at ``c2w_b``), and with both read in the other axis convention."""
-    rot_a, rot_b = c2w_a[:3, :3], c2w_b[:3, :3]
-    R, t = rot_a.T @ rot_b, rot_a.T @ (c2w_b[:3, 3] - c2w_a[:3, 3])
-    return {"given": (R, t), "swapped": (R.T, -R.T @ t), "other convention": (_FLIP_YZ @ R @ _FLIP_YZ, _FLIP_YZ @ t)}
+    def relative(a, b):
+        rel = rigid_inverse(a) @ b
+        return rel[:3, :3], rel[:3, 3]
+
+    flip = OPENGL_TO_OPENCV  # its own inverse: OpenCV <-> OpenGL camera axes
+    return {"given": relative(c2w_a, c2w_b), "swapped": relative(c2w_b, c2w_a),
+            "other convention": relative(c2w_a @ flip, c2w_b @ flip)}
 
 
 def check_given_poses(erp_a: np.ndarray, erp_b: np.ndarray, c2w_a: np.ndarray, c2w_b: np.ndarray,
