@@ -312,6 +312,27 @@ def test_camera_height_with_the_floor_hidden_near_the_cameras_is_refused_with_a_
     assert abs(np.linalg.norm(c2w_b[:3, 3]) - 1.2) < 1e-9 and info["scale"]["source"] == "baseline"
 
 
+def test_a_logo_stamped_on_both_nadirs_is_not_taken_for_a_deep_floor(zind_dir):
+    """zind_room09 pano_4+5 (2.12 m apart) with the same patterned 35-deg logo on both nadirs: the logo's windows
+    matched under every deep plane and made a floor 22 times too deep, a baseline of 0.095 m. They match without
+    parallax, so they do not vote: what floor is left near the cameras is too little, and the scale is refused."""
+    scene = load_scene(zind_dir)
+    a, b = scene.frames["pano_4"], scene.frames["pano_5"]
+
+    def logo(img):
+        out = img.copy()
+        h, w = img.shape[:2]
+        r0 = int(h * (1 - 35 / 180))
+        out[r0:] = 0.15
+        out[r0:, ::w // 64] = 1.0
+        out[r0::8] = 1.0
+        return out
+
+    with pytest.raises(PoseEstimationFailed) as exc:
+        estimate_poses(logo(a.image()), logo(b.image()), PoseOptions(camera_height=1.435))
+    assert exc.value.code == "scale_failed" and "give baseline" in exc.value.message, exc.value.message
+
+
 def test_refine_given_poses_moves_a_wrong_yaw_back(room_a):
     from service.inputs import Poses
 
