@@ -154,18 +154,20 @@ FLOOR_RATIOS = np.exp(np.linspace(np.log(0.25), np.log(16.0), 80))
 
 def floor_ratio(grey_a: np.ndarray, grey_b: np.ndarray, level_a: np.ndarray, level_b: np.ndarray, R: np.ndarray,
                 t: np.ndarray, *, ratios: np.ndarray = FLOOR_RATIOS, min_zncc: float = 0.7, min_peak: float = 0.3,
-                min_share: float = 0.01, width: int = 2, near_deg: float | None = NEAR_FLOOR_DEG) -> tuple[float, dict]:
+                min_share: float = 0.01, width: int = 2, near_deg: float | None = NEAR_FLOOR_DEG,
+                parallax_free_votes: bool = False) -> tuple[float, dict]:
     """Distance of the floor below A in baselines (``t`` is unit) from a dense plane sweep of both views.
 
     grey_*: grey ERPs (H, 2H) in [0, 1]; level_*: levelled-from-camera (3, 3); ``[R | t]``: B in A's
     levelled frame. Every band pixel of A (and of B, with the plane ``d - t_y`` below B) votes for the candidate
     ``ratios`` whose plane matches it best (:func:`plane_zncc`), when that ZNCC exceeds ``min_zncc`` and its ZNCC
     through a plane :data:`PARALLAX_FREE_FACTOR` times deeper than any candidate does not (a window that matches
-    with no parallax tells no height). The floor is the deepest peak of the votes holding ``min_peak`` of the
-    highest peak above the median (a bed or a table top is a plane too, higher: a smaller ratio; a floor is the
-    lowest plane, nothing is seen below it) and ``min_share`` of the scored pixels within ``width`` bins. A peak
-    at either end of ``ratios`` is not a plane: its voters' best plane lies at or beyond it (far
-    content, with little parallax, piles on the deepest candidate).
+    with no parallax tells no height; ``parallax_free_votes`` lets it vote, for a share that compares two poses).
+    The floor is the deepest peak of the votes holding ``min_peak`` of the highest peak above the median (a bed or
+    a table top is a plane too, higher: a smaller ratio; a floor is the lowest plane, nothing is seen below it)
+    and ``min_share`` of the scored pixels within ``width`` bins. A peak at either end of ``ratios`` is not a
+    plane: its voters' best plane lies at or beyond it (far content, with little parallax, piles on the deepest
+    candidate).
     With ``near_deg`` (:data:`NEAR_FLOOR_DEG`), the floor must be seen near a camera: :class:`FloorHidden` when
     neither view's band within ``near_deg`` of its nadir is scored on :data:`MIN_NEAR_SCORED` of its pixels, or
     when no strong peak holds :data:`MIN_NEAR_SUPPORT` of one view's scored pixels there (the deepest that does is
@@ -174,17 +176,19 @@ def floor_ratio(grey_a: np.ndarray, grey_b: np.ndarray, level_a: np.ndarray, lev
     peak's ratio and share (``planes``)."""
     t = np.asarray(t, np.float64)
     normals = (np.array([0.0, 1.0, 0.0]), R[1])  # the floor's normal in A's and in B's levelled frame
-    far = float(np.max(ratios)) * PARALLAX_FREE_FACTOR
+    far = [] if parallax_free_votes else [float(np.max(ratios)) * PARALLAX_FREE_FACTOR]  # the last plane, if any
     sides = map_threads(plane_zncc, (grey_a, grey_b), (grey_b, grey_a), (level_a, level_b), (level_b, level_a), (R, R.T),
                         (t, -R.T @ t), normals, (np.append(ratios, far), np.append(ratios - t[1], far)))
     votes = np.zeros(len(ratios))
     winners, scored, near = [], 0, []
     dirs = band_directions(grey_a.shape[0], BAND_DEG) if near_deg is not None else None
     for zf, normal in zip(sides, normals, strict=True):
-        z, z_far = zf[:-1], zf[-1]
+        z = zf[:len(ratios)]
         filled = np.where(np.isnan(z), -2.0, z)
         arg, best = filled.argmax(0), filled.max(0)
-        good = (best > min_zncc) & ~(z_far > min_zncc)
+        good = best > min_zncc
+        if not parallax_free_votes:
+            good &= ~(zf[-1] > min_zncc)
         scored += int(np.count_nonzero(~np.isnan(z).all(0)))
         votes += np.bincount(arg[good], minlength=len(ratios))
         winners.append((z, arg, good))
