@@ -125,3 +125,20 @@ def edit_server(model: Path, store: Path):
 def stored_scene_count(store: Path) -> int:
     scenes = store / "scenes"
     return len([p for p in scenes.iterdir() if (p / "meta.json").exists()]) if scenes.exists() else 0
+
+
+def ply_with_nan(path: Path, n: int, rows) -> None:
+    """A PLY of ``n`` valid Gaussians (tests.rasterizer toy scene) whose x is NaN in ``rows``."""
+    from rasterizer.ply import ply_bytes, ply_header, property_names
+    from tests.rasterizer._support import toy_scene
+
+    g = toy_scene(3, n=n)
+    data = bytearray(ply_bytes(g))
+    body = np.frombuffer(data, dtype="<f4", offset=len(ply_header(n, g.sh.shape[1])))
+    body.reshape(n, len(property_names(g.sh.shape[1])))[list(rows), 0] = np.nan
+    path.write_bytes(bytes(data))
+
+
+def render_argv(tmp_path: Path, ply: str) -> list[str]:
+    """``omnisplat render`` arguments: ``tmp_path / ply`` at the identity pose, 64 px wide, to ``view.png``."""
+    return ["render", str(tmp_path / ply), "--c2w", IDENTITY, "--width", "64", "-o", str(tmp_path / "view.png")]
