@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from rasterizer.floor_sweep import FloorHidden, floor_ratio
-from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction
+from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction, rigid_inverse
 from rasterizer.gravity import level_rotation
 from rasterizer.relative_pose import (
     INLIER_DEG,
@@ -474,7 +474,7 @@ def _scale(pa: Panorama, pb: Panorama, inl: np.ndarray, R: np.ndarray, t: np.nda
 def refine_poses(erp_a: np.ndarray, erp_b: np.ndarray, c2w_a: np.ndarray, c2w_b: np.ndarray) -> tuple[np.ndarray, dict]:
     """Refine B's given pose against A (yaw about B's y axis and the travel direction; baseline kept)."""
     (fa, da), (fb, db) = map_threads(features, (erp_a, erp_b))
-    rel = np.linalg.inv(c2w_a) @ c2w_b
+    rel = rigid_inverse(c2w_a) @ np.asarray(c2w_b, np.float64)
     R0, t_rel = rel[:3, :3], rel[:3, 3]
     length = float(np.linalg.norm(t_rel))
     yaw, t, inl, err = _guided_refine(fa, fb, Distances(da, db), 0.0, t_rel / length, R0=R0)
