@@ -304,8 +304,7 @@ def _floor_share(pa: Panorama, pb: Panorama, yaw: float, t: np.ndarray) -> float
     """Share of the band below the cameras that lines up through the floor plane of the dense sweep under the
     upright pose (``yaw``, unit ``t``) in A's levelled frame; 0 when the sweep finds no floor. A share compares
     two poses, not a scale: the floor need not be seen near the cameras (``near_deg=None``), and windows that
-    match with no parallax vote as well (on m3d with both images vignetted alike, leaving them out made the wrong
-    mode's share 1.9 times the right one's instead of 1.4, past the margin that decides)."""
+    match with no parallax vote as well (docs/design.md, "A window that matches with no parallax does not vote")."""
     try:
         return float(floor_ratio(small_gray(pa.gray, FLOOR_SWEEP_HEIGHT), small_gray(pb.gray, FLOOR_SWEEP_HEIGHT),
                                  pa.level, pb.level, yaw_rotation(yaw), t, near_deg=None,
