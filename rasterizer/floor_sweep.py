@@ -143,8 +143,12 @@ class FloorHidden(ValueError):
 
 
 #: A window that also matches through a plane this many times deeper than the deepest candidate (no parallax left)
-#: tells no height: content fixed to the camera (a logo stamped on both nadirs, the camera's own parts) or far away.
+#: tells no height: content far away, or fixed to two cameras turned alike (a logo stamped on both nadirs of level
+#: panoramas, whose rings of latitude stay in place under any yaw).
 PARALLAX_FREE_FACTOR = 1000.0
+#: A refusal for a floor not seen near the cameras names the parallax-free windows when they are at least this share
+#: of a view's scored pixels there; it changes the message only (dev pairs up to 0.19, zind pairs with a 35-deg logo 0.81-0.83).
+PARALLAX_FREE_NAMED = 0.5
 
 
 #: Candidate floor distances below A, in baselines: 80 log-spaced values (5.4% apart), a baseline of
@@ -192,11 +196,12 @@ def floor_ratio(grey_a: np.ndarray, grey_b: np.ndarray, level_a: np.ndarray, lev
         scored += int(np.count_nonzero(~np.isnan(z).all(0)))
         votes += np.bincount(arg[good], minlength=len(ratios))
         winners.append((z, arg, good))
-        if dirs is not None:  # (votes, scored pixels, band pixels) within near_deg of this view's nadir
+        if dirs is not None:  # (votes, scored, band and parallax-free pixels) within near_deg of this view's nadir
             ang = np.degrees(np.arccos(np.clip(dirs @ normal, -1.0, 1.0)))
             m = (ang >= BAND_DEG[0]) & (ang < near_deg)
+            fixed = 0 if parallax_free_votes else int(np.count_nonzero(m & (zf[-1] > min_zncc)))
             near.append((np.bincount(arg[good & m], minlength=len(ratios)),
-                         int(np.count_nonzero(m & ~np.isnan(z).all(0))), int(np.count_nonzero(m))))
+                         int(np.count_nonzero(m & ~np.isnan(z).all(0))), int(np.count_nonzero(m)), fixed))
     smooth = np.convolve(votes, [0.25, 0.5, 0.25], mode="same")
     padded = np.concatenate([[-1.0], smooth, [-1.0]])
     peaks = np.nonzero((padded[1:-1] > padded[:-2]) & (padded[1:-1] >= padded[2:]))[0]
@@ -213,17 +218,20 @@ def floor_ratio(grey_a: np.ndarray, grey_b: np.ndarray, level_a: np.ndarray, lev
 
     k = int(strong.max())
     if near:
-        seen = max(n / max(total, 1) for _, n, total in near)
-        info["near_floor_scored"] = seen
+        seen = max(n / max(total, 1) for _, n, total, _ in near)
+        fixed = max(f / max(n, 1) for _, n, _, f in near)
+        info.update(near_floor_scored=seen, near_parallax_free=fixed)
+        why = (f"; {fixed:.0%} of a view's pixels there line up with no parallax, as far content or what "
+               "moves with the cameras does, such as a logo over the nadirs") if fixed >= PARALLAX_FREE_NAMED else ""
         if seen < MIN_NEAR_SCORED:
             raise FloorHidden(f"the floor within {near_deg:.0f} deg of straight down is textured on {seen:.0%} of the "
                               f"better view (need {MIN_NEAR_SCORED:.0%}): the floor is not seen well enough")
-        support = [max(v[max(p - width, 0):p + width + 1].sum() / max(n, 1) for v, n, _ in near) for p in strong]
+        support = [max(v[max(p - width, 0):p + width + 1].sum() / max(n, 1) for v, n, _, _ in near) for p in strong]
         near_peaks = strong[np.asarray(support) >= MIN_NEAR_SUPPORT]
         if not len(near_peaks):
             raise FloorHidden(f"no plane the images agree on is seen within {near_deg:.0f} deg of straight down "
-                              f"(at most {max(support):.1%} of a view's pixels there, need {MIN_NEAR_SUPPORT:.1%}): "
-                              "the floor is not seen well enough")
+                              f"(at most {max(support):.1%} of a view's pixels there, need {MIN_NEAR_SUPPORT:.1%}"
+                              f"{why}): the floor is not seen well enough")
         k = int(near_peaks.max())
     lo_, hi_ = max(k - width, 0), min(k + width + 1, len(ratios))
     share = share_at(k)

@@ -218,3 +218,4 @@ def test_a_logo_stamped_on_both_nadirs_leaves_the_floor():
     assert np.nanmean(far > 0.7) > 0.05
     d, info = floor_ratio(sa, sb, level_a, level_b, R, t)
     assert abs(d / FLOOR_Y - 1) < 0.03, (d, info)
+    assert info["near_parallax_free"] > 0.05, info  # counted near the nadir, and the floor found all the same

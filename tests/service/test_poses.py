@@ -315,7 +315,8 @@ def test_camera_height_with_the_floor_hidden_near_the_cameras_is_refused_with_a_
 def test_a_logo_stamped_on_both_nadirs_is_not_taken_for_a_deep_floor(zind_dir):
     """zind_room09 pano_4+5 (2.12 m apart) with the same patterned 35-deg logo on both nadirs: the logo's windows
     matched under every deep plane and made a floor 22 times too deep, a baseline of 0.095 m. They match without
-    parallax, so they do not vote: what floor is left near the cameras is too little, and the scale is refused."""
+    parallax, so they do not vote: what floor is left near the cameras is too little, and the scale is refused with
+    a message that names them."""
     scene = load_scene(zind_dir)
     a, b = scene.frames["pano_4"], scene.frames["pano_5"]
 
@@ -331,6 +332,7 @@ def test_a_logo_stamped_on_both_nadirs_is_not_taken_for_a_deep_floor(zind_dir):
     with pytest.raises(PoseEstimationFailed) as exc:
         estimate_poses(logo(a.image()), logo(b.image()), PoseOptions(camera_height=1.435))
     assert exc.value.code == "scale_failed" and "give baseline" in exc.value.message, exc.value.message
+    assert "line up with no parallax" in exc.value.message and "logo" in exc.value.message, exc.value.message
 
 
 def test_vignetted_alike_m3d_is_refused_as_ambiguous_not_given_the_wrong_mode(m3d_dir):
