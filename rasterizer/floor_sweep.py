@@ -190,18 +190,16 @@ def floor_ratio(grey_a: np.ndarray, grey_b: np.ndarray, level_a: np.ndarray, lev
         z = zf[:len(ratios)]
         filled = np.where(np.isnan(z), -2.0, z)
         arg, best = filled.argmax(0), filled.max(0)
-        good = best > min_zncc
-        if not parallax_free_votes:
-            good &= ~(zf[-1] > min_zncc)
+        no_parallax = np.zeros(best.shape, bool) if parallax_free_votes else zf[-1] > min_zncc
+        good = (best > min_zncc) & ~no_parallax
         scored += int(np.count_nonzero(~np.isnan(z).all(0)))
         votes += np.bincount(arg[good], minlength=len(ratios))
         winners.append((z, arg, good))
         if dirs is not None:  # (votes, scored, band and parallax-free pixels) within near_deg of this view's nadir
             ang = np.degrees(np.arccos(np.clip(dirs @ normal, -1.0, 1.0)))
             m = (ang >= BAND_DEG[0]) & (ang < near_deg)
-            fixed = 0 if parallax_free_votes else int(np.count_nonzero(m & (zf[-1] > min_zncc)))
-            near.append((np.bincount(arg[good & m], minlength=len(ratios)),
-                         int(np.count_nonzero(m & ~np.isnan(z).all(0))), int(np.count_nonzero(m)), fixed))
+            near.append((np.bincount(arg[good & m], minlength=len(ratios)), int(np.count_nonzero(m & ~np.isnan(z).all(0))),
+                         int(np.count_nonzero(m)), int(np.count_nonzero(m & no_parallax))))
     smooth = np.convolve(votes, [0.25, 0.5, 0.25], mode="same")
     padded = np.concatenate([[-1.0], smooth, [-1.0]])
     peaks = np.nonzero((padded[1:-1] > padded[:-2]) & (padded[1:-1] >= padded[2:]))[0]
