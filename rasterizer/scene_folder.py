@@ -48,6 +48,16 @@ class SceneFolder:
     def has_depth(self) -> bool:
         return all(f.depth_path is not None for f in self.frames.values())
 
+    @property
+    def convention(self) -> str:
+        """The axis convention scene.json writes its poses in; ``frames`` hold OpenCV c2w."""
+        return pose_convention(self.meta)
+
+
+def pose_convention(meta: dict) -> str:
+    """The axis convention ("opencv" or "opengl") of a scene.json's poses, OpenCV unless it says otherwise."""
+    return meta.get("convention", "opencv")
+
 
 def load_image(path: str | Path) -> np.ndarray:
     """Read an image file as float32 RGB (H, W, 3) in [0, 1]."""
@@ -59,7 +69,7 @@ def load_scene(root: str | Path) -> SceneFolder:
     """Parse ``root/scene.json``; poses are converted to OpenCV c2w and validated."""
     root = Path(root)
     meta = json.loads((root / "scene.json").read_text(encoding="utf-8-sig"))  # a byte order mark is no error
-    convention = meta.get("convention", "opencv")
+    convention = pose_convention(meta)
     frames = {}
     for f in meta["frames"]:
         if f["name"] in frames:  # the second would replace the first without a word

@@ -1,24 +1,38 @@
-"""Given poses against their images: a swapped pair or the other axis convention is refused, not built.
+"""Given poses against their images: a swapped pair, the other axis convention or inverted matrices are refused.
 
 A scene built on poses that do not belong to its images comes out as nonsense without a word: two uploads in
-the wrong order, or poses written in OpenGL's axes (y up, z backwards) sent as OpenCV's. Matching cannot confirm
-such poses, so the reconstruction's mean confidence is low. Below :data:`CHECK_BELOW_CONFIDENCE` the two images'
-photometric agreement (:func:`service.poses.photometric_score`: the share of textured pixels of A that find their
-window in B along the epipolar curve) is scored under the poses as given, with image_a and image_b swapped, and with
-both cameras read in the other convention; an alternative that agrees :data:`MISMATCH_RATIO` times better is a 422
-``poses_mismatch`` that names it. Pairs far apart, whose readings agree nearly as well, are let through. The
-thresholds' margins on the dev scenes: docs/design.md, "Given poses are checked against their images".
+the wrong order, poses written in OpenGL's axes (y up, z backwards) sent as OpenCV's, or world-to-camera matrices
+sent as camera-to-world. Matching cannot confirm such poses, so the reconstruction's mean confidence is low. Below
+:data:`CHECK_BELOW_CONFIDENCE` the poses are read four ways (:func:`readings`: as given, with image_a and image_b
+swapped, with both cameras in the other convention, and as world-to-camera matrices sent as camera-to-world) and
+each reading is scored against the images:
+
+1. Photometric agreement (:func:`service.poses.photometric_score`: the share of textured pixels of A that find
+   their window in B along the epipolar curve). An alternative that agrees :data:`MISMATCH_RATIO` times better is a
+   422 ``poses_mismatch`` that names it; the given reading :data:`MISMATCH_RATIO` times better than every
+   alternative passes.
+2. Between those margins (pairs far apart, or readings that are nearly the same relative pose), the images' SIFT
+   matches decide (:func:`feature_support`): an alternative under which :data:`FEATURE_MARGIN` times as many of
+   them as under the given reading (and :data:`MIN_FEATURE_SUPPORT` or more) lie on their epipolar planes with
+   both rays meeting in front of the cameras is refused. A wrong reading sends the rays of most true matches apart
+   or off their epipolar planes, whatever the baseline.
+
+The margins on the dev scenes: docs/design.md, "Given poses are checked against their images".
 """
 
 from __future__ import annotations
 
+from typing import NoReturn
+
 import numpy as np
 
 from rasterizer.geometry import OPENGL_TO_OPENCV, rigid_inverse
+from rasterizer.relative_pose import INLIER_DEG, epipolar_error, triangulate
 from rasterizer.threads import map_threads
 
 from .errors import BadInput
-from .poses import photometric_score
+from .matching import Distances, putative_matches
+from .poses import MIN_RANSAC_INLIERS, features, photometric_score
 
 #: Mean confidence of a reconstruction below which its given poses are checked against the images.
 CHECK_BELOW_CONFIDENCE = 0.15
@@ -28,40 +42,105 @@ MISMATCH_RATIO = 1.3
 MIN_AGREEMENT = 0.15
 #: The refusal names every alternative within this fraction of the best one's agreement.
 SAME_AGREEMENT = 0.9
+#: Between the photometric margins, an alternative reading refuses the poses when at least this many times as many
+#: feature matches support it as the given reading ...
+FEATURE_MARGIN = 2.0
+#: ... and at least this many (a relative pose's worth: :data:`service.poses.MIN_RANSAC_INLIERS`).
+MIN_FEATURE_SUPPORT = MIN_RANSAC_INLIERS
 
-def readings(c2w_a: np.ndarray, c2w_b: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """B's pose ``(R, t)`` in A's camera frame (``X_a = R X_b + t``) under each reading of two OpenCV c2w:
-    as given, with the images swapped (A taken at ``c2w_b``), and with both read in the other axis convention."""
+
+def readings(c2w_a: np.ndarray, c2w_b: np.ndarray, convention: str = "opencv") -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """B's pose ``(R, t)`` in A's camera frame (``X_a = R X_b + t``) under each reading of two OpenCV c2w: as given,
+    with the images swapped (A taken at ``c2w_b``), with both read in the other axis convention, and with both
+    inverted (world-to-camera matrices, as COLMAP writes them, sent in the request's ``convention``)."""
     def relative(a, b):
         rel = rigid_inverse(a) @ b
         return rel[:3, :3], rel[:3, 3]
 
     flip = OPENGL_TO_OPENCV  # its own inverse: OpenCV <-> OpenGL camera axes
+    sent = flip if convention == "opengl" else np.eye(4)  # the matrices as sent are c2w @ sent
+
+    def inverted(c2w):  # the camera-to-world pose of a world-to-camera matrix sent as c2w, in OpenCV axes
+        return sent @ rigid_inverse(c2w) @ sent
+
     return {"given": relative(c2w_a, c2w_b), "swapped": relative(c2w_b, c2w_a),
-            "other convention": relative(c2w_a @ flip, c2w_b @ flip)}
+            "other convention": relative(c2w_a @ flip, c2w_b @ flip),
+            "world-to-camera": relative(inverted(c2w_a), inverted(c2w_b))}
+
+
+def feature_support(erp_a: np.ndarray, erp_b: np.ndarray, poses: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, int]:
+    """For each reading ``name: (R, t)`` (B in A's camera frame), how many of the two panoramas' putative SIFT matches
+    (:func:`service.matching.putative_matches`) lie within :data:`rasterizer.relative_pose.INLIER_DEG` of their
+    epipolar plane with both rays meeting in front of the cameras (positive ranges). The epipolar test alone does not
+    tell a pose from its swap: reversing the baseline keeps every epipolar plane, and it is the ranges' sign that
+    flips. erp_a, erp_b: panoramas (RGB or grey, uint8 or [0, 1] float, any 2:1 size)."""
+    (fa, da), (fb, db) = map_threads(features, (erp_a, erp_b))
+    pairs = putative_matches(Distances(da, db))
+    a, b = fa[pairs[:, 0]], fb[pairs[:, 1]]
+    out = {}
+    for name, (R, t) in poses.items():
+        near = epipolar_error(a, b, R, t) < np.radians(INLIER_DEG)
+        range_a, range_b = triangulate(a, b, R, t)
+        out[name] = int(np.count_nonzero(near & (range_a > 0) & (range_b > 0)))
+    return out
 
 
 def check_given_poses(erp_a: np.ndarray, erp_b: np.ndarray, c2w_a: np.ndarray, c2w_b: np.ndarray,
-                      mean_confidence: float | None) -> dict | None:
+                      mean_confidence: float | None, convention: str = "opencv") -> dict | None:
     """Raise 422 ``poses_mismatch`` when the images agree far better with another reading of the given poses
-    (:func:`readings`); returns the scores when they were taken (the reconstruction's ``mean_confidence`` below
-    :data:`CHECK_BELOW_CONFIDENCE`), else None. erp_a, erp_b: the two panoramas (any 2:1 size); c2w: 4x4 OpenCV."""
+    (:func:`readings`; the two tests of the module's docstring); returns the scores when they were taken (the
+    reconstruction's ``mean_confidence`` below :data:`CHECK_BELOW_CONFIDENCE`): ``{"photometric": {reading: share}}``
+    and, when the photometric margins did not decide, ``"feature_support": {reading: matches}``; else None.
+    erp_a, erp_b: the two panoramas (any 2:1 size); c2w: 4x4 OpenCV; ``convention``: the one the request's
+    matrices were sent in (:func:`readings`)."""
     if mean_confidence is None or mean_confidence >= CHECK_BELOW_CONFIDENCE:
         return None
-    names, poses = zip(*readings(np.asarray(c2w_a, np.float64), np.asarray(c2w_b, np.float64)).items())
-    scores = dict(zip(names, map_threads(lambda pose: photometric_score(erp_a, erp_b, *pose), poses)))
+    poses = readings(np.asarray(c2w_a, np.float64), np.asarray(c2w_b, np.float64), convention)
+    # a reading that is the given relative pose is no alternative (m3d's cameras, both turned 180 deg about their x
+    # axis, have the same relative pose as their inverted matrices): the images cannot tell them apart
+    poses = {name: pose for name, pose in poses.items() if name == "given" or not _same_pose(pose, poses["given"])}
+    names = tuple(poses)
+    scores = dict(zip(names, map_threads(lambda pose: photometric_score(erp_a, erp_b, *pose), poses.values())))
+    out = {"photometric": scores}
+    if len(names) == 1:
+        return out
     best = max(names[1:], key=scores.get)
-    if scores[best] < MIN_AGREEMENT or scores[best] < MISMATCH_RATIO * scores["given"]:
-        return scores
-    # both alternatives as good: for some camera layouts the two readings are nearly the same relative pose
-    named = [name for name in names[1:] if scores[name] >= SAME_AGREEMENT * scores[best]]
+    if scores[best] >= MIN_AGREEMENT and scores[best] >= MISMATCH_RATIO * scores["given"]:
+        _refuse(scores, best, "photometric", mean_confidence)
+    if scores["given"] >= MISMATCH_RATIO * scores[best]:
+        return out
+    support = feature_support(erp_a, erp_b, poses)
+    out["feature_support"] = support
+    best = max(names[1:], key=support.get)
+    if support[best] >= MIN_FEATURE_SUPPORT and support[best] >= FEATURE_MARGIN * support["given"]:
+        _refuse(support, best, "feature", mean_confidence)
+    return out
+
+
+def _same_pose(p: tuple[np.ndarray, np.ndarray], q: tuple[np.ndarray, np.ndarray], tol: float = 1e-6) -> bool:
+    """Whether two relative poses ``(R, t)`` are one: the same rotation and travel direction within ``tol``."""
+    (R1, t1), (R2, t2) = p, q
+    u1, u2 = (t / max(float(np.linalg.norm(t)), 1e-12) for t in (t1, t2))
+    return bool(np.allclose(R1, R2, atol=tol) and np.allclose(u1, u2, atol=tol))
+
+
+def _refuse(scores: dict, best: str, test: str, mean_confidence: float) -> NoReturn:
+    """The 422 ``poses_mismatch`` naming every alternative reading within :data:`SAME_AGREEMENT` of the ``best``
+    one (for some camera layouts two readings are nearly the same relative pose); ``test``: which scores these are."""
+    named = [name for name in scores if name != "given" and scores[name] >= SAME_AGREEMENT * scores[best]]
+    if test == "photometric":
+        evidence = f"{scores[best]:.0%} of the textured pixels find their match, {scores['given']:.0%} as sent"
+    else:
+        evidence = f"{scores[best]} feature matches meet in front of both cameras, {scores['given']} as sent"
     raise BadInput(f"poses: the images agree far better with the poses {' or '.join(_READING[n] for n in named)} "
-                   f"({scores[best]:.0%} of the textured pixels find their match, {scores['given']:.0%} as sent; the "
-                   f"reconstruction's mean confidence is {mean_confidence:.2f}): "
+                   f"({evidence}; the reconstruction's mean confidence is {mean_confidence:.2f}): "
                    f"{'; '.join(_FIX[n] for n in named)}", code="poses_mismatch")
 
 
-_READING = {"swapped": "of the two images swapped", "other convention": "read in the other axis convention"}
+_READING = {"swapped": "of the two images swapped", "other convention": "read in the other axis convention",
+            "world-to-camera": "inverted"}
 _FIX = {"swapped": "check that image_a is the panorama taken at the first pose and image_b the one at the second",
         "other convention": 'check "convention": OpenCV cameras look along +z with +y down, OpenGL ones along -z '
-                            "with +y up"}
+                            "with +y up",
+        "world-to-camera": '"c2w" takes camera-to-world matrices, whose last column is the camera\'s position: invert '
+                           "world-to-camera ones (such as COLMAP writes)"}

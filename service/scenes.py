@@ -135,7 +135,7 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     check_not_empty(build)
     if poses is not None:  # given: do they belong to these images?
         t0 = time.perf_counter()
-        if check_given_poses(erp_a, erp_b, c2w_a, c2w_b, build.info.get("mean_confidence")) is not None:
+        if check_given_poses(erp_a, erp_b, c2w_a, c2w_b, build.info.get("mean_confidence"), poses.convention) is not None:
             timings["pose_check"] = time.perf_counter() - t0
     gaussians = build.gaussians
 

@@ -27,7 +27,8 @@ SCENE_LAYOUT = ('{"convention": "opencv"|"opengl", "frames": [{"name": N, "image
 def load_pair(args: argparse.Namespace):
     """(erp_a, erp_b, c2w_a, c2w_b, description) from a scene folder or two images (+ poses JSON).
 
-    Two images without ``--poses`` give ``c2w_a = c2w_b = None``: the poses are estimated.
+    Two images without ``--poses`` give ``c2w_a = c2w_b = None``: the poses are estimated. The description names
+    the inputs and, with poses, the ``convention`` they were written in (the poses returned are OpenCV c2w).
     """
     from rasterizer.geometry import PoseError
     from rasterizer.scene_folder import load_scene
@@ -60,7 +61,7 @@ def load_pair(args: argparse.Namespace):
             raise CliError(f"references {refs} are not two frames of {inputs[0]} (frames: {list(scene.frames)})")
         fa, fb = scene.frames[refs[0]], scene.frames[refs[1]]
         return (read_panorama(fa.image_path), read_panorama(fb.image_path), fa.c2w, fb.c2w,  # as the API reads uploads
-                {"scene": str(inputs[0]), "references": list(refs)})
+                {"scene": str(inputs[0]), "references": list(refs), "convention": scene.convention})
     if len(inputs) == 2:
         from ..errors import ServiceError
 
@@ -73,7 +74,7 @@ def load_pair(args: argparse.Namespace):
         a, b = read_panorama(inputs[0]), read_panorama(inputs[1])  # as the API reads uploads
         if poses is None:
             return a, b, None, None, {"images": [str(p) for p in inputs]}
-        return a, b, poses.c2w_a, poses.c2w_b, {"images": [str(p) for p in inputs]}
+        return a, b, poses.c2w_a, poses.c2w_b, {"images": [str(p) for p in inputs], "convention": poses.convention}
     raise CliError("reconstruct takes a scene folder, or two images (with --poses, or poses are estimated)")
 
 
@@ -190,7 +191,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         from ..pose_check import check_given_poses
 
         try:
-            check_given_poses(erp_a, erp_b, c2w_a, c2w_b, rec.info.get("mean_confidence"))
+            check_given_poses(erp_a, erp_b, c2w_a, c2w_b, rec.info.get("mean_confidence"), source["convention"])
         except ServiceError as exc:
             raise CliError(exc.message) from None
     total = time.perf_counter() - t0
