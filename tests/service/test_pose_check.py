@@ -3,6 +3,8 @@ matrices sent as c2w are a 422."""
 
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 import service.pose_check as pose_check
 from rasterizer.relative_pose import yaw_rotation
@@ -152,6 +154,37 @@ def test_when_both_readings_fit_as_well_the_refusal_names_both(m3d_dir):
         check_given_poses(img_b, img_a, fa.c2w, fb.c2w, 0.0)
     assert "image_a is the panorama taken at the first pose" in exc.value.message
     assert 'check "convention"' in exc.value.message
+
+
+def _pose(rotvec, t):
+    from rasterizer.relative_pose import rotation_exp
+
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = rotation_exp(np.asarray(rotvec, np.float64)), t
+    return m
+
+
+_vec = st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3)
+
+
+@settings(max_examples=40, deadline=None)
+@given(_vec, _vec, _vec, st.floats(0.05, 20.0), st.integers(0, 2**16))
+def test_true_matches_support_the_true_reading_whatever_the_poses(rot_a, rot_b, direction, baseline, seed):
+    """Bearings of random points seen from any two cameras (any turn, baselines 0.05-20 m, points 1-6 m from A with
+    2 deg of parallax or more) all lie on their epipolar planes and meet in front of both cameras under the pose
+    they were made with: the feature step never counts a true match against the given poses."""
+    d = np.asarray(direction)
+    if np.linalg.norm(d) < 1e-3:
+        d = np.array([1.0, 0.0, 0.0])
+    a, b = _pose(rot_a, [0.0, 0.0, 0.0]), _pose(rot_b, d / np.linalg.norm(d) * baseline)
+    fa, fb = _matched_bearings(a, b, n=100, seed=seed)
+    assume(len(fa) >= 10)
+    R, t = readings(a, b)["given"]
+    pairs = np.stack([np.arange(len(fa))] * 2, 1)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(pose_check, "features", lambda img: img)
+        mp.setattr(pose_check, "putative_matches", lambda dist: pairs)
+        assert feature_support((fa, None), (fb, None), {"given": (R, t)})["given"] == len(fa)
 
 
 def _matched_bearings(c2w_a, c2w_b, n=300, seed=0):
