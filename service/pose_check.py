@@ -15,7 +15,8 @@ each reading is scored against the images:
    matches decide (:func:`feature_support`): an alternative under which :data:`FEATURE_MARGIN` times as many of
    them as under the given reading (and :data:`MIN_FEATURE_SUPPORT` or more) lie on their epipolar planes with
    both rays meeting in front of the cameras is refused. A wrong reading sends the rays of most true matches apart
-   or off their epipolar planes, whatever the baseline.
+   or off their epipolar planes, whatever the baseline. Matches that move by a turn of the camera alone (one
+   place, or one picture twice) are a 422 ``no_parallax``: they carry no depth whatever the poses say.
 
 The margins on the dev scenes: docs/design.md, "Given poses are checked against their images".
 """
@@ -27,12 +28,12 @@ from typing import NoReturn
 import numpy as np
 
 from rasterizer.geometry import OPENGL_TO_OPENCV, rigid_inverse
-from rasterizer.relative_pose import INLIER_DEG, epipolar_error, triangulate
+from rasterizer.relative_pose import INLIER_DEG, epipolar_error, rotation_only_fraction, triangulate
 from rasterizer.threads import map_threads
 
 from .errors import BadInput
 from .matching import Distances, putative_matches
-from .poses import MIN_RANSAC_INLIERS, features, photometric_score
+from .poses import MIN_RANSAC_INLIERS, NO_PARALLAX_SHARE, features, photometric_score
 
 #: Mean confidence of a reconstruction below which its given poses are checked against the images.
 CHECK_BELOW_CONFIDENCE = 0.15
@@ -68,20 +69,27 @@ def readings(c2w_a: np.ndarray, c2w_b: np.ndarray, convention: str = "opencv") -
             "world-to-camera": relative(inverted(c2w_a), inverted(c2w_b))}
 
 
-def feature_support(erp_a: np.ndarray, erp_b: np.ndarray, poses: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, int]:
-    """For each reading ``name: (R, t)`` (B in A's camera frame), how many of the two panoramas' putative SIFT matches
-    (:func:`service.matching.putative_matches`) lie within :data:`rasterizer.relative_pose.INLIER_DEG` of their
-    epipolar plane with both rays meeting in front of the cameras (positive ranges). The epipolar test alone does not
-    tell a pose from its swap: reversing the baseline keeps every epipolar plane, and it is the ranges' sign that
-    flips. erp_a, erp_b: panoramas (RGB or grey, uint8 or [0, 1] float, any 2:1 size)."""
+def matched_bearings(erp_a: np.ndarray, erp_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit bearings (M, 2 x 3) in A's and B's camera frames of the two panoramas' putative SIFT matches
+    (:func:`service.matching.putative_matches`). erp_a, erp_b: panoramas (RGB or grey, uint8 or [0, 1] float,
+    any 2:1 size)."""
     (fa, da), (fb, db) = map_threads(features, (erp_a, erp_b))
     pairs = putative_matches(Distances(da, db))
-    a, b = fa[pairs[:, 0]], fb[pairs[:, 1]]
+    return fa[pairs[:, 0]], fb[pairs[:, 1]]
+
+
+def feature_support(a: np.ndarray, b: np.ndarray, poses: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, int]:
+    """For each reading ``name: (R, t)`` (B in A's camera frame), how many matches (bearings ``a``, ``b`` (M, 3) of
+    :func:`matched_bearings`) lie within :data:`rasterizer.relative_pose.INLIER_DEG` of their epipolar plane with both
+    rays meeting in front of the cameras (positive ranges), their rays at least that far apart (nearer, the matching
+    noise decides the ranges' sign). The epipolar test alone does not tell a pose from its swap: reversing the
+    baseline keeps every epipolar plane, and it is the ranges' sign that flips."""
     out = {}
     for name, (R, t) in poses.items():
         near = epipolar_error(a, b, R, t) < np.radians(INLIER_DEG)
+        apart = np.sum(a * (b @ R.T), axis=1) < np.cos(np.radians(INLIER_DEG))
         range_a, range_b = triangulate(a, b, R, t)
-        out[name] = int(np.count_nonzero(near & (range_a > 0) & (range_b > 0)))
+        out[name] = int(np.count_nonzero(near & apart & (range_a > 0) & (range_b > 0)))
     return out
 
 
@@ -109,7 +117,14 @@ def check_given_poses(erp_a: np.ndarray, erp_b: np.ndarray, c2w_a: np.ndarray, c
         _refuse(scores, best, "photometric", mean_confidence)
     if scores["given"] >= MISMATCH_RATIO * scores[best]:
         return out
-    support = feature_support(erp_a, erp_b, poses)
+    a, b = matched_bearings(erp_a, erp_b)
+    static = rotation_only_fraction(a, b)
+    if static >= NO_PARALLAX_SHARE:
+        raise BadInput(f"poses: {static:.0%} of the images' feature matches move by a turn of the camera alone: the two "
+                       f"panoramas were taken from (nearly) one place, or are one picture twice, which carries no depth "
+                       f"whatever the poses say (these are {np.linalg.norm(poses['given'][1]):.3g} apart)",
+                       code="no_parallax")
+    support = feature_support(a, b, poses)
     out["feature_support"] = support
     best = max(names[1:], key=support.get)
     if support[best] >= MIN_FEATURE_SUPPORT and support[best] >= FEATURE_MARGIN * support["given"]:
