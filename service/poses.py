@@ -53,6 +53,7 @@ from rasterizer.threads import map_threads
 
 from .errors import BadInput
 from .gravity import MAX_TILT_DEG, crop_rotations, crop_size, panorama_gravity, perspective_crops
+from .images import same_picture
 from .matching import Distances, guided_matches, mutual_matches, putative_matches
 from .pose_flips import FLIP_CHECK_SHARE, flipped
 
@@ -489,9 +490,10 @@ def refine_poses(erp_a: np.ndarray, erp_b: np.ndarray, c2w_a: np.ndarray, c2w_b:
 def poses_for_scene(erp_a: np.ndarray, erp_b: np.ndarray, poses, opts: PoseOptions,
                     data: tuple = (None, None)) -> tuple[np.ndarray, np.ndarray, dict]:
     """(c2w_a, c2w_b, metadata ``poses`` JSON) for given (:class:`service.inputs.Poses`) or missing (None) poses;
-    ``data``: the two files' bytes when known (their XMP may hold the cameras' tilt). One picture sent twice is
-    refused whatever the poses say: it carries no depth (the estimator refuses it by its matches)."""
-    if erp_a.shape == erp_b.shape and np.array_equal(erp_a, erp_b):
+    ``data``: the two files' bytes when known (their XMP may hold the cameras' tilt). One picture sent twice (also
+    re-encoded, resized or with noise: :func:`service.images.same_picture`) is refused whatever the poses say: it carries no depth
+    (the estimator would refuse it by its matches, after the features' seconds)."""
+    if same_picture(erp_a, erp_b):
         raise PoseEstimationFailed("image_a and image_b are the same picture: two captures from different places "
                                    "differ, and one picture twice carries no depth", code="no_parallax")
     if poses is None:

@@ -171,3 +171,24 @@ def test_a_file_of_an_accepted_format_that_cannot_be_decoded_says_its_format():
     with pytest.raises(InvalidImage) as info:
         check_header(b"not an image at all", "image_a", **LIMITS)
     assert "not a readable image (accepted formats" in info.value.message
+
+
+def test_same_picture_is_one_view_however_it_was_encoded():
+    """One panorama re-encoded, resized or noisy is one picture; a turned or mirrored copy is another view;
+    flat images are one picture only when equal."""
+    import cv2
+
+    from service.images import same_picture
+
+    rng = np.random.default_rng(0)
+    base = cv2.GaussianBlur(rng.random((256, 512)).astype(np.float32), (0, 0), 3)  # smooth texture, like a room
+    img = np.repeat(((base - base.min()) / np.ptp(base) * 255).astype(np.uint8)[..., None], 3, axis=2)
+    ok, jpeg = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 40])
+    noisy = np.clip(img + rng.normal(0.0, 8.0, img.shape), 0, 255).astype(np.uint8)
+    half = cv2.resize(img, (256, 128), interpolation=cv2.INTER_AREA)
+    for copy in (img.copy(), cv2.imdecode(jpeg, cv2.IMREAD_COLOR), noisy, half, img.astype(np.float32) / 255.0):
+        assert same_picture(img, copy)
+    assert not same_picture(img, np.roll(img, 64, axis=1))  # turned by 45 deg: another view
+    assert not same_picture(img, img[:, ::-1].copy())
+    flat = np.full((64, 128, 3), 0.5, np.float32)
+    assert same_picture(flat, flat.copy()) and not same_picture(flat, flat * 0.9)
