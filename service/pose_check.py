@@ -70,7 +70,7 @@ def readings(c2w_a: np.ndarray, c2w_b: np.ndarray, convention: str = "opencv") -
 
 
 def matched_bearings(erp_a: np.ndarray, erp_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit bearings (M, 2 x 3) in A's and B's camera frames of the two panoramas' putative SIFT matches
+    """Unit bearings ``(a, b)``, (M, 3) each, in A's and B's camera frames, of the two panoramas' putative SIFT matches
     (:func:`service.matching.putative_matches`). erp_a, erp_b: panoramas (RGB or grey, uint8 or [0, 1] float,
     any 2:1 size)."""
     (fa, da), (fb, db) = map_threads(features, (erp_a, erp_b))
