@@ -1,11 +1,14 @@
-"""Given poses against their images: a swapped pair, the other axis convention or inverted matrices are refused.
+"""Given poses against their images: a swapped pair, the other axis convention, inverted matrices or panoramas whose
+forward axis is not at the image centre are refused.
 
 A scene built on poses that do not belong to its images comes out as nonsense without a word: two uploads in
-the wrong order, poses written in OpenGL's axes (y up, z backwards) sent as OpenCV's, or world-to-camera matrices
-sent as camera-to-world. Matching cannot confirm such poses, so the reconstruction's mean confidence is low. Below
-:data:`CHECK_BELOW_CONFIDENCE` the poses are read four ways (:func:`readings`: as given, with image_a and image_b
-swapped, with both cameras in the other convention, and as world-to-camera matrices sent as camera-to-world) and
-each reading is scored against the images:
+the wrong order, poses written in OpenGL's axes (y up, z backwards) sent as OpenCV's, world-to-camera matrices
+sent as camera-to-world, or panoramas from a tool whose longitude origin differs from ours (the forward axis at
+column 0 or W/4 instead of W/2). Matching cannot confirm such poses, so the reconstruction's mean confidence is low.
+Below :data:`CHECK_BELOW_CONFIDENCE` the poses are read seven ways (:func:`readings`: as given, with image_a and
+image_b swapped, with both cameras in the other convention, as world-to-camera matrices sent as camera-to-world, and
+with both cameras turned about their vertical axis by a quarter, half or three quarters of a turn) and each reading
+is scored against the images:
 
 1. Photometric agreement (:func:`service.poses.photometric_score`: the share of textured pixels of A that find
    their window in B along the epipolar curve). An alternative that agrees :data:`MISMATCH_RATIO` times better is a
@@ -28,7 +31,7 @@ from typing import NoReturn
 import numpy as np
 
 from rasterizer.geometry import OPENGL_TO_OPENCV, rigid_inverse
-from rasterizer.relative_pose import INLIER_DEG, epipolar_error, rotation_only_fraction, triangulate
+from rasterizer.relative_pose import INLIER_DEG, epipolar_error, rotation_only_fraction, triangulate, yaw_rotation
 from rasterizer.threads import map_threads
 
 from .errors import BadInput
@@ -48,12 +51,17 @@ SAME_AGREEMENT = 0.9
 FEATURE_MARGIN = 2.0
 #: ... and at least this many (a relative pose's worth: :data:`service.poses.MIN_RANSAC_INLIERS`).
 MIN_FEATURE_SUPPORT = MIN_RANSAC_INLIERS
+#: Turns (deg) about the cameras' vertical axis read as a misplaced longitude origin: panoramas whose forward axis
+#: is not at the image centre (docs/conventions.md, "Frames").
+LONGITUDE_TURNS_DEG = (90, 180, 270)
 
 
 def readings(c2w_a: np.ndarray, c2w_b: np.ndarray, convention: str = "opencv") -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """B's pose ``(R, t)`` in A's camera frame (``X_a = R X_b + t``) under each reading of two OpenCV c2w: as given,
-    with the images swapped (A taken at ``c2w_b``), with both read in the other axis convention, and with both
-    inverted (world-to-camera matrices, as COLMAP writes them, sent in the request's ``convention``)."""
+    with the images swapped (A taken at ``c2w_b``), with both read in the other axis convention, with both inverted
+    (world-to-camera matrices, as COLMAP writes them, sent in the request's ``convention``), and with the panoramas'
+    longitude origin a quarter, half or three quarters of a turn away from the cameras' forward axis (both cameras
+    turned about their vertical axis by :data:`LONGITUDE_TURNS_DEG`; the set is the same in either convention)."""
     def relative(a, b):
         rel = rigid_inverse(a) @ b
         return rel[:3, :3], rel[:3, 3]
@@ -64,9 +72,14 @@ def readings(c2w_a: np.ndarray, c2w_b: np.ndarray, convention: str = "opencv") -
     def inverted(c2w):  # the camera-to-world pose of a world-to-camera matrix sent as c2w, in OpenCV axes
         return sent @ rigid_inverse(c2w) @ sent
 
-    return {"given": relative(c2w_a, c2w_b), "swapped": relative(c2w_b, c2w_a),
-            "other convention": relative(c2w_a @ flip, c2w_b @ flip),
-            "world-to-camera": relative(inverted(c2w_a), inverted(c2w_b))}
+    out = {"given": relative(c2w_a, c2w_b), "swapped": relative(c2w_b, c2w_a),
+           "other convention": relative(c2w_a @ flip, c2w_b @ flip),
+           "world-to-camera": relative(inverted(c2w_a), inverted(c2w_b))}
+    for deg in LONGITUDE_TURNS_DEG:
+        turn = np.eye(4)
+        turn[:3, :3] = yaw_rotation(np.radians(deg))
+        out[f"longitude {deg}"] = relative(c2w_a @ turn, c2w_b @ turn)
+    return out
 
 
 def matched_bearings(erp_a: np.ndarray, erp_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -147,15 +160,22 @@ def _refuse(scores: dict, best: str, test: str, mean_confidence: float) -> NoRet
         evidence = f"{scores[best]:.0%} of the textured pixels find their match, {scores['given']:.0%} as sent"
     else:
         evidence = f"{scores[best]} feature matches meet in front of both cameras, {scores['given']} as sent"
-    raise BadInput(f"poses: the images agree far better with the poses {' or '.join(_READING[n] for n in named)} "
-                   f"({evidence}; the reconstruction's mean confidence is {mean_confidence:.2f}): "
-                   f"{'; '.join(_FIX[n] for n in named)}", code="poses_mismatch")
+    turns = dict.fromkeys(_TURN[n] for n in named if n in _TURN)  # the longitude readings, named as one
+    texts = [_READING[n] for n in named if n not in _TURN]
+    texts += [f"turned {' or '.join(turns)} turn about the cameras' vertical axis"] if turns else []
+    fixes = "; ".join(dict.fromkeys(_FIX[n] for n in named))
+    raise BadInput(f"poses: the images agree far better with the poses {' or '.join(texts)} ({evidence}; the reconstruction's "
+                   f"mean confidence is {mean_confidence:.2f}): {fixes}", code="poses_mismatch")
 
 
 _READING = {"swapped": "of the two images swapped", "other convention": "read in the other axis convention",
             "world-to-camera": "inverted"}
+_TURN = {f"longitude {deg}": "a half" if deg == 180 else "a quarter" for deg in LONGITUDE_TURNS_DEG}
 _FIX = {"swapped": "check that image_a is the panorama taken at the first pose and image_b the one at the second",
         "other convention": 'check "convention": OpenCV cameras look along +z with +y down, OpenGL ones along -z '
                             "with +y up",
         "world-to-camera": '"c2w" takes camera-to-world matrices, whose last column is the camera\'s position: invert '
                            "world-to-camera ones (such as COLMAP writes)"}
+_FIX.update({f"longitude {deg}": "check the panoramas' longitude origin: the image centre looks along the camera's "
+                                 "forward axis (OpenCV +z, OpenGL -z) and column 3W/4 along its right (+x); turn the poses "
+                                 "about their vertical axis, or roll the images, to match" for deg in LONGITUDE_TURNS_DEG})

@@ -1,5 +1,5 @@
-"""Given poses against their images (service.pose_check): a swapped pair, the other convention or world-to-camera
-matrices sent as c2w are a 422."""
+"""Given poses against their images (service.pose_check): a swapped pair, the other convention, world-to-camera
+matrices sent as c2w or panoramas whose longitude origin is turned are a 422."""
 
 import numpy as np
 import pytest
@@ -29,8 +29,12 @@ def _relative(c2w_a, c2w_b):
 def test_each_reading_is_the_relative_pose_of_those_cameras():
     a, b = _c2w(20.0, [0.3, -0.1, 0.2]), _c2w(-65.0, [1.4, 0.05, -0.8])
     got = readings(a, b)
-    for name, (pa, pb) in {"given": (a, b), "swapped": (b, a), "other convention": (a @ _FLIP, b @ _FLIP),
-                           "world-to-camera": (np.linalg.inv(a), np.linalg.inv(b))}.items():
+    expected = {"given": (a, b), "swapped": (b, a), "other convention": (a @ _FLIP, b @ _FLIP),
+                "world-to-camera": (np.linalg.inv(a), np.linalg.inv(b))}
+    for deg in (90, 180, 270):  # the cameras' forward axis a quarter, half or three quarters of a turn from +z
+        expected[f"longitude {deg}"] = (a @ _c2w(deg, [0, 0, 0]), b @ _c2w(deg, [0, 0, 0]))
+    assert set(got) == set(expected)
+    for name, (pa, pb) in expected.items():
         R, t = _relative(pa, pb)
         assert np.allclose(got[name][0], R) and np.allclose(got[name][1], t), name
 
@@ -52,7 +56,8 @@ def test_confident_reconstructions_and_flat_images_are_not_refused():
     assert check_given_poses(flat, flat, a, b, None) is None
     scores = check_given_poses(flat, flat, a, b, 0.0)  # checked: nothing agrees with anything
     assert set(scores) == {"photometric"}  # no feature matches are sought where the photometric test decides
-    assert set(scores["photometric"]) == {"given", "swapped", "other convention", "world-to-camera"}
+    assert set(scores["photometric"]) == {"given", "swapped", "other convention", "world-to-camera", "longitude 90",
+                                          "longitude 180", "longitude 270"}
     assert max(scores["photometric"].values()) == 0.0
 
 
@@ -253,6 +258,18 @@ def test_world_to_camera_matrices_sent_as_c2w_are_refused(zind_dir):
     assert check_given_poses(img_a, img_b, gl_a @ _FLIP, gl_b @ _FLIP, 0.0, "opengl") is not None  # checked, passed
 
 
+def test_poses_of_panoramas_whose_forward_axis_is_not_at_the_image_centre_are_refused(zind_dir):
+    """zind_room09 pano_4 + pano_5 with both cameras turned about their vertical axis, as poses from a tool whose
+    panoramas start their longitude elsewhere: refused as a turn (a quarter or a half), with the fix."""
+    scene = load_scene(zind_dir)
+    fa, fb = scene.frames["pano_4"], scene.frames["pano_5"]
+    img_a, img_b = fa.image(), fb.image()
+    for deg, turn in ((90, "a quarter"), (180, "a half"), (270, "a quarter")):
+        with pytest.raises(BadInput, match=r"poses turned .*turn about the cameras' vertical axis .*longitude origin") as exc:
+            check_given_poses(img_a, img_b, fa.c2w @ _c2w(deg, [0, 0, 0]), fb.c2w @ _c2w(deg, [0, 0, 0]), 0.0)
+        assert exc.value.code == "poses_mismatch" and turn in exc.value.message.split(" turn about")[0], deg
+
+
 def test_a_reading_that_is_the_given_relative_pose_is_no_alternative(m3d_dir):
     """m3d's cameras are turned alike, by 180 deg about their x axis: inverting both matrices gives the same relative
     pose, so the world-to-camera reading is not scored (it would tie with the given one and call in the feature
@@ -262,7 +279,8 @@ def test_a_reading_that_is_the_given_relative_pose_is_no_alternative(m3d_dir):
     img_a, img_b = _small(fa.image()), _small(fb.image())
     for c2w_a, c2w_b in ((fa.c2w, fb.c2w), (np.linalg.inv(fa.c2w), np.linalg.inv(fb.c2w))):
         scores = check_given_poses(img_a, img_b, c2w_a, c2w_b, 0.0)
-        assert set(scores) == {"photometric"} and set(scores["photometric"]) == {"given", "swapped", "other convention"}
+        assert set(scores) == {"photometric"} and "world-to-camera" not in scores["photometric"]
+        assert {"given", "swapped", "other convention", "longitude 90"} <= set(scores["photometric"])
 
 
 def test_matches_without_parallax_support_no_reading():
@@ -271,8 +289,8 @@ def test_matches_without_parallax_support_no_reading():
     rng = np.random.default_rng(1)
     f = rng.normal(size=(200, 3))
     f /= np.linalg.norm(f, axis=1, keepdims=True)
-    support = feature_support(f, f.copy(), readings(np.eye(4), _c2w(0.0, [1.0, 0.0, 0.2])))
-    assert support == {"given": 0, "swapped": 0, "other convention": 0, "world-to-camera": 0}
+    poses = readings(np.eye(4), _c2w(0.0, [1.0, 0.0, 0.2]))
+    assert feature_support(f, f.copy(), poses) == dict.fromkeys(poses, 0) and len(poses) == 7
 
 
 def test_one_place_twice_with_poses_is_refused_as_no_parallax(bedroom_theta_dir):
