@@ -1,14 +1,14 @@
-"""Given poses against their images: a swapped pair, the other axis convention, inverted matrices or panoramas whose
-forward axis is not at the image centre are refused.
+"""Given poses against their images: a swapped pair, the other axis convention, inverted matrices, or panoramas whose
+forward axis is not at the image centre or that are mirrored, are refused.
 
 A scene built on poses that do not belong to its images comes out as nonsense without a word: two uploads in
 the wrong order, poses written in OpenGL's axes (y up, z backwards) sent as OpenCV's, world-to-camera matrices
-sent as camera-to-world, or panoramas from a tool whose longitude origin differs from ours (the forward axis at
-column 0 or W/4 instead of W/2). Matching cannot confirm such poses, so the reconstruction's mean confidence is low.
-Below :data:`CHECK_BELOW_CONFIDENCE` the poses are read seven ways (:func:`readings`: as given, with image_a and
-image_b swapped, with both cameras in the other convention, as world-to-camera matrices sent as camera-to-world, and
-with both cameras turned about their vertical axis by a quarter, half or three quarters of a turn) and each reading
-is scored against the images:
+sent as camera-to-world, or panoramas from a tool whose longitude origin or direction differs from ours (the forward
+axis at column 0 or W/4 instead of W/2; longitude growing to the left). Matching cannot confirm such poses, so the
+reconstruction's mean confidence is low. Below :data:`CHECK_BELOW_CONFIDENCE` the poses are read eight ways
+(:func:`readings`: as given, with image_a and image_b swapped, with both cameras in the other convention, as
+world-to-camera matrices sent as camera-to-world, with both cameras turned about their vertical axis by a quarter,
+half or three quarters of a turn, and for mirrored panoramas) and each reading is scored against the images:
 
 1. Photometric agreement (:func:`service.poses.photometric_score`: the share of textured pixels of A that find
    their window in B along the epipolar curve). An alternative that agrees :data:`MISMATCH_RATIO` times better is a
@@ -59,9 +59,11 @@ LONGITUDE_TURNS_DEG = (90, 180, 270)
 def readings(c2w_a: np.ndarray, c2w_b: np.ndarray, convention: str = "opencv") -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """B's pose ``(R, t)`` in A's camera frame (``X_a = R X_b + t``) under each reading of two OpenCV c2w: as given,
     with the images swapped (A taken at ``c2w_b``), with both read in the other axis convention, with both inverted
-    (world-to-camera matrices, as COLMAP writes them, sent in the request's ``convention``), and with the panoramas'
+    (world-to-camera matrices, as COLMAP writes them, sent in the request's ``convention``), with the panoramas'
     longitude origin a quarter, half or three quarters of a turn away from the cameras' forward axis (both cameras
-    turned about their vertical axis by :data:`LONGITUDE_TURNS_DEG`; the set is the same in either convention)."""
+    turned about their vertical axis by :data:`LONGITUDE_TURNS_DEG`; the set is the same in either convention), and
+    with both panoramas mirrored left to right (longitude growing towards the camera's left: each camera's x axis
+    reversed)."""
     def relative(a, b):
         rel = rigid_inverse(a) @ b
         return rel[:3, :3], rel[:3, 3]
@@ -79,6 +81,9 @@ def readings(c2w_a: np.ndarray, c2w_b: np.ndarray, convention: str = "opencv") -
         turn = np.eye(4)
         turn[:3, :3] = yaw_rotation(np.radians(deg))
         out[f"longitude {deg}"] = relative(c2w_a @ turn, c2w_b @ turn)
+    R, t = out["given"]  # mirrored panoramas see each camera's x axis reversed: M X_a = (M R M) M X_b + M t
+    mirror = np.array([-1.0, 1.0, 1.0])
+    out["mirrored"] = (R * mirror[:, None] * mirror[None, :], t * mirror)
     return out
 
 
@@ -169,13 +174,15 @@ def _refuse(scores: dict, best: str, test: str, mean_confidence: float) -> NoRet
 
 
 _READING = {"swapped": "of the two images swapped", "other convention": "read in the other axis convention",
-            "world-to-camera": "inverted"}
+            "world-to-camera": "inverted", "mirrored": "read for panoramas mirrored left to right"}
 _TURN = {f"longitude {deg}": "a half" if deg == 180 else "a quarter" for deg in LONGITUDE_TURNS_DEG}
 _FIX = {"swapped": "check that image_a is the panorama taken at the first pose and image_b the one at the second",
         "other convention": 'check "convention": OpenCV cameras look along +z with +y down, OpenGL ones along -z '
                             "with +y up",
         "world-to-camera": '"c2w" takes camera-to-world matrices, whose last column is the camera\'s position: invert '
-                           "world-to-camera ones (such as COLMAP writes)"}
+                           "world-to-camera ones (such as COLMAP writes)",
+        "mirrored": "the panoramas' longitude must grow to the right (column 3W/4 looks along the camera's +x): "
+                    "flip both images left to right"}
 _FIX.update({f"longitude {deg}": "check the panoramas' longitude origin: the image centre looks along the camera's "
                                  "forward axis (OpenCV +z, OpenGL -z) and column 3W/4 along its right (+x); turn the poses "
                                  "about their vertical axis, or roll the images, to match" for deg in LONGITUDE_TURNS_DEG})

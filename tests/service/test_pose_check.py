@@ -1,5 +1,5 @@
 """Given poses against their images (service.pose_check): a swapped pair, the other convention, world-to-camera
-matrices sent as c2w or panoramas whose longitude origin is turned are a 422."""
+matrices sent as c2w, or panoramas whose longitude origin is turned or that are mirrored, are a 422."""
 
 import numpy as np
 import pytest
@@ -33,6 +33,8 @@ def test_each_reading_is_the_relative_pose_of_those_cameras():
                 "world-to-camera": (np.linalg.inv(a), np.linalg.inv(b))}
     for deg in (90, 180, 270):  # the cameras' forward axis a quarter, half or three quarters of a turn from +z
         expected[f"longitude {deg}"] = (a @ _c2w(deg, [0, 0, 0]), b @ _c2w(deg, [0, 0, 0]))
+    mirror = np.diag([-1.0, 1.0, 1.0, 1.0])  # mirrored panoramas: each camera's x axis reversed
+    expected["mirrored"] = (a @ mirror, b @ mirror)
     assert set(got) == set(expected)
     for name, (pa, pb) in expected.items():
         R, t = _relative(pa, pb)
@@ -57,7 +59,7 @@ def test_confident_reconstructions_and_flat_images_are_not_refused():
     scores = check_given_poses(flat, flat, a, b, 0.0)  # checked: nothing agrees with anything
     assert set(scores) == {"photometric"}  # no feature matches are sought where the photometric test decides
     assert set(scores["photometric"]) == {"given", "swapped", "other convention", "world-to-camera", "longitude 90",
-                                          "longitude 180", "longitude 270"}
+                                          "longitude 180", "longitude 270", "mirrored"}
     assert max(scores["photometric"].values()) == 0.0
 
 
@@ -270,6 +272,18 @@ def test_poses_of_panoramas_whose_forward_axis_is_not_at_the_image_centre_are_re
         assert exc.value.code == "poses_mismatch" and turn in exc.value.message.split(" turn about")[0], deg
 
 
+def test_mirrored_panoramas_with_their_poses_are_refused(bedroom_theta_dir):
+    """bedroom_theta 3 + 7, both images mirrored left to right (as from a tool whose longitude grows to the left)
+    with the poses they were captured at: refused as mirrored, with the fix; the same images unmirrored pass."""
+    scene = load_scene(bedroom_theta_dir)
+    fa, fb = scene.frames["3"], scene.frames["7"]
+    img_a, img_b = _small(fa.image()), _small(fb.image())
+    with pytest.raises(BadInput, match="read for panoramas mirrored left to right .*flip both images") as exc:
+        check_given_poses(img_a[:, ::-1], img_b[:, ::-1], fa.c2w, fb.c2w, 0.0)
+    assert exc.value.code == "poses_mismatch"
+    assert check_given_poses(img_a, img_b, fa.c2w, fb.c2w, 0.0) is not None  # checked, passed
+
+
 def test_a_reading_that_is_the_given_relative_pose_is_no_alternative(m3d_dir):
     """m3d's cameras are turned alike, by 180 deg about their x axis: inverting both matrices gives the same relative
     pose, so the world-to-camera reading is not scored (it would tie with the given one and call in the feature
@@ -290,7 +304,7 @@ def test_matches_without_parallax_support_no_reading():
     f = rng.normal(size=(200, 3))
     f /= np.linalg.norm(f, axis=1, keepdims=True)
     poses = readings(np.eye(4), _c2w(0.0, [1.0, 0.0, 0.2]))
-    assert feature_support(f, f.copy(), poses) == dict.fromkeys(poses, 0) and len(poses) == 7
+    assert feature_support(f, f.copy(), poses) == dict.fromkeys(poses, 0) and len(poses) == 8
 
 
 def test_one_place_twice_with_poses_is_refused_as_no_parallax(bedroom_theta_dir):
