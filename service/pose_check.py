@@ -52,7 +52,7 @@ FEATURE_MARGIN = 2.0
 #: ... and at least this many (a relative pose's worth: :data:`service.poses.MIN_RANSAC_INLIERS`).
 MIN_FEATURE_SUPPORT = MIN_RANSAC_INLIERS
 #: Turns (deg) about the cameras' vertical axis read as a misplaced longitude origin: panoramas whose forward axis
-#: is not at the image centre (docs/conventions.md, "Frames").
+#: is not at the image centre (docs/conventions.md, "Frames and pixels").
 LONGITUDE_TURNS_DEG = (90, 180, 270)
 
 
