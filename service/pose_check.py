@@ -77,13 +77,15 @@ def readings(c2w_a: np.ndarray, c2w_b: np.ndarray, convention: str = "opencv") -
     out = {"given": relative(c2w_a, c2w_b), "swapped": relative(c2w_b, c2w_a),
            "other convention": relative(c2w_a @ flip, c2w_b @ flip),
            "world-to-camera": relative(inverted(c2w_a), inverted(c2w_b))}
-    for deg in LONGITUDE_TURNS_DEG:
-        turn = np.eye(4)
-        turn[:3, :3] = yaw_rotation(np.radians(deg))
-        out[f"longitude {deg}"] = relative(c2w_a @ turn, c2w_b @ turn)
-    R, t = out["given"]  # mirrored panoramas see each camera's x axis reversed: M X_a = (M R M) M X_b + M t
-    mirror = np.array([-1.0, 1.0, 1.0])
-    out["mirrored"] = (R * mirror[:, None] * mirror[None, :], t * mirror)
+
+    def turned(deg):  # a camera frame turned about its y axis by ``deg``
+        m = np.eye(4)
+        m[:3, :3] = yaw_rotation(np.radians(deg))
+        return m
+
+    frames = {**{f"longitude {deg}": turned(deg) for deg in LONGITUDE_TURNS_DEG},
+              "mirrored": np.diag([-1.0, 1.0, 1.0, 1.0])}  # x axis reversed: orthogonal, so rigid_inverse inverts it
+    out.update((name, relative(c2w_a @ m, c2w_b @ m)) for name, m in frames.items())  # both cameras changed alike
     return out
 
 

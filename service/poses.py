@@ -491,8 +491,8 @@ def poses_for_scene(erp_a: np.ndarray, erp_b: np.ndarray, poses, opts: PoseOptio
                     data: tuple = (None, None)) -> tuple[np.ndarray, np.ndarray, dict]:
     """(c2w_a, c2w_b, metadata ``poses`` JSON) for given (:class:`service.inputs.Poses`) or missing (None) poses;
     ``data``: the two files' bytes when known (their XMP may hold the cameras' tilt). One picture sent twice (also
-    re-encoded, resized or with noise: :func:`service.images.same_picture`) is refused whatever the poses say: it carries no depth
-    (the estimator would refuse it by its matches, after the features' seconds)."""
+    re-encoded, resized or with noise: :func:`service.images.same_picture`) is refused whatever the poses say: it
+    carries no depth (the estimator would refuse it by its matches, after the features' seconds)."""
     if same_picture(erp_a, erp_b):
         raise PoseEstimationFailed("image_a and image_b are the same picture: two captures from different places "
                                    "differ, and one picture twice carries no depth", code="no_parallax")
