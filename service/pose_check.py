@@ -10,7 +10,7 @@ reconstruction's mean confidence is low. Below :data:`CHECK_BELOW_CONFIDENCE` th
 world-to-camera matrices sent as camera-to-world, with both cameras turned about their vertical axis by a quarter,
 half or three quarters of a turn, and for mirrored panoramas) and each reading is scored against the images:
 
-1. Photometric agreement (:func:`service.poses.photometric_score`: the share of textured pixels of A that find
+1. Photometric agreement (:func:`service.photometric.photometric_scores`: the share of textured pixels of A that find
    their window in B along the epipolar curve). An alternative that agrees :data:`MISMATCH_RATIO` times better is a
    422 ``poses_mismatch`` that names it; the given reading :data:`MISMATCH_RATIO` times better than every
    alternative passes.
@@ -36,7 +36,8 @@ from rasterizer.threads import map_threads
 
 from .errors import BadInput
 from .matching import Distances, putative_matches
-from .poses import MIN_RANSAC_INLIERS, NO_PARALLAX_SHARE, features, photometric_score
+from .photometric import photometric_scores
+from .poses import MIN_RANSAC_INLIERS, NO_PARALLAX_SHARE, features
 
 #: Mean confidence of a reconstruction below which its given poses are checked against the images.
 CHECK_BELOW_CONFIDENCE = 0.15
@@ -128,7 +129,7 @@ def check_given_poses(erp_a: np.ndarray, erp_b: np.ndarray, c2w_a: np.ndarray, c
     # axis, have the same relative pose as their inverted matrices): the images cannot tell them apart
     poses = {name: pose for name, pose in poses.items() if name == "given" or not _same_pose(pose, poses["given"])}
     names = tuple(poses)
-    scores = dict(zip(names, map_threads(lambda pose: photometric_score(erp_a, erp_b, *pose), poses.values())))
+    scores = dict(zip(names, photometric_scores(erp_a, erp_b, list(poses.values()))))
     out = {"photometric": scores}
     if len(names) == 1:
         return out

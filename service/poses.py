@@ -12,7 +12,7 @@ duplicates), the tripod cap below -65 deg latitude dropped. Matching: ratio 0.8 
 (0.9 when that leaves too few for a pose: :data:`SEED_RATIOS`), then upright 3-point RANSAC
 (:mod:`rasterizer.relative_pose`), then matching guided by the pose (within 3 then 1.5 deg of
 the epipolar plane, in front of both cameras) and robust refinement. When a second pose mode (e.g. a
-180-deg flip) keeps half the inliers, :func:`photometric_score` of both decides, or the answer is 422.
+180-deg flip) keeps half the inliers, :func:`service.photometric.photometric_scores` of both decides, or the answer is 422.
 
 After the upright pose, a 5-dof refinement (full rotation and travel direction) replaces it when
 the levelled pair still differs by more than :data:`RESIDUAL_TILT_DEG` of tilt.
@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from rasterizer.floor_sweep import FloorHidden, floor_ratio
-from rasterizer.geometry import direction_from_lat_lon, lat_lon_from_direction, rigid_inverse
+from rasterizer.geometry import lat_lon_from_direction, rigid_inverse
 from rasterizer.gravity import level_rotation
 from rasterizer.relative_pose import (
     INLIER_DEG,
@@ -55,6 +55,7 @@ from .errors import BadInput
 from .gravity import MAX_TILT_DEG, crop_rotations, crop_size, panorama_gravity, perspective_crops
 from .images import same_picture
 from .matching import Distances, guided_matches, mutual_matches, putative_matches
+from .photometric import gray_erp, photometric_scores, small_gray
 from .pose_flips import FLIP_CHECK_SHARE, flipped
 
 #: Options keys this module reads (not encoder options).
@@ -69,7 +70,6 @@ CROP_FOCAL = 268.5
 CROP_MARGIN_DEG = 5.0
 #: SIFT keeps a crop's strongest keypoints, at most one per this many of its pixels.
 CROP_PIXELS_PER_KEYPOINT = 360
-MAX_ERP_WIDTH = 2048
 TRIPOD_LAT_DEG = -65.0
 MIN_INLIERS = 20
 #: Fewer putative matches than this agreeing with the RANSAC pose: the views share too little.
@@ -145,33 +145,12 @@ CROPS = ((0.0, tuple(45.0 * k for k in range(8)), _crop_size(22.5, 33.4)),
 CROP_ROTATIONS = crop_rotations(CROPS)
 
 
-def _gray(erp: np.ndarray) -> np.ndarray:
-    """Grey uint8 ERP (h, w) of an RGB or grey, uint8 or [0, 1] float ERP, area-downsampled to at most
-    :data:`MAX_ERP_WIDTH` wide; a grey uint8 ERP within that width comes back as it is."""
-    import cv2
-
-    img = np.asarray(erp)
-    if img.dtype != np.uint8:
-        img = np.clip(np.asarray(img, np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
-    if gray.shape[1] > MAX_ERP_WIDTH:
-        gray = cv2.resize(gray, (MAX_ERP_WIDTH, MAX_ERP_WIDTH // 2), interpolation=cv2.INTER_AREA)
-    return gray
-
-
-def small_gray(erp: np.ndarray, height: int) -> np.ndarray:
-    """Grey ERP (height, 2 * height) float32 in [0, 1], area-downsampled."""
-    import cv2
-
-    return cv2.resize(_gray(erp), (2 * height, height), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
-
-
 def features(erp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit bearings (N, 3) in the panorama's camera frame and RootSIFT descriptors (N, 128) float32 of an
-    ERP (RGB, or the grey of :func:`_gray`)."""
+    ERP (RGB, or the grey of :func:`~service.photometric.gray_erp`)."""
     import cv2
 
-    gray = _gray(erp)
+    gray = gray_erp(erp)
     sizes = [size for _, yaws, size in CROPS for _ in yaws]
     axes = CROP_ROTATIONS[:, :, 2]
     bearings, descs = [], []
@@ -223,7 +202,7 @@ def _pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Panorama:
-    """One panorama ready for matching: its grey ERP (uint8, at most :data:`MAX_ERP_WIDTH` wide, what the
+    """One panorama ready for matching: its grey ERP (uint8, at most :data:`service.photometric.MAX_ERP_WIDTH` wide, what the
     feature, line, floor and photometric steps read), its bearings (N, 3) and RootSIFT descriptors (N, 128)
     in its levelled frame, its levelled-from-camera rotation ``level`` (3, 3) and the gravity ``info``."""
 
@@ -239,7 +218,7 @@ def prepare(erp: np.ndarray, data: bytes | None = None) -> Panorama:
 
     The panorama is levelled only when its tilt exceeds :data:`LEVEL_MIN_TILT_DEG`; ``gravity["applied"]``
     says whether it was."""
-    gray = _gray(erp)
+    gray = gray_erp(erp)
     f, d = features(gray)
     down, ginfo = panorama_gravity(gray, data)
     applied = ginfo["tilt_deg"] > LEVEL_MIN_TILT_DEG
@@ -317,7 +296,7 @@ def _floor_share(pa: Panorama, pb: Panorama, yaw: float, t: np.ndarray) -> float
 def _mode_choice(photometric: tuple[float, float], inliers: tuple[int, int], floor_shares) -> tuple[bool, bool]:
     """(the rival mode wins, the choice is decisive) between RANSAC's best pose mode and its rival.
 
-    ``photometric``, ``inliers``: (best, rival) :func:`photometric_score` and guided inlier counts;
+    ``photometric``, ``inliers``: (best, rival) :func:`~service.photometric.photometric_scores` and guided inlier counts;
     ``floor_shares()``: (best, rival) :func:`_floor_share`, asked for only when the photometric scores are
     within :data:`PHOTOMETRIC_MARGIN`. Scores this far apart decide, else floor shares :data:`FLOOR_MARGIN`
     apart, else the inlier counts pick without deciding (the caller refuses a close rival).
@@ -387,8 +366,8 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
     info.update(_support(inl, err, method))
     info["ransac_inliers"] = ransac.best.num_inliers
 
-    def score(yaw_, t_):  # photometric agreement of the two images under a levelled-frame pose
-        return photometric_score(pa.gray, pb.gray, pa.level.T @ yaw_rotation(yaw_) @ pb.level, pa.level.T @ t_)
+    def camera_pose(yaw_, t_):  # a levelled-frame pose as B in A's camera frame, as photometric_scores reads it
+        return pa.level.T @ yaw_rotation(yaw_) @ pb.level, pa.level.T @ t_
 
     if ransac.rival is not None and ransac.rival.num_inliers >= 0.5 * ransac.best.num_inliers:
         ryaw, rt, rinl, rerr = _guided_refine(fa, fb, dist, ransac.rival.yaw, ransac.rival.t)
@@ -396,7 +375,7 @@ def estimate_poses(erp_a: np.ndarray, erp_b: np.ndarray, opts: PoseOptions, data
                  "yaw_gap_deg": float(np.degrees(abs(np.angle(np.exp(1j * (ryaw - yaw)))))),
                  "t_gap_deg": float(np.degrees(np.arccos(np.clip(rt @ t, -1, 1))))}
         if rival["yaw_gap_deg"] > 15 or rival["t_gap_deg"] > 25:
-            best_score, rival_score = map_threads(score, (yaw, ryaw), (t, rt))
+            best_score, rival_score = photometric_scores(pa.gray, pb.gray, [camera_pose(yaw, t), camera_pose(ryaw, rt)])
             rival["photometric"], info["photometric"] = rival_score, best_score
             info["rival"] = rival
             floors: list[float] = []  # (best, rival), when the floor was asked
@@ -509,70 +488,3 @@ def poses_for_scene(erp_a: np.ndarray, erp_b: np.ndarray, poses, opts: PoseOptio
     if poses is not None:
         out["input_convention"] = poses.convention
     return c2w_a, c2w_b, out
-
-
-def photometric_score(erp_a: np.ndarray, erp_b: np.ndarray, R: np.ndarray, t: np.ndarray, *, height: int = 256,
-                      samples: int = 1500, planes: int = 48, radius: int = 3, seed: int = 0) -> float:
-    """How well B's image agrees with A's under pose ``[R | t]``: mean over textured pixels of A
-    (away from the epipoles) of the best 5x5 ZNCC along the pixel's epipolar curve in B (48 ranges,
-    0.3-30 baselines, fronto-parallel patches); about 1 for the true pose, lower for a wrong one."""
-    import cv2
-
-    ga, gb = small_gray(erp_a, height), small_gray(erp_b, height)
-    t = np.asarray(t, np.float64) / np.linalg.norm(t)
-    gy, gx = np.gradient(ga)
-    mag = np.hypot(gx, gy)
-    rows, cols = np.mgrid[radius:height - radius, 0:2 * height]
-    lat = np.pi / 2 - (rows + 0.5) / height * np.pi
-    lon = (cols + 0.5) / (2 * height) * 2 * np.pi - np.pi
-    d = direction_from_lat_lon(lat, lon)
-    ok = (np.abs(lat) < np.radians(60)) & (np.abs(d @ t) < np.cos(np.radians(15)))
-    band = mag[radius:height - radius]
-    if np.count_nonzero(ok) < 50:
-        return 0.0
-    ok &= band > np.percentile(band[ok], 70)
-    if np.count_nonzero(ok) < 20:  # flat image: nothing to compare
-        return 0.0
-    idx = np.random.default_rng(seed).choice(np.count_nonzero(ok), size=min(samples, np.count_nonzero(ok)), replace=False)
-    r0, c0 = rows[ok][idx], cols[ok][idx]
-    dr, dc = np.mgrid[-radius:radius + 1, -radius:radius + 1]
-    pr, pc = r0[:, None] + dr.ravel(), (c0[:, None] + dc.ravel()) % (2 * height)  # (N, P)
-    patch_a = ga[pr, pc]
-    dirs = direction_from_lat_lon(np.pi / 2 - (pr + 0.5) / height * np.pi, (pc + 0.5) / height * np.pi - np.pi)
-    inv = np.linspace(1 / 0.3, 1 / 30.0, planes)
-    # fronto-parallel patch: each offset ray meets the plane through the centre point, normal to the centre ray
-    centre = dirs[:, dr.size // 2:dr.size // 2 + 1]
-    lam = ((1 / inv)[None, None, :] / np.maximum(np.sum(dirs * centre, -1), 1e-3)[..., None]).astype(np.float32)
-    rays_b, t_b = (dirs @ R).astype(np.float32), (t @ R).astype(np.float32)  # R^T d, R^T t (row vectors)
-    x, y, z = (lam * rays_b[..., i:i + 1] - t_b[i] for i in range(3))  # R^T (lam d - t): (N, P, K) each
-    mx, my = _erp_pixels(x, y, z, height)
-    patch_b = cv2.remap(gb, mx.reshape(len(r0), -1), my.reshape(len(r0), -1), cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_WRAP).reshape(mx.shape)  # (N, P, K)
-    za = patch_a - patch_a.mean(1, keepdims=True)
-    za /= np.maximum(np.linalg.norm(za, axis=1, keepdims=True), 1e-6)
-    zb = patch_b - patch_b.mean(1, keepdims=True)
-    zb /= np.maximum(np.linalg.norm(zb, axis=1, keepdims=True), 1e-6)
-    best = np.max(np.einsum("np,npk->nk", za, zb), axis=1)
-    return float(np.mean(best > 0.8))
-
-
-def _erp_pixels(x: np.ndarray, y: np.ndarray, z: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """ERP pixel coordinates (column, row), float32, of the camera-frame directions ``(x, y, z)`` (float32
-    arrays of one shape, at least 1-D) on a ``height`` x ``2 height`` panorama, as
-    :func:`rasterizer.geometry.lat_lon_from_direction` and ``project_to_grid("erp")`` place them.
-
-    OpenCV's vectorised ``cartToPolar`` and ``phase`` stand in for numpy's ``arctan2``, which took most of
-    :func:`photometric_score`'s time; their angles are within 2e-4 rad of it (0.02 px at 256 rows)."""
-    import cv2
-
-    shape = x.shape
-    x, y, z = (np.ascontiguousarray(v, np.float32).reshape(-1, shape[-1]) for v in (x, y, z))
-    horizontal, lon = cv2.cartToPolar(z, x)  # hypot(x, z) and atan2(x, z) in [0, 2 pi)
-    lat = cv2.phase(horizontal, -y)  # atan2(-y, hypot) in [0, pi / 2] or [3 pi / 2, 2 pi)
-    two_pi, pi = np.float32(2 * np.pi), np.float32(np.pi)
-    lon = np.where(lon >= pi, lon - two_pi, lon)
-    lat = np.where(lat > pi, lat - two_pi, lat)
-    per_rad = np.float32(height / np.pi)
-    mx = (lon + pi) * per_rad - np.float32(0.5)
-    my = (np.float32(np.pi / 2) - lat) * per_rad - np.float32(0.5)
-    return mx.reshape(shape), my.reshape(shape)

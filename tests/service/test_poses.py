@@ -137,7 +137,7 @@ def test_one_picture_twice_is_refused_whatever_the_given_poses_say(room_a):
 
 
 def test_unrelated_and_flat_images_are_refused():
-    from service.poses import photometric_score
+    from service.photometric import photometric_score
 
     noise = np.random.default_rng(0).integers(0, 255, (256, 512, 3), dtype=np.uint8)
     with pytest.raises(PoseEstimationFailed):
@@ -432,15 +432,17 @@ def test_post_without_poses_bad_cases_are_422(api, room_a, options, code):
 
 
 def test_photometric_score_prefers_the_true_pose_over_a_flip_and_a_turn(room_a):
-    from service.poses import PHOTOMETRIC_MARGIN, photometric_score
+    from service.photometric import photometric_score, photometric_scores
+    from service.poses import PHOTOMETRIC_MARGIN
 
     true = _pose(40.0, [1.0, 0.0, -0.6])
     img_b = room_erp(true)
     R, t = true[:3, :3], true[:3, 3]
-    right = photometric_score(room_a, img_b, R, t)
-    flipped = photometric_score(room_a, img_b, R @ yaw_rotation(np.pi), -t)
-    turned = photometric_score(room_a, img_b, R @ yaw_rotation(0.35), yaw_rotation(0.35) @ t)
+    poses = [(R, t), (R @ yaw_rotation(np.pi), -t), (R @ yaw_rotation(0.35), yaw_rotation(0.35) @ t)]
+    right, flipped, turned = photometric_scores(room_a, img_b, poses)
     assert right > PHOTOMETRIC_MARGIN * max(flipped, turned)
+    # the poses share the images' preparation, and each scores as it does alone
+    assert [right, flipped, turned] == [photometric_score(room_a, img_b, *pose) for pose in poses]
 
 
 @settings(max_examples=30, deadline=None)
@@ -448,7 +450,7 @@ def test_photometric_score_prefers_the_true_pose_over_a_flip_and_a_turn(room_a):
 def test_erp_pixels_place_directions_as_the_geometry_does(seed, height):
     """The OpenCV angles of ``_erp_pixels`` place a direction within 2e-4 rad of lat_lon_from_direction's pixel, at
     the poles and across the seam too (columns compared around the panorama), at any length of the direction."""
-    from service.poses import _erp_pixels
+    from service.photometric import _erp_pixels
 
     rng = np.random.default_rng(seed)
     d = rng.normal(size=(50, 3, 3))
