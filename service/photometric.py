@@ -1,7 +1,7 @@
 """Photometric agreement of two panoramas under relative poses: a test of poses, not an estimate.
 
 :func:`photometric_scores` asks, for each pose ``[R | t]`` (B in A's camera frame), how many textured pixels of A
-find their 5x5 window again in B along their epipolar curve. Estimating poses uses it to choose between two pose
+find their 7x7 window again in B along their epipolar curve. Estimating poses uses it to choose between two pose
 modes (:mod:`service.poses`), and checking given poses to compare readings of them (:mod:`service.pose_check`).
 What does not depend on the pose (the grey images at the working height, A's gradients and pixel directions) is
 made once for all poses of a call; each pose's score is the same to the bit as when it is scored alone.
@@ -60,6 +60,7 @@ class _Pair(NamedTuple):
 
 
 def _pair(erp_a: np.ndarray, erp_b: np.ndarray, height: int, radius: int) -> _Pair:
+    """The pose-free part of :func:`photometric_scores` for one image pair."""
     ga, gb = small_gray(erp_a, height), small_gray(erp_b, height)
     gy, gx = np.gradient(ga)
     mag = np.hypot(gx, gy)
