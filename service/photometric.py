@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from rasterizer.geometry import direction_from_lat_lon
+from rasterizer.geometry import erp_lat_lon, grid_directions
 from rasterizer.threads import map_threads
 
 #: Grey ERPs wider than this are area-downsampled first (what every pose step reads).
@@ -44,16 +44,15 @@ def small_gray(erp: np.ndarray, height: int) -> np.ndarray:
 
 class _Pair(NamedTuple):
     """What every pose's score of one image pair reads: the grey images ``ga``, ``gb`` (height, 2 height) float32,
-    A's gradient magnitude ``band`` over the rows ``rows`` (the band ``radius`` rows from either pole, with
-    ``cols``, (rows, 2 height) each), the unit directions ``d`` (rows, 2 height, 3) of those pixels and whether they
-    lie within 60 deg of the horizon (``level``)."""
+    the unit directions ``grid`` (height, 2 height, 3) of the ERP's pixel centres
+    (:func:`rasterizer.geometry.grid_directions`, cached), and over the band ``radius`` rows from either pole A's
+    gradient magnitude ``band`` (rows, 2 height) and whether the rows lie within 60 deg of the horizon (``level``,
+    (rows, 1))."""
 
     ga: np.ndarray
     gb: np.ndarray
+    grid: np.ndarray
     band: np.ndarray
-    rows: np.ndarray
-    cols: np.ndarray
-    d: np.ndarray
     level: np.ndarray
     height: int
     radius: int
@@ -63,12 +62,9 @@ def _pair(erp_a: np.ndarray, erp_b: np.ndarray, height: int, radius: int) -> _Pa
     """The pose-free part of :func:`photometric_scores` for one image pair."""
     ga, gb = small_gray(erp_a, height), small_gray(erp_b, height)
     gy, gx = np.gradient(ga)
-    mag = np.hypot(gx, gy)
-    rows, cols = np.mgrid[radius:height - radius, 0:2 * height]
-    lat = np.pi / 2 - (rows + 0.5) / height * np.pi
-    lon = (cols + 0.5) / (2 * height) * 2 * np.pi - np.pi
-    return _Pair(ga, gb, mag[radius:height - radius], rows, cols, direction_from_lat_lon(lat, lon),
-                 np.abs(lat) < np.radians(60), height, radius)
+    lat, _ = erp_lat_lon(height, 2 * height)
+    return _Pair(ga, gb, grid_directions("erp", height, 2 * height), np.hypot(gx, gy)[radius:height - radius],
+                 np.abs(lat[radius:height - radius]) < np.radians(60), height, radius)
 
 
 def photometric_scores(erp_a: np.ndarray, erp_b: np.ndarray, poses: Sequence[tuple[np.ndarray, np.ndarray]], *,
@@ -95,18 +91,19 @@ def _score(pair: _Pair, R: np.ndarray, t: np.ndarray, *, samples: int, planes: i
 
     ga, gb, band, height, radius = pair.ga, pair.gb, pair.band, pair.height, pair.radius
     t = np.asarray(t, np.float64) / np.linalg.norm(t)
-    ok = pair.level & (np.abs(pair.d @ t) < np.cos(np.radians(15)))
+    ok = pair.level & (np.abs(pair.grid[radius:height - radius] @ t) < np.cos(np.radians(15)))
     if np.count_nonzero(ok) < 50:
         return 0.0
     ok &= band > np.percentile(band[ok], 70)
     if np.count_nonzero(ok) < 20:  # flat image: nothing to compare
         return 0.0
     idx = np.random.default_rng(seed).choice(np.count_nonzero(ok), size=min(samples, np.count_nonzero(ok)), replace=False)
-    r0, c0 = pair.rows[ok][idx], pair.cols[ok][idx]
+    r0, c0 = (v[idx] for v in np.nonzero(ok))
+    r0 = r0 + radius  # the band's rows in the image
     dr, dc = np.mgrid[-radius:radius + 1, -radius:radius + 1]
     pr, pc = r0[:, None] + dr.ravel(), (c0[:, None] + dc.ravel()) % (2 * height)  # (N, P)
     patch_a = ga[pr, pc]
-    dirs = direction_from_lat_lon(np.pi / 2 - (pr + 0.5) / height * np.pi, (pc + 0.5) / height * np.pi - np.pi)
+    dirs = pair.grid[pr, pc]
     inv = np.linspace(1 / 0.3, 1 / 30.0, planes)
     # fronto-parallel patch: each offset ray meets the plane through the centre point, normal to the centre ray
     centre = dirs[:, dr.size // 2:dr.size // 2 + 1]
