@@ -80,11 +80,6 @@ def photometric_scores(erp_a: np.ndarray, erp_b: np.ndarray, poses: Sequence[tup
     return map_threads(lambda pose: _score(pair, *pose, samples=samples, planes=planes, seed=seed), poses)
 
 
-def photometric_score(erp_a: np.ndarray, erp_b: np.ndarray, R: np.ndarray, t: np.ndarray, **options) -> float:
-    """:func:`photometric_scores` of one pose ``(R, t)``."""
-    return photometric_scores(erp_a, erp_b, [(R, t)], **options)[0]
-
-
 def _score(pair: _Pair, R: np.ndarray, t: np.ndarray, *, samples: int, planes: int, seed: int) -> float:
     """One pose's score (:func:`photometric_scores`)."""
     import cv2

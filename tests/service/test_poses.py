@@ -137,7 +137,7 @@ def test_one_picture_twice_is_refused_whatever_the_given_poses_say(room_a):
 
 
 def test_unrelated_and_flat_images_are_refused():
-    from service.photometric import photometric_score
+    from service.photometric import photometric_scores
 
     noise = np.random.default_rng(0).integers(0, 255, (256, 512, 3), dtype=np.uint8)
     with pytest.raises(PoseEstimationFailed):
@@ -145,7 +145,7 @@ def test_unrelated_and_flat_images_are_refused():
     flat = np.full((64, 128, 3), 128, np.uint8)
     with pytest.raises(PoseEstimationFailed, match="feature matches"):
         estimate_poses(flat, flat, PoseOptions())
-    assert photometric_score(flat, flat, np.eye(3), np.array([1.0, 0, 0])) == 0.0
+    assert photometric_scores(flat, flat, [(np.eye(3), np.array([1.0, 0, 0]))]) == [0.0]
 
 
 def test_a_mirror_flipped_panorama_is_refused_not_given_a_vertical_baseline(monkeypatch):
@@ -432,7 +432,7 @@ def test_post_without_poses_bad_cases_are_422(api, room_a, options, code):
 
 
 def test_photometric_score_prefers_the_true_pose_over_a_flip_and_a_turn(room_a):
-    from service.photometric import photometric_score, photometric_scores
+    from service.photometric import photometric_scores
     from service.poses import PHOTOMETRIC_MARGIN
 
     true = _pose(40.0, [1.0, 0.0, -0.6])
@@ -442,7 +442,7 @@ def test_photometric_score_prefers_the_true_pose_over_a_flip_and_a_turn(room_a):
     right, flipped, turned = photometric_scores(room_a, img_b, poses)
     assert right > PHOTOMETRIC_MARGIN * max(flipped, turned)
     # the poses share the images' preparation, and each scores as it does alone
-    assert [right, flipped, turned] == [photometric_score(room_a, img_b, *pose) for pose in poses]
+    assert [right, flipped, turned] == [photometric_scores(room_a, img_b, [pose])[0] for pose in poses]
 
 
 @settings(max_examples=30, deadline=None)
