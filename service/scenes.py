@@ -29,6 +29,7 @@ from .inputs import Poses, RenderQuery, check_estimated_scale, check_sweep_range
 from .limits import check_render_budget
 from .memory import release_memory
 from .model_files import build_code_hash
+from .photometric import MAX_ERP_WIDTH
 from .pipeline import PipelineOptions, SceneBuild, build_scene
 from .pose_check import check_given_poses
 from .poses import PoseOptions, poses_for_scene
@@ -70,12 +71,13 @@ def scene_id_for(model_sha256: str, image_a: bytes, image_b: bytes, poses: Poses
 class UploadLimits:
     max_pixels: int
     min_height: int
+    min_width: int | None = None  # JPEGs wider than twice this decode at a reduced scale (service.images.jpeg_reduction)
 
 
 def precheck_uploads(image_a: bytes, image_b: bytes, limits: UploadLimits) -> None:
     """Header-only checks (format, 2:1, size, pixel cap): fast 4xx before queueing for the model."""
     for field, data in (("image_a", image_a), ("image_b", image_b)):
-        check_header(data, field, max_pixels=limits.max_pixels, min_height=limits.min_height)
+        check_header(data, field, max_pixels=limits.max_pixels, min_height=limits.min_height, min_width=limits.min_width)
 
 
 def _at_model_size(erp: np.ndarray, height: int) -> np.ndarray:
@@ -112,7 +114,8 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     t0 = time.perf_counter()
     # side by side (Pillow's decoders release the GIL); image_a's error is raised first, as in turn
     (erp_a, head_a), (erp_b, head_b) = map_threads(
-        lambda data, field: decode_rgb(data, field, max_pixels=limits.max_pixels, min_height=limits.min_height),
+        lambda data, field: decode_rgb(data, field, max_pixels=limits.max_pixels, min_height=limits.min_height,
+                                       min_width=limits.min_width),
         (image_a, image_b), ("image_a", "image_b"))
     timings["decode"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -159,6 +162,12 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     stored = store.put(scene_id, gaussians, meta, artifacts=references)
     timings["store"] = time.perf_counter() - t0
     return stored, timings
+
+
+def read_width(runtime: ModelRuntime) -> int:
+    """The widest ERP that a POST's stages read: the pose features' and checks' grey panorama
+    (:data:`service.photometric.MAX_ERP_WIDTH`) or the model's input, whichever is wider."""
+    return max(MAX_ERP_WIDTH, 2 * runtime.encoder.height)
 
 
 def sweep_per_baseline(runtime: ModelRuntime) -> tuple[float, float]:

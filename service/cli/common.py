@@ -207,7 +207,9 @@ def read_gaussians(path: str | Path):
 def read_panorama(path: str | Path):
     """An image file decoded as the API decodes an upload (:func:`service.images.decode_rgb`: 16-bit and
     float images scaled by their range, the EXIF orientation applied, truncated or non-2:1 files refused,
-    the API's default pixel limits), as float32 RGB (H, W, 3) in [0, 1]; a bad file is a CliError naming it."""
+    the API's default pixel limits), as float32 RGB (H, W, 3) in [0, 1]; a bad file is a CliError naming it.
+    The file is decoded whole: the CLI reads it before it knows the model's width, which the API's reduced
+    decode of wide JPEGs (:func:`service.images.jpeg_reduction`) keeps."""
     import numpy as np
 
     from ..config import Settings

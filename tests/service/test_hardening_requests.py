@@ -280,3 +280,17 @@ def test_turned_jpeg_upload_makes_the_scene_of_the_shown_panorama(client, live):
     r = client.post("/v1/scenes", files={"image_a": ("a.webp", _frames("WEBP")), "image_b": ("b.png", panorama(seed=69))},
                     data={"poses": POSES})
     assert r.status_code == 422 and r.json()["error"]["code"] == "animated_image"
+
+
+def test_a_jpeg_wider_than_any_stage_reads_is_decoded_at_a_reduced_scale(client, live):
+    """A 4096-wide JPEG is read at 2048 columns, what the pose features read (the test model reads 256): the scene
+    metadata keeps the file's size and says what was decoded."""
+    big = Image.open(io.BytesIO(panorama(seed=70))).convert("RGB").resize((4096, 2048), Image.Resampling.BILINEAR)
+    buf = io.BytesIO()
+    big.save(buf, format="JPEG", quality=90)
+    r = client.post("/v1/scenes", files={"image_a": ("a.jpg", buf.getvalue()), "image_b": ("b.png", panorama(seed=70, shift=4))},
+                    data={"poses": POSES})
+    assert r.status_code == 201, r.text
+    described = client.get(f"/v1/scenes/{r.json()['id']}").json()["inputs"]["image_a"]
+    assert (described["width"], described["height"]) == (4096, 2048)
+    assert (described["decoded_width"], described["decoded_height"]) == (2048, 1024)

@@ -11,7 +11,7 @@ import pytest
 from PIL import Image
 
 from service import images
-from service.errors import BadInput, InvalidImage
+from service.errors import BadInput, InvalidImage, PayloadTooLarge
 from service.images import check_header, decode_rgb
 
 LIMITS = {"max_pixels": 4096 * 2048, "min_height": 32}
@@ -192,3 +192,52 @@ def test_same_picture_is_one_view_however_it_was_encoded():
     assert not same_picture(img, img[:, ::-1].copy())
     flat = np.full((64, 128, 3), 0.5, np.float32)
     assert same_picture(flat, flat.copy()) and not same_picture(flat, flat * 0.9)
+
+
+@pytest.mark.parametrize(("fmt", "width", "height", "min_width", "expected"), [
+    ("JPEG", 5760, 2880, 2048, 2),  # a 5.7K camera JPEG for the 2048-wide pose features
+    ("JPEG", 4096, 2048, 2048, 2),
+    ("JPEG", 4094, 2047, 2048, 1),  # half would be narrower than the reader
+    ("JPEG", 16384, 8192, 2048, 8),
+    ("JPEG", 11904, 5952, 2048, 4),
+    ("MPO", 11904, 5952, 2048, 4),  # a camera JPEG with an MPF second image
+    ("JPEG", 5762, 2881, 1024, 1),  # no scale divides 2881 rows: the decode would not stay exactly 2:1
+    ("JPEG", 5760, 2880, None, 1),  # no reader width given: whole
+    ("PNG", 5760, 2880, 2048, 1),  # only JPEG has DCT scales
+])
+def test_jpeg_reduction_keeps_the_reader_width_and_exact_2_to_1(fmt, width, height, min_width, expected):
+    assert images.jpeg_reduction(fmt, width, height, min_width) == expected
+
+
+@pytest.mark.parametrize("orientation", [1, 3, 6, 8])
+def test_a_wide_jpeg_decodes_at_a_reduced_scale_upright(orientation):
+    """A JPEG four times wider than the reader needs decodes at a quarter of each side, turned by its EXIF
+    orientation once, and close to the whole decode box-reduced; the header keeps the file's own size and says
+    what was decoded."""
+    shown = upright(256)
+    data = with_orientation(shown, orientation, "JPEG")
+    rgb, header = decode_rgb(data, "image_a", **LIMITS, min_width=128)
+    assert rgb.shape == (64, 128, 3)
+    assert header.describe()["width"] == 512 and header.describe()["decoded_width"] == 128
+    whole, whole_header = decode_rgb(data, "image_a", **LIMITS)
+    assert whole.shape == shown.shape and "decoded_width" not in whole_header.describe()
+    reduced = np.asarray(Image.fromarray(whole).resize((128, 64), Image.Resampling.BOX)).astype(int)
+    err = np.abs(rgb.astype(int) - reduced).mean()
+    assert err < 2.0, err
+
+
+def test_the_pixel_cap_counts_what_a_reduced_jpeg_decodes():
+    """A JPEG over the pixel cap passes when its reduced decode fits the cap and it declares at most
+    MAX_REDUCED_JPEG_FACTOR times the cap; a PNG of the same size, the JPEG read whole, or one declaring more is a
+    413 that names the limits."""
+    shown = upright(512)  # 1024 x 512 = 524,288 pixels
+    jpeg, png = with_orientation(shown, 1, "JPEG"), with_orientation(shown, 1, "PNG")
+    cap = 200_000
+    rgb, header = decode_rgb(jpeg, "image_a", max_pixels=cap, min_height=32, min_width=256)
+    assert rgb.shape == (128, 256, 3) and header.reduction == 4
+    for data, min_width in ((png, 256), (jpeg, None)):
+        with pytest.raises(PayloadTooLarge, match=f"limit of {cap} pixels$"):
+            check_header(data, "image_a", max_pixels=cap, min_height=32, min_width=min_width)
+    small_cap = 524_288 // images.MAX_REDUCED_JPEG_FACTOR - 1
+    with pytest.raises(PayloadTooLarge, match=f"{images.MAX_REDUCED_JPEG_FACTOR * small_cap} for a JPEG"):
+        check_header(jpeg, "image_a", max_pixels=small_cap, min_height=32, min_width=256)
