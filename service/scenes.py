@@ -164,10 +164,10 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     return stored, timings
 
 
-def read_width(runtime: ModelRuntime) -> int:
-    """The widest ERP that a POST's stages read: the pose features' and checks' grey panorama
-    (:data:`service.photometric.MAX_ERP_WIDTH`) or the model's input, whichever is wider."""
-    return max(MAX_ERP_WIDTH, 2 * runtime.encoder.height)
+def read_width(model_height: int) -> int:
+    """The widest ERP that a reconstruction's stages read: the pose features' and checks' grey panorama
+    (:data:`service.photometric.MAX_ERP_WIDTH`) or the input of a model ``model_height`` rows high."""
+    return max(MAX_ERP_WIDTH, 2 * model_height)
 
 
 def sweep_per_baseline(runtime: ModelRuntime) -> tuple[float, float]:

@@ -204,12 +204,12 @@ def read_gaussians(path: str | Path):
     return g
 
 
-def read_panorama(path: str | Path):
+def read_panorama(path: str | Path, min_width: int | None = None):
     """An image file decoded as the API decodes an upload (:func:`service.images.decode_rgb`: 16-bit and
     float images scaled by their range, the EXIF orientation applied, truncated or non-2:1 files refused,
     the API's default pixel limits), as float32 RGB (H, W, 3) in [0, 1]; a bad file is a CliError naming it.
-    The file is decoded whole: the CLI reads it before it knows the model's width, which the API's reduced
-    decode of wide JPEGs (:func:`service.images.jpeg_reduction`) keeps."""
+    A JPEG wider than twice ``min_width`` is decoded at a reduced scale, as the API decodes it
+    (:func:`service.images.jpeg_reduction`); None decodes it whole."""
     import numpy as np
 
     from ..config import Settings
@@ -223,7 +223,7 @@ def read_panorama(path: str | Path):
     fields = Settings.model_fields
     try:
         rgb, _ = decode_rgb(data, str(path), max_pixels=fields["max_image_pixels"].default,
-                            min_height=fields["min_image_height"].default)
+                            min_height=fields["min_image_height"].default, min_width=min_width)
     except ServiceError as exc:
         raise CliError(exc.message) from None
     return rgb.astype(np.float32) / np.float32(255.0)

@@ -24,8 +24,9 @@ SCENE_LAYOUT = ('{"convention": "opencv"|"opengl", "frames": [{"name": N, "image
                 '"splits": [{"references": [N, N], "targets": [N, ...]}, ...]}')
 
 
-def load_pair(args: argparse.Namespace):
-    """(erp_a, erp_b, c2w_a, c2w_b, description) from a scene folder or two images (+ poses JSON).
+def load_pair(args: argparse.Namespace, min_width: int | None = None):
+    """(erp_a, erp_b, c2w_a, c2w_b, description) from a scene folder or two images (+ poses JSON); JPEGs wider
+    than twice ``min_width`` are decoded at a reduced scale (:func:`.common.read_panorama`).
 
     Two images without ``--poses`` give ``c2w_a = c2w_b = None``: the poses are estimated. The description names
     the inputs and, with poses, the ``convention`` they were written in (the poses returned are OpenCV c2w).
@@ -60,7 +61,7 @@ def load_pair(args: argparse.Namespace):
         if len(refs) != 2 or any(r not in scene.frames for r in refs):
             raise CliError(f"references {refs} are not two frames of {inputs[0]} (frames: {list(scene.frames)})")
         fa, fb = scene.frames[refs[0]], scene.frames[refs[1]]
-        return (read_panorama(fa.image_path), read_panorama(fb.image_path), fa.c2w, fb.c2w,  # as the API reads uploads
+        return (read_panorama(fa.image_path, min_width), read_panorama(fb.image_path, min_width), fa.c2w, fb.c2w,
                 {"scene": str(inputs[0]), "references": list(refs), "convention": scene.convention})
     if len(inputs) == 2:
         from ..errors import ServiceError
@@ -71,7 +72,7 @@ def load_pair(args: argparse.Namespace):
             raise CliError(f"{args.poses}: {exc.message}") from None
         except OSError as exc:
             raise CliError(f"cannot read {args.poses}: {exc}") from None
-        a, b = read_panorama(inputs[0]), read_panorama(inputs[1])  # as the API reads uploads
+        a, b = read_panorama(inputs[0], min_width), read_panorama(inputs[1], min_width)
         if poses is None:
             return a, b, None, None, {"images": [str(p) for p in inputs]}
         return a, b, poses.c2w_a, poses.c2w_b, {"images": [str(p) for p in inputs], "convention": poses.convention}
@@ -129,13 +130,17 @@ def empty_hint(info: dict) -> str:
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from ..photometric import MAX_ERP_WIDTH
     from ..pipeline import build_scene
+    from ..scenes import read_width
 
     inputs = [*args.inputs, args.poses, *(Path(p) / "scene.json" for p in args.inputs if Path(p).is_dir())]
     check_output(args.output, "-o", (".ply",), "a Gaussian PLY", inputs)
     if args.json is not None:
         check_output(args.json, "--json", (".json",), "the summary", inputs)
-    erp_a, erp_b, c2w_a, c2w_b, source = load_pair(args)  # bad inputs fail before any model build
+    # wide JPEGs at a reduced scale, as the API reads them for a model no wider than the pose features read; bad
+    # inputs fail before any model build
+    erp_a, erp_b, c2w_a, c2w_b, source = load_pair(args, MAX_ERP_WIDTH)
     options = pipeline_options(args)
     from ..errors import ServiceError
     from ..inputs import Poses, check_scale_options
@@ -175,6 +180,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     encoder = load_encoder(model, args.threads)
     load_s = time.perf_counter() - t0
+    if read_width(encoder.height) > MAX_ERP_WIDTH:  # a wider model reads more columns
+        erp_a, erp_b, *_ = load_pair(args, read_width(encoder.height))
     say(f"reconstructing {erp_a.shape[1]}x{erp_a.shape[0]} + {erp_b.shape[1]}x{erp_b.shape[0]} panoramas")
     t0 = time.perf_counter()
     try:

@@ -104,7 +104,7 @@ async def create_scene(
     if parsed_poses is not None:  # estimated poses are checked once estimated
         check_sweep_range(parsed_poses.c2w_a, parsed_poses.c2w_b, parsed_options, work.sweep_per_baseline(runtime))
     data_a, data_b = await image_a.read(), await image_b.read()
-    limits = work.UploadLimits(settings.max_image_pixels, settings.min_image_height, work.read_width(runtime))
+    limits = work.UploadLimits(settings.max_image_pixels, settings.min_image_height, work.read_width(runtime.encoder.height))
     await anyio.to_thread.run_sync(work.precheck_uploads, data_a, data_b, limits)
     scene_id = await anyio.to_thread.run_sync(
         work.scene_id_for, runtime.sha256, data_a, data_b, parsed_poses, parsed_options)

@@ -616,3 +616,41 @@ def test_a_ply_written_to_a_symlink_goes_through_it(tmp_path):
     (tmp_path / "link.ply").symlink_to(tmp_path / "real.ply")
     write_ply(tmp_path / "link.ply", toy_scene(1, n=5))
     assert (tmp_path / "link.ply").is_symlink() and len(read_ply(tmp_path / "real.ply")) == 5
+
+
+def test_reconstruct_reads_wide_jpegs_as_the_api_does(tmp_path, model_path, monkeypatch):
+    """A 4096-wide JPEG is read at 2048 columns, what the API decodes for a model no wider than the pose features
+    read; a wider model reads the pair again at its own width."""
+    import argparse
+    import io
+
+    from PIL import Image
+
+    from service import scenes
+    from service.cli import reconstruct
+    from service.images import decode_rgb
+    from tests.service._support import POSES, panorama
+
+    for name, seed in (("a.jpg", 7), ("b.jpg", 8)):
+        big = Image.open(io.BytesIO(panorama(seed=seed))).convert("RGB").resize((4096, 2048), Image.Resampling.BILINEAR)
+        big.save(tmp_path / name, quality=90)
+    (tmp_path / "poses.json").write_text(POSES)
+    args = argparse.Namespace(inputs=[str(tmp_path / "a.jpg"), str(tmp_path / "b.jpg")], poses=str(tmp_path / "poses.json"))
+    a, _, _, _, _ = reconstruct.load_pair(args, 2048)
+    api, _ = decode_rgb((tmp_path / "a.jpg").read_bytes(), "image_a", max_pixels=1 << 25, min_height=32, min_width=2048)
+    assert api.shape == (1024, 2048, 3) and np.array_equal(np.round(a * 255).astype(np.uint8), api)
+
+    widths = []
+    load_pair = reconstruct.load_pair
+
+    def recorded(args, min_width=None):
+        widths.append(min_width)
+        return load_pair(args, min_width)
+
+    monkeypatch.setattr(reconstruct, "load_pair", recorded)
+    argv = ["reconstruct", str(tmp_path / "a.jpg"), str(tmp_path / "b.jpg"), "--poses", str(tmp_path / "poses.json"),
+            "--model", str(model_path), "--no-build", "-o", str(tmp_path / "scene.ply")]
+    assert cli.main(argv) == 0 and widths == [2048]  # the test model reads 256 columns
+    widths.clear()
+    monkeypatch.setattr(scenes, "read_width", lambda model_height: 2200)  # as a model 1100 rows high would read
+    assert cli.main(argv) == 0 and widths == [2048, 2200]
