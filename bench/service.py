@@ -78,13 +78,14 @@ VIEWS = (("GET ERP render, 1024 wide", {"width": 1024}),
                                                        "fov_deg": 90.0}))
 
 
-def post_inputs(height: int) -> tuple[bytes, bytes, list, list]:
-    """(PNG A, PNG B, c2w A, c2w B) for a POST: the dev scene's first split at ``height`` if present, else noise."""
+def post_inputs(height: int, fmt: str = "PNG") -> tuple[bytes, bytes, list, list]:
+    """(image A, image B, c2w A, c2w B) for a POST, as PNG or JPEG (quality 92, what cameras write): the dev
+    scene's first split at ``height`` if present, else noise."""
     from PIL import Image
 
     def encode(arr: np.ndarray) -> bytes:
         buf = io.BytesIO()
-        Image.fromarray(arr).save(buf, format="PNG")
+        Image.fromarray(arr).save(buf, format=fmt, **({"quality": 92} if fmt == "JPEG" else {}))
         return buf.getvalue()
 
     scene = DEV_SCENE / "scene.json"
@@ -142,6 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="omnisplat-bench service", description=__doc__.splitlines()[0])
     p.add_argument("--model", type=Path, required=True, help="ONNX model to serve")
     p.add_argument("--height", type=int, default=512, help="panorama height (width = 2 x height)")
+    p.add_argument("--format", choices=("png", "jpeg"), default="png", help="how the panoramas are sent")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--json", type=Path, help="write the results here too")
     p.add_argument("--readme", type=Path, action="append", default=[],
@@ -164,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
             except RuntimeError as exc:
                 raise SystemExit(str(exc)) from None
             ready_s = time.perf_counter() - t0
-            a, b, ca, cb = post_inputs(args.height)
+            a, b, ca, cb = post_inputs(args.height, args.format.upper())
             poses = json.dumps({"convention": "opencv", "c2w": [ca, cb]})
             post_s, stage_sums, sid, n = [], {}, None, 0
             render_s = {label: [] for label, _ in VIEWS}
@@ -173,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
                 def post(fields: dict, far: float, label: str) -> dict:
                     """One POST of the pair; a distinct far plane -> a distinct scene id -> a real reconstruction."""
                     t = time.perf_counter()
-                    r = c.post("/v1/scenes", files={"image_a": ("a.png", a), "image_b": ("b.png", b)},
+                    r = c.post("/v1/scenes", files={"image_a": (f"a.{args.format}", a), "image_b": (f"b.{args.format}", b)},
                                data={**fields, "options": json.dumps({"far": far})})
                     seconds = time.perf_counter() - t
                     r.raise_for_status()
@@ -203,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
                 info = c.get("/v1/info").json()
             result = {
                 "model": {k: info["model"].get(k) for k in ("name", "version", "sha256")},
-                "inputs": f"two {args.height}x{2 * args.height} PNG panoramas"
+                "inputs": f"two {args.height}x{2 * args.height} {args.format.upper()} panoramas"
                           + (" (m3d_bedroom, resized)" if (DEV_SCENE / "scene.json").is_file() else " (synthetic)"),
                 "num_gaussians": n,
                 "ready_seconds": round(ready_s, 2),
@@ -231,10 +233,11 @@ def main(argv: list[str] | None = None) -> int:
     print(table)
     if args.json:
         args.json.write_text(text + "\n")
-    name = f"service-{args.height}x{2 * args.height}"
-    start, end = readme_markers(name, f"service --model MODEL.onnx --height {args.height}")
+    name = f"service-{args.height}x{2 * args.height}" + ("-jpeg" if args.format == "jpeg" else "")
+    command = f"service --model MODEL.onnx --height {args.height}" + (" --format jpeg" if args.format == "jpeg" else "")
+    start, end = readme_markers(name, command)
     for readme in args.readme:
-        if not update_readme(readme, f"{start}\n{table}\n{end}", name, f"service --model MODEL.onnx --height {args.height}"):
+        if not update_readme(readme, f"{start}\n{table}\n{end}", name, command):
             print(f"{readme}: no {start.split(' (')[0]} marker; not written", file=sys.stderr)
     return 0
 

@@ -120,7 +120,7 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
     timings["decode"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     c2w_a, c2w_b, poses_json = poses_for_scene(erp_a, erp_b, poses, pose_options,
-                                               (image_a, image_b))  # features at full resolution; XMP tilt
+                                               (image_a, image_b))  # features 2048 wide, before the model resample; XMP tilt
     timings["poses"] = time.perf_counter() - t0
     if poses is None:
         check_estimated_scale(c2w_a, c2w_b, pose_options)

@@ -98,6 +98,9 @@ def test_a_camera_jpeg_with_an_mpf_second_image_gives_its_primary_image(second):
     assert (header.width, header.height) == (128, 64)
     rgb, _ = decode_rgb(data, "image_a", **LIMITS)
     assert np.abs(rgb.astype(int) - shown).mean() < 2.0
+    half, header = decode_rgb(data, "image_a", **LIMITS, min_width=64)  # the primary image at a reduced scale too
+    assert half.shape == (32, 64, 3) and header.reduction == 2
+    assert np.abs(half.astype(int) - np.asarray(Image.fromarray(shown).resize((64, 32), Image.Resampling.BOX))).mean() < 2.0
 
 
 # APNG, animated WebP and multi-page TIFF stay refused: test_hardening_requests.test_animated_or_multi_page_images_are_422
