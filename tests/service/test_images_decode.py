@@ -244,3 +244,11 @@ def test_the_pixel_cap_counts_what_a_reduced_jpeg_decodes():
     small_cap = 524_288 // images.MAX_REDUCED_JPEG_FACTOR - 1
     with pytest.raises(PayloadTooLarge, match=f"{images.MAX_REDUCED_JPEG_FACTOR * small_cap} for a JPEG"):
         check_header(jpeg, "image_a", max_pixels=small_cap, min_height=32, min_width=256)
+
+
+def test_a_truncated_jpeg_is_refused_at_a_reduced_scale_too():
+    """libjpeg reads every block at any scale: a cut file is a 400, not an image with grey rows."""
+    data = with_orientation(upright(256), 1, "JPEG")
+    for cut in (len(data) // 2, len(data) - 50):
+        with pytest.raises(InvalidImage, match="truncated"):
+            decode_rgb(data[:cut], "image_a", **LIMITS, min_width=128)
