@@ -230,9 +230,9 @@ def test_a_wide_jpeg_decodes_at_a_reduced_scale_upright(orientation):
 
 
 def test_the_pixel_cap_counts_what_a_reduced_jpeg_decodes():
-    """A JPEG over the pixel cap passes when its reduced decode fits the cap and it declares at most
-    MAX_REDUCED_JPEG_FACTOR times the cap; a PNG of the same size, the JPEG read whole, or one declaring more is a
-    413 that names the limits."""
+    """A baseline JPEG over the pixel cap passes when its reduced decode fits the cap and it declares at most
+    MAX_REDUCED_JPEG_FACTOR times the cap; a PNG of the same size, the JPEG read whole, one declaring more or a
+    progressive one is a 413 that names the limits."""
     shown = upright(512)  # 1024 x 512 = 524,288 pixels
     jpeg, png = with_orientation(shown, 1, "JPEG"), with_orientation(shown, 1, "PNG")
     cap = 200_000
@@ -242,8 +242,14 @@ def test_the_pixel_cap_counts_what_a_reduced_jpeg_decodes():
         with pytest.raises(PayloadTooLarge, match=f"limit of {cap} pixels$"):
             check_header(data, "image_a", max_pixels=cap, min_height=32, min_width=min_width)
     small_cap = 524_288 // images.MAX_REDUCED_JPEG_FACTOR - 1
-    with pytest.raises(PayloadTooLarge, match=f"{images.MAX_REDUCED_JPEG_FACTOR * small_cap} for a JPEG"):
+    with pytest.raises(PayloadTooLarge, match=f"{images.MAX_REDUCED_JPEG_FACTOR * small_cap} for a baseline JPEG"):
         check_header(jpeg, "image_a", max_pixels=small_cap, min_height=32, min_width=256)
+    buf = io.BytesIO()  # a progressive JPEG holds the whole image's coefficients at any scale: its header counts
+    Image.fromarray(shown).save(buf, format="JPEG", progressive=True)
+    with pytest.raises(PayloadTooLarge, match=f"limit of {cap} pixels$"):
+        check_header(buf.getvalue(), "image_a", max_pixels=cap, min_height=32, min_width=256)
+    rgb, header = decode_rgb(buf.getvalue(), "image_a", max_pixels=1 << 20, min_height=32, min_width=256)
+    assert rgb.shape == (128, 256, 3) and header.reduction == 4  # within the cap it still decodes reduced
 
 
 def test_a_truncated_jpeg_is_refused_at_a_reduced_scale_too():
