@@ -8,6 +8,8 @@ import tracemalloc
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from PIL import Image
 
 from service import images
@@ -258,3 +260,15 @@ def test_a_truncated_jpeg_is_refused_at_a_reduced_scale_too():
     for cut in (len(data) // 2, len(data) - 50):
         with pytest.raises(InvalidImage, match="truncated"):
             decode_rgb(data[:cut], "image_a", **LIMITS, min_width=128)
+
+
+@given(height=st.integers(1, 40_000), min_width=st.integers(1, 20_000))
+def test_jpeg_reduction_is_the_coarsest_exact_scale_that_keeps_the_width(height, min_width):
+    """Whatever the size: the divisor divides both sides (the decode stays exactly 2:1), keeps at least
+    ``min_width`` columns unless it is 1, and no coarser scale of libjpeg's would do both."""
+    width = 2 * height
+    r = images.jpeg_reduction("JPEG", width, height, min_width)
+    assert r in (1, *images.JPEG_REDUCTIONS) and width % r == 0 and height % r == 0
+    assert r == 1 or width // r >= min_width
+    assert not any(q > r and width % q == 0 and height % q == 0 and width // q >= min_width
+                   for q in images.JPEG_REDUCTIONS)
