@@ -477,7 +477,7 @@ def encode(rgb: np.ndarray, fmt: str) -> bytes:
 
     The PNG's deflate stream uses zlib's run-length strategy after PNG's own row filters: on the service's
     renders 10-17% fewer bytes than zlib's default strategy in 20-45% less time (a 1280x720 view 576 -> 476 kB,
-    97-99 -> 77-79 ms; a 2048-wide ERP 1.61 -> 1.41 MB, 271-277 -> 155-179 ms), and a third fewer for masks.
+    93-99 -> 57-79 ms; a 2048-wide ERP 1.61 -> 1.41 MB, 258-277 -> 155-179 ms), and a third fewer for masks.
     """
     buf = io.BytesIO()
     im = Image.fromarray(np.ascontiguousarray(rgb))
