@@ -11,8 +11,9 @@ import * as GaussianSplats3D from '@mkkellogg/gaussian-splats-3d';
 const config = JSON.parse(document.getElementById('omnisplat-config').textContent);
 const query = new URLSearchParams(window.location.search);
 const status = document.getElementById('status');
+const LOADER_PROCESSING = 1; // GaussianSplats3D's LoaderStatus.Processing (not exported by the module)
 window.viewerReady = false;
-window.viewerInfo = { splatCount: null, error: null, loadSeconds: null };
+window.viewerInfo = { splatCount: null, error: null, loadSeconds: null, downloadPercent: null };
 
 function fail(message) {
   window.viewerInfo.error = String(message);
@@ -160,6 +161,16 @@ async function main() {
     format: GaussianSplats3D.SceneFormat.Ply,
     showLoadingUI: false,
     progressiveLoad: false,
+    // a scene's PLY is tens of MB: the panel says how far its download and parsing have come
+    onProgress: (percent, label, stage) => {
+      if (stage === LOADER_PROCESSING) {
+        status.textContent = 'building the splats\u2026';
+      } else {
+        window.viewerInfo.downloadPercent = percent;
+        status.textContent = Number.isFinite(percent) ? `downloading gaussians.ply: ${Math.round(percent)}%`
+          : 'downloading gaussians.ply\u2026'; // no Content-Length: no share to show
+      }
+    },
   });
   viewer.start();
   window.viewerInfo.loadedSeconds = (performance.now() - t0) / 1000;

@@ -169,6 +169,7 @@ def check_viewer_matches_api(served, out_dir: Path, yaws=YAWS) -> None:
     assert report["failed_requests"] == [], report["failed_requests"]
     assert len(report["views"]) == len(yaws)
     assert report["views"][0]["cross_origin_isolated"] is True  # COOP/COEP: SharedArrayBuffer sort
+    assert report["views"][0]["download_percent"] == 100  # the panel showed the PLY's download to its end
     for view in report["views"]:
         assert view["error"] is None, view
         assert view["splat_count"] == report["ply_vertex_count"], view

@@ -81,6 +81,7 @@ try {
       const info = await page.evaluate(() => window.viewerInfo);
       view.splat_count = info.splatCount;
       view.load_seconds = info.loadSeconds;
+      view.download_percent = info.downloadPercent;
       view.error = info.error;
       view.screenshot = path.join(args.out_dir, `viewer-${pose.name}.png`);
       await page.screenshot({ path: view.screenshot, clip: { x: 0, y: 0, width, height } });
