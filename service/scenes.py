@@ -55,7 +55,7 @@ def storing(fn: Callable[..., T], *args: Any) -> T:
 
 def links(scene_id: str) -> dict[str, str]:
     base = f"/v1/scenes/{scene_id}"
-    return {"self": base, "render": f"{base}/render", "ply": f"{base}/gaussians.ply",
+    return {"self": base, "render": f"{base}/render", "ply": f"{base}/gaussians.ply", "spz": f"{base}/gaussians.spz",
             "selections": f"{base}/selections", "segments": f"{base}/segments", "edits": f"{base}/edits"}
 
 
@@ -242,3 +242,14 @@ def ply_stream(store: SceneStore, scene_id: str) -> tuple[int, Iterator[bytes]]:
     from rasterizer.ply import ply_stream as stream
 
     return stream(store.gaussians(scene_id))
+
+
+def spz_file(store: SceneStore, scene_id: str) -> bytes:
+    """The scene's Gaussians as an SPZ file (:mod:`rasterizer.spz`: about a fifth of the PLY's bytes, made in
+    about 0.6 s for 500k Gaussians); a scene SPZ's 24-bit positions cannot hold is a 422 ``spz_unsupported``."""
+    from rasterizer.spz import SpzError, spz_bytes
+
+    try:
+        return spz_bytes(store.gaussians(scene_id))
+    except SpzError as exc:
+        raise ServiceError(str(exc), code="spz_unsupported", status=422) from None

@@ -20,6 +20,7 @@ class Links(BaseModel):
     self: str
     render: str
     ply: str
+    spz: str
 
 
 class SceneCreated(BaseModel):

@@ -113,6 +113,7 @@ async def create_edit(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, r
     meta, created = await gate.run(storing, work.create_edit, store, scene_id, request)
     response.headers["Location"] = f"/v1/scenes/{meta['id']}"
     base = f"/v1/scenes/{meta['id']}"
-    links = {"self": base, "render": f"{base}/render", "ply": f"{base}/gaussians.ply", "parent": f"/v1/scenes/{scene_id}"}
+    links = {"self": base, "render": f"{base}/render", "ply": f"{base}/gaussians.ply", "spz": f"{base}/gaussians.spz",
+             "parent": f"/v1/scenes/{scene_id}"}
     return SceneCreated(id=meta["id"], num_gaussians=meta["num_gaussians"], timings=meta.get("timings", {}),
                         links=links, cached=not created)

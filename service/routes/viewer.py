@@ -22,7 +22,7 @@ import json
 import logging
 import os
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 from urllib.parse import urlencode
 
 import anyio.to_thread
@@ -85,6 +85,7 @@ def _page(scene_id: str, meta: dict) -> str:
     config = {
         "scene_id": scene_id,
         "ply": f"/v1/scenes/{scene_id}/gaussians.ply",
+        "spz": f"/v1/scenes/{scene_id}/gaussians.spz",  # loaded instead with ?format=spz
         "c2w": [float(v) for row in c2w_a for v in row] if c2w_a else None,  # reference A, OpenCV, row-major
         "fov_deg": DEFAULT_FOV_DEG,  # horizontal, the render API's perspective default
         "num_gaussians": meta.get("num_gaussians"),
@@ -95,6 +96,7 @@ def _page(scene_id: str, meta: dict) -> str:
     return (template.replace("{{CONFIG}}", blob)
             .replace("{{TITLE}}", html.escape(f"omnisplat viewer - scene {scene_id}"))
             .replace("{{PLY}}", html.escape(config["ply"]))
+            .replace("{{SPZ}}", html.escape(config["spz"]))
             .replace("{{COUNT}}", html.escape(str(config["num_gaussians"]))))
 
 
@@ -105,8 +107,9 @@ def _page(scene_id: str, meta: dict) -> str:
                 "background (the same as the render API's default plain compositing). Orbit with the mouse, "
                 "fly with W/A/S/D/Q/E. The query may place the camera: `c2w` (16 or 12 numbers, row-major, "
                 "OpenCV), `fov_deg` (horizontal), `width`, `height` (canvas pixels), `bare=1` (no info panel); "
-                "any other parameter is a 422. 503 `viewer_unavailable` when the npm packages are not installed "
-                "(`npm ci`).",
+                "`format=spz` loads `gaussians.spz` instead (a fifth of the bytes, for slow links; the browser "
+                "takes longer to parse it); any other parameter is a 422. 503 `viewer_unavailable` when the "
+                "npm packages are not installed (`npm ci`).",
     responses={200: {"content": {"text/html": {}}, "description": "the viewer page"},
                303: {"description": "with `key`: this URL without it, and a cookie holding the key"},
                **error_responses(400, 404, 422, 503)},
@@ -126,8 +129,11 @@ async def viewer_page(request: Request, scene_id: SceneId, store: StoreDep, sett
                                         ] = None,
                       bare: Annotated[str | None, Query(description="`1`: the canvas alone, without the info panel "
                                                                     "(read by the page)")] = None,
+                      file: Annotated[Literal["ply", "spz"], Query(
+                          alias="format", description="which file the page loads: the PLY (default) or the SPZ, a "
+                                                      "fifth of the bytes (read by the page)")] = "ply",
                       ) -> Response:
-    del c2w, fov_deg, width, height, bare  # declared so that the query check accepts them; the page's script reads them
+    del c2w, fov_deg, width, height, bare, file  # declared so that the query check accepts them; the page's script reads them
     try:
         key = query_key(request.scope).decode("utf-8", "replace") if key is not None else None
     except DuplicateKey as exc:

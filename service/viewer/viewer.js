@@ -1,8 +1,11 @@
-// omnisplat viewer page: GaussianSplats3D (three.js) on the scene's gaussians.ply.
+// omnisplat viewer page: GaussianSplats3D (three.js) on the scene's gaussians.ply, or with ?format=spz on its
+// gaussians.spz (a fifth of the bytes, for slow links; parsing it takes longer).
 //
 // Camera: OpenCV camera-to-world c2w (x right, y down, z forward), row-major 16 numbers, from the query
 // (?c2w=...&fov_deg=...&width=...&height=...) or reference A's pose; three.js camera world matrix =
-// c2w @ diag(1, -1, -1, 1). fov_deg is horizontal (as the render API); three.js takes a vertical one.
+// c2w @ diag(1, -1, -1, 1). SPZ holds the scene in a RUB world (the scene's OpenCV world turned by
+// diag(1, -1, -1)): there the camera's world matrix is diag(1, -1, -1, 1) @ c2w @ diag(1, -1, -1, 1).
+// fov_deg is horizontal (as the render API); three.js takes a vertical one.
 // Background black: the canvas is the plain front-to-back composite over black, as the render API's
 // default (compositing=plain). For tests: window.viewerReady, window.viewerInfo.
 import * as THREE from 'three';
@@ -11,6 +14,7 @@ import * as GaussianSplats3D from '@mkkellogg/gaussian-splats-3d';
 const config = JSON.parse(document.getElementById('omnisplat-config').textContent);
 const query = new URLSearchParams(window.location.search);
 const status = document.getElementById('status');
+const SPZ = query.get('format') === 'spz'; // the route refuses any other value than ply and spz
 const LOADER_PROCESSING = 1; // GaussianSplats3D's LoaderStatus.Processing (not exported by the module)
 window.viewerReady = false;
 window.viewerInfo = { splatCount: null, error: null, loadSeconds: null, downloadPercent: null };
@@ -44,9 +48,10 @@ function verticalFov(hfovDeg, aspect) {
 const frame = () => new Promise((resolve) => requestAnimationFrame(() => resolve()));
 
 // OpenCV c2w (row-major 16) -> three.js camera position, up, rotation and orbit centre (1 unit ahead):
-// world matrix = c2w @ diag(1, -1, -1, 1).
+// world matrix = c2w @ diag(1, -1, -1, 1), turned into SPZ's world when the page shows the SPZ.
 function cameraPose(c2w) {
   const m = new THREE.Matrix4().fromArray(c2w).transpose(); // fromArray is column-major
+  if (SPZ) m.premultiply(new THREE.Matrix4().makeScale(1, -1, -1));
   m.multiply(new THREE.Matrix4().makeScale(1, -1, -1));
   const position = new THREE.Vector3().setFromMatrixPosition(m);
   const up = new THREE.Vector3().setFromMatrixColumn(m, 1).normalize();
@@ -157,8 +162,9 @@ async function main() {
   });
 
   const t0 = performance.now();
-  await viewer.addSplatScene(config.ply, {
-    format: GaussianSplats3D.SceneFormat.Ply,
+  const file = SPZ ? 'gaussians.spz' : 'gaussians.ply';
+  await viewer.addSplatScene(SPZ ? config.spz : config.ply, {
+    format: SPZ ? GaussianSplats3D.SceneFormat.Spz : GaussianSplats3D.SceneFormat.Ply,
     showLoadingUI: false,
     progressiveLoad: false,
     // a scene's PLY is tens of MB: the panel says how far its download and parsing have come
@@ -167,8 +173,8 @@ async function main() {
         status.textContent = 'building the splats\u2026';
       } else {
         window.viewerInfo.downloadPercent = percent;
-        status.textContent = Number.isFinite(percent) ? `downloading gaussians.ply: ${Math.round(percent)}%`
-          : 'downloading gaussians.ply\u2026'; // no Content-Length: no share to show
+        status.textContent = Number.isFinite(percent) ? `downloading ${file}: ${Math.round(percent)}%`
+          : `downloading ${file}\u2026`; // no Content-Length: no share to show
       }
     },
   });

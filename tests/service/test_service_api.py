@@ -84,6 +84,28 @@ def test_round_trip_post_render_ply(client, live, scene_id):
     assert client.get(f"/v1/scenes/{scene_id}/gaussians.ply").content == r.content
 
 
+def test_spz_download_holds_the_plys_gaussians(client, scene_id):
+    from rasterizer.ply import read_ply
+    from rasterizer.spz import read_spz
+
+    meta = client.get(f"/v1/scenes/{scene_id}").json()
+    assert meta["links"]["spz"] == f"/v1/scenes/{scene_id}/gaussians.spz"
+    r = client.get(f"/v1/scenes/{scene_id}/gaussians.spz")
+    assert r.status_code == 200 and r.headers["content-type"] == "application/octet-stream"
+    assert r.headers["etag"] == f'"{scene_id}-spz"'
+    ply = client.get(f"/v1/scenes/{scene_id}/gaussians.ply").content
+    assert len(r.content) < len(ply) / 3
+    spz, full = read_spz(r.content), read_ply(ply)
+    assert len(spz) == len(full) == meta["num_gaussians"]
+    assert np.abs(spz.means - full.means).max() < 1e-4 and np.abs(spz.opacities - full.opacities).max() < 0.002
+    again = client.get(f"/v1/scenes/{scene_id}/gaussians.spz", headers={"If-None-Match": r.headers["etag"]})
+    assert again.status_code == 304 and not again.content
+    head = client.head(f"/v1/scenes/{scene_id}/gaussians.spz")
+    assert head.status_code == 200 and int(head.headers["content-length"]) == len(r.content) and not head.content
+    missing = client.get(f"/v1/scenes/{'0' * 32}/gaussians.spz")
+    assert missing.status_code == 404 and missing.json()["error"]["code"] == "scene_not_found"
+
+
 def test_same_inputs_same_id(client, scene_id):
     r = post_scene(client, panorama(seed=1), panorama(seed=1, shift=5))
     assert r.status_code == 201 and r.json()["id"] == scene_id and r.json()["cached"] is True
@@ -129,7 +151,7 @@ def test_delete(client):
     r = post_scene(client, panorama(seed=7), panorama(seed=8))
     sid = r.json()["id"]
     assert client.delete(f"/v1/scenes/{sid}").status_code == 204
-    for path in (f"/v1/scenes/{sid}", f"/v1/scenes/{sid}/gaussians.ply"):
+    for path in (f"/v1/scenes/{sid}", f"/v1/scenes/{sid}/gaussians.ply", f"/v1/scenes/{sid}/gaussians.spz"):
         r = client.get(path)
         assert r.status_code == 404 and r.json()["error"]["code"] == "scene_not_found"
     assert client.delete(f"/v1/scenes/{sid}").status_code == 404
@@ -247,7 +269,7 @@ BAD_IDS = ["nothex", "0123456789ABCDEF0123456789ABCDEF", "0" * 31, "0" * 33, "..
 @pytest.mark.parametrize("bad", BAD_IDS)
 def test_malformed_scene_ids(client, bad):
     for method, path in (("GET", f"/v1/scenes/{bad}"), ("DELETE", f"/v1/scenes/{bad}"),
-                         ("GET", f"/v1/scenes/{bad}/gaussians.ply"),
+                         ("GET", f"/v1/scenes/{bad}/gaussians.ply"), ("GET", f"/v1/scenes/{bad}/gaussians.spz"),
                          ("GET", f"/v1/scenes/{bad}/render?c2w={IDENTITY}")):
         r = client.request(method, path)
         assert r.status_code in (404, 422), (path, r.status_code)

@@ -5,8 +5,10 @@ scene.json poses); Debian's chromium (software GL) driven by puppeteer-core (``v
 opens the viewer at frame 01's pose turned by several yaws and each screenshot is compared with the
 API's perspective render of the same pose (default compositing = plain, over black): PSNR >= 35 dB.
 Any console error, request leaving 127.0.0.1, failed request or a loaded splat count different from
-the PLY's vertex count fails. ``scripts/test.sh`` installs chromium and the npm packages; this test is
-never skipped. The same check runs on a scene POSTed from 2048x1024 panoramas (zind_room09_2k, two yaws).
+the PLY's vertex count fails. With ``format=spz`` the page loads ``gaussians.spz`` (the same
+Gaussians quantised, in SPZ's RUB world) and must match as well. ``scripts/test.sh`` installs
+chromium and the npm packages; this test is never skipped. The same check runs on a scene POSTed
+from 2048x1024 panoramas (zind_room09_2k, two yaws).
 
 Also runnable as a script for the README figures:
 
@@ -102,11 +104,14 @@ def target_pose(scene: dict) -> np.ndarray:
 
 
 def measure(server_url: str, scene_id: str, c2w_base: np.ndarray, out_dir: Path, yaws=YAWS,
-            page_shot: Path | None = None, page_shot_at_reference_a: bool = False, timeout_s: int = 240) -> dict:
-    """Open the viewer at each yawed pose, screenshot, compare with the API render; return a report."""
+            page_shot: Path | None = None, page_shot_at_reference_a: bool = False, timeout_s: int = 240,
+            file_format: str = "ply") -> dict:
+    """Open the viewer (loading the scene's ``file_format`` file) at each yawed pose, screenshot, compare with
+    the API render; return a report."""
     poses = [{"name": f"yaw{yaw}", "c2w": yawed(c2w_base, yaw).ravel().tolist()} for yaw in yaws]
     args = {"base_url": server_url, "scene_id": scene_id, "poses": poses, "width": WIDTH, "height": HEIGHT,
-            "fov_deg": FOV_DEG, "out_dir": str(out_dir), "chromium": find_chromium(), "timeout_s": timeout_s}
+            "fov_deg": FOV_DEG, "out_dir": str(out_dir), "chromium": find_chromium(), "timeout_s": timeout_s,
+            "format": file_format}
     if page_shot is not None:
         query = "" if page_shot_at_reference_a else "c2w=" + ",".join(repr(v) for v in c2w_base.ravel().tolist())
         args["page_shot"] = {"path": str(page_shot), "width": 720, "height": 450, "query": query}
@@ -153,14 +158,15 @@ def zind2k(tmp_path_factory, zind2k_dir):
 
 # -- the browser test --------------------------------------------------------------------------------
 
-def check_viewer_matches_api(served, out_dir: Path, yaws=YAWS) -> None:
-    """The browser check of the module docstring on a served scene, at its first target's pose turned by ``yaws``."""
+def check_viewer_matches_api(served, out_dir: Path, yaws=YAWS, file_format: str = "ply") -> None:
+    """The browser check of the module docstring on a served scene, at its first target's pose turned by ``yaws``,
+    the page loading the scene's ``file_format`` file."""
     assert shutil.which("node"), "node is not installed: run `bash scripts/test.sh` (installs nodejs, npm)"
     assert Path(find_chromium()).exists(), "chromium is not installed: run `bash scripts/test.sh`"
     assert not viewer_route.missing_assets(), "viewer npm packages missing: run `npm ci` (scripts/test.sh does)"
     server, scene_id, scene = served
     t0 = time.perf_counter()
-    report = measure(server.url, scene_id, target_pose(scene), out_dir, yaws=yaws)
+    report = measure(server.url, scene_id, target_pose(scene), out_dir, yaws=yaws, file_format=file_format)
     elapsed = time.perf_counter() - t0
     print(json.dumps({"seconds": elapsed, **report}, indent=1))
     assert report["console_errors"] == [], report["console_errors"]
@@ -169,7 +175,7 @@ def check_viewer_matches_api(served, out_dir: Path, yaws=YAWS) -> None:
     assert report["failed_requests"] == [], report["failed_requests"]
     assert len(report["views"]) == len(yaws)
     assert report["views"][0]["cross_origin_isolated"] is True  # COOP/COEP: SharedArrayBuffer sort
-    assert report["views"][0]["download_percent"] == 100  # the panel showed the PLY's download to its end
+    assert report["views"][0]["download_percent"] == 100  # the panel showed the file's download to its end
     for view in report["views"]:
         assert view["error"] is None, view
         assert view["splat_count"] == report["ply_vertex_count"], view
@@ -178,6 +184,11 @@ def check_viewer_matches_api(served, out_dir: Path, yaws=YAWS) -> None:
 
 def test_viewer_matches_api_render_in_chromium(m3d, tmp_path):
     check_viewer_matches_api(m3d, tmp_path)
+
+
+def test_viewer_on_the_spz_matches_api_render_in_chromium(m3d, tmp_path):
+    """``format=spz``: the quantised file in SPZ's RUB world, the page's camera turned into it."""
+    check_viewer_matches_api(m3d, tmp_path, yaws=(0, 90), file_format="spz")
 
 
 def test_viewer_matches_api_render_at_2048_input(zind2k, tmp_path):
@@ -196,12 +207,17 @@ def test_viewer_page_config_headers_and_assets(m3d):
         assert r.headers["cross-origin-embedder-policy"] == "require-corp"
         page = r.text
         assert f'href="/v1/scenes/{scene_id}/gaussians.ply"' in page
+        assert f'href="/v1/scenes/{scene_id}/gaussians.spz"' in page
         config = json.loads(re.search(r'id="omnisplat-config" type="application/json">(.*?)</script>', page,
                                       re.S).group(1))
         frames = {f["name"]: f for f in scene["frames"]}
         ref_a = frames[scene["splits"][0]["references"][0]]["c2w"]
         assert np.allclose(np.reshape(config["c2w"], (4, 4)), ref_a)  # starts at reference A
         assert config["ply"] == f"/v1/scenes/{scene_id}/gaussians.ply" and config["fov_deg"] == 90.0
+        assert config["spz"] == f"/v1/scenes/{scene_id}/gaussians.spz"  # loaded with ?format=spz
+        assert client.get(f"/v1/scenes/{scene_id}/viewer", params={"format": "spz"}).status_code == 200
+        bad = client.get(f"/v1/scenes/{scene_id}/viewer", params={"format": "splat"})
+        assert bad.status_code == 422 and "format" in bad.text
         # no CDN: every script/style/import comes from this server
         srcs = re.findall(r'(?:src|href)="([^"]+)"', page) + re.findall(r'"(/[^"]+\.js)"', page)
         assert srcs and all(s.startswith("/") or s.startswith("data:") for s in srcs), srcs
@@ -252,6 +268,7 @@ def main(argv: list[str] | None = None) -> int:
                                                   "(a palette PNG)")
     p.add_argument("--page-shot-at-reference-a", action="store_true", help="... at the page's default pose instead")
     p.add_argument("--out", type=Path, help="keep the screenshots here")
+    p.add_argument("--format", choices=("ply", "spz"), default="ply", help="the file the page loads")
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -261,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         with scene_server(model, tmp / "store", DEV_DATA / "m3d_bedroom") as (server, scene_id, scene):
             report = measure(server.url, scene_id, target_pose(scene), out, page_shot=args.page_shot,
-                             page_shot_at_reference_a=args.page_shot_at_reference_a)
+                             page_shot_at_reference_a=args.page_shot_at_reference_a, file_format=args.format)
         if args.page_shot:  # small enough to commit
             Image.open(args.page_shot).convert("RGB").quantize(256).save(args.page_shot, optimize=True)
         report["total_seconds"] = time.perf_counter() - t0

@@ -4,7 +4,8 @@
 //   node tests/service/viewer_browser.mjs '{"base_url": "http://127.0.0.1:PORT", "scene_id": "...",
 //     "poses": [{"name": "yaw0", "c2w": [16 numbers]}], "width": 640, "height": 480, "fov_deg": 90,
 //     "out_dir": "OUT_DIR", "chromium": "/usr/bin/chromium", "timeout_s": 120,
-//     "reload": false, "page_shot": {"path": "page.png", "width": 960, "height": 600, "query": "c2w=..."}}'
+//     "reload": false, "format": "ply" (or "spz": the page's ?format=),
+//     "page_shot": {"path": "page.png", "width": 960, "height": 600, "query": "c2w=..."}}'
 //
 // Prints one JSON object: {"views": [{"name", "screenshot", "splat_count", "load_seconds", "error"}],
 // "console_errors": [...], "page_errors": [...], "external_requests": [...], "failed_requests": [...]}.
@@ -68,6 +69,7 @@ try {
           c2w: pose.c2w.join(','), fov_deg: String(args.fov_deg || 90),
           width: String(width), height: String(height), bare: '1',
         });
+        if (args.format) q.set('format', args.format);
         view.url = `${args.base_url}/v1/scenes/${args.scene_id}/viewer?${q}`;
         view.via = 'query';
         await page.goto(view.url, { waitUntil: 'load' });
