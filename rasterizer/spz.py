@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import gzip
 import struct
+import zlib
 
 import numpy as np
 
@@ -92,33 +93,52 @@ def _bytes_u8(values: np.ndarray) -> np.ndarray:
     return np.clip(np.floor(values + 0.5), 0, 255).astype(np.uint8)
 
 
-def spz_bytes(g: Gaussians) -> bytes:
-    """The SPZ file of ``g`` (rows with NaN/Inf dropped, as in the PLY). SH degree 0 or 1."""
-    if g.sh.shape[1] not in (1, 4):
-        raise SpzError(f"SPZ here holds SH degree 0 or 1, not {g.sh_degree}")
-    g = g if finite_rows(g).all() else g.subset(finite_rows(g))
-    n = len(g)
+#: Gaussians quantised at a time: the float temporaries stay at tens of MB whatever the scene's size.
+SPZ_CHUNK_ROWS = 1 << 16
+
+
+def _quantised_rows(g: Gaussians, bits: int) -> list[np.ndarray]:
+    """The SPZ arrays of all of ``g``'s rows (finite), each (n, k) uint8 in file order: positions, alphas,
+    colours, scales, rotations, then the degree-1 SH if ``g`` has them."""
     means = g.means.astype(np.float64) * _FLIP
-    bits = fractional_bits(means)
     fixed = np.floor(means * float(1 << bits) + 0.5).astype(np.int64)
-    positions = (fixed[:, :, None] >> np.array([0, 8, 16])) & 0xFF  # little-endian 3 bytes, two's complement
-    alphas = _bytes_u8(255.0 * g.opacities.astype(np.float64))
+    positions = ((fixed[:, :, None] >> np.array([0, 8, 16])) & 0xFF).astype(np.uint8)  # little-endian, two's complement
+    alphas = _bytes_u8(255.0 * g.opacities.astype(np.float64))[:, None]
     colours = _bytes_u8(255.0 * (_COLOUR_SCALE * g.sh[:, 0, :].astype(np.float64) + 0.5))
     q = g.quats.astype(np.float64)  # (w, x, y, z)
     q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-30)
     q, sigma = _largest_w(q, g.scales.astype(np.float64))
     scales = _bytes_u8(16.0 * (np.log(np.maximum(sigma, 1e-30)) + 10.0))
-    xyz = q[:, 1:] * _FLIP * np.where(q[:, :1] < 0, -1.0, 1.0)
+    xyz = q[:, 1:] * _FLIP * np.where(q[:, :1] < 0, -1.0, 1.0)  # -q is q: readers take w >= 0
     rotations = _bytes_u8(127.5 * (xyz + 1.0))
-    # SPZ lays each array out whole, one after another (not interleaved per Gaussian)
-    parts = [positions.astype(np.uint8), alphas, colours, scales, rotations]
-    sh_degree = 1 if g.sh.shape[1] == 4 else 0
-    if sh_degree:
-        sh = g.sh[:, 1:, :].astype(np.float64) * _SH1_FLIP[None, :, None]  # (N, 3 coefficients, 3 channels)
-        parts.append(_bytes_u8(128.0 * sh + 128.0))
-    header = _HEADER.pack(SPZ_MAGIC, SPZ_VERSION, n, sh_degree, bits, 0, 0)
-    body = b"".join(np.ascontiguousarray(p).tobytes() for p in parts)
-    return gzip.compress(header + body, compresslevel=GZIP_LEVEL, mtime=0)
+    parts = [positions.reshape(len(g), 9), alphas, colours, scales, rotations]
+    if g.sh.shape[1] == 4:
+        sh = g.sh[:, 1:, :].astype(np.float64) * _SH1_FLIP[None, :, None]  # (n, 3 coefficients, 3 channels)
+        parts.append(_bytes_u8(128.0 * sh + 128.0).reshape(len(g), 9))
+    return parts
+
+
+def spz_bytes(g: Gaussians, *, rows: int = SPZ_CHUNK_ROWS) -> bytes:
+    """The SPZ file of ``g`` (rows with NaN/Inf dropped, as in the PLY). SH degree 0 or 1.
+
+    Quantised ``rows`` Gaussians at a time into the file's arrays (28 bytes a Gaussian at degree 1), which
+    SPZ lays out whole, one after another; then gzip."""
+    if g.sh.shape[1] not in (1, 4):
+        raise SpzError(f"SPZ here holds SH degree 0 or 1, not {g.sh_degree}")
+    ok = finite_rows(g)
+    g = g if ok.all() else g.subset(ok)
+    n, sh_degree = len(g), 1 if g.sh.shape[1] == 4 else 0
+    bits = fractional_bits(g.means * _FLIP)
+    widths = [9, 1, 3, 3, 3] + [9] * sh_degree
+    arrays = [np.empty((n, k), dtype=np.uint8) for k in widths]
+    for start in range(0, n, max(1, int(rows))):
+        part = g.subset(slice(start, start + rows))
+        for array, values in zip(arrays, _quantised_rows(part, bits)):
+            array[start:start + len(part)] = values
+    gz = zlib.compressobj(GZIP_LEVEL, zlib.DEFLATED, 31)  # 31: a gzip stream (header mtime 0)
+    out = [gz.compress(_HEADER.pack(SPZ_MAGIC, SPZ_VERSION, n, sh_degree, bits, 0, 0))]
+    out += [gz.compress(array) for array in arrays]
+    return b"".join(out + [gz.flush()])
 
 
 def read_spz(data: bytes | bytearray | memoryview) -> Gaussians:

@@ -103,6 +103,11 @@ def test_round_trip_within_the_quantisation(seed, radius, degree):
     assert np.all(np.linalg.norm(cov_back - cov, axis=(1, 2)) <= 0.12 * size)
 
 
+def test_chunks_give_the_same_file():
+    g = scene(np.random.default_rng(2), 100)
+    assert spz_bytes(g, rows=7) == spz_bytes(g, rows=1000) == spz_bytes(g)
+
+
 def test_render_of_the_decoded_scene_matches_the_original():
     rng = np.random.default_rng(7)
     g = scene(rng, 3000)
