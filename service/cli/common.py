@@ -153,19 +153,26 @@ def model_file(settings, no_build: bool) -> Path:
 
 
 def write_output(path: str | Path, data) -> None:
-    """Write ``data`` (bytes, or a :class:`rasterizer.gaussians.Gaussians` as a PLY) to ``path``, making its
-    folders (as :func:`check_output` allowed); an OSError is a CliError naming the file."""
+    """Write ``data`` (bytes, or a :class:`rasterizer.gaussians.Gaussians` as a PLY, or as SPZ when the name
+    ends in ``.spz``) to ``path``, making its folders (as :func:`check_output` allowed); an OSError, or Gaussians
+    SPZ cannot hold, is a CliError naming the file."""
+    from rasterizer.spz import SpzError, spz_bytes
+
     out = Path(path)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         if isinstance(data, bytes):
             out.write_bytes(data)
+        elif out.suffix.lower() == ".spz":
+            out.write_bytes(spz_bytes(data))
         else:
             from rasterizer.ply import write_ply
 
             write_ply(out, data)
     except OSError as exc:
         raise CliError(f"cannot write {out}: {exc.strerror or exc}") from None
+    except SpzError as exc:
+        raise CliError(f"cannot write {out}: {exc}") from None
 
 
 #: PLY properties of each :class:`rasterizer.gaussians.Gaussians` field, as a user reads them in the file
@@ -173,16 +180,24 @@ PLY_FIELDS = {"means": "x, y, z", "scales": "scale_0..2", "quats": "rot_0..3", "
               "sh": "f_dc_0..2 / f_rest_*"}
 
 
+#: The first bytes of a gzip stream: an SPZ file (a PLY starts with "ply").
+GZIP_MAGIC = b"\x1f\x8b"
+
+
 def read_gaussians(path: str | Path):
-    """The Gaussians of a PLY file, as the service keeps a scene's: rows holding NaN or Inf (or a scale
-    whose exp overflows float32) are dropped, as the API's pipeline and PLY writer drop them, and said on
-    stderr with the first such row; an unreadable file or one without any Gaussian is a CliError naming it."""
+    """The Gaussians of a PLY or SPZ file (told apart by their first bytes), as the service keeps a scene's:
+    rows holding NaN or Inf (or a scale whose exp overflows float32) are dropped, as the API's pipeline and
+    PLY writer drop them, and said on stderr with the first such row; an unreadable file or one without any
+    Gaussian is a CliError naming it."""
     import numpy as np
 
     from rasterizer.ply import finite_rows, read_ply
+    from rasterizer.spz import read_spz
 
     try:
-        g = read_ply(path)
+        with open(path, "rb") as f:
+            spz = f.read(2) == GZIP_MAGIC
+        g = read_spz(Path(path).read_bytes()) if spz else read_ply(path)
     except (OSError, ValueError, IndexError) as exc:
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
         if isinstance(exc, IndexError):
@@ -198,7 +213,7 @@ def read_gaussians(path: str | Path):
             say(f"{path}: dropped {n - len(g)} of {n} Gaussians holding NaN or Inf, as the service does "
                 f"(the first: row {row}, {PLY_FIELDS[field]})")
     if len(g) == 0:
-        raise CliError(f"{path}: the PLY holds no Gaussians"
+        raise CliError(f"{path}: the {'SPZ' if spz else 'PLY'} holds no Gaussians"
                        + (f" with finite values (all {n} rows hold NaN or Inf, e.g. row {row}: {PLY_FIELDS[field]})"
                           if n else ""))
     return g

@@ -135,7 +135,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..scenes import read_width
 
     inputs = [*args.inputs, args.poses, *(Path(p) / "scene.json" for p in args.inputs if Path(p).is_dir())]
-    check_output(args.output, "-o", (".ply",), "a Gaussian PLY", inputs)
+    check_output(args.output, "-o", (".ply", ".spz"), "a Gaussian PLY or SPZ", inputs)
     if args.json is not None:
         check_output(args.json, "--json", (".json",), "the summary", inputs)
     # wide JPEGs at a reduced scale, as the API reads them for a model no wider than the pose features read; bad
@@ -231,7 +231,8 @@ def add_parser(sub) -> None:
     r.add_argument("--refine-poses", action="store_true", help="refine given poses against the images (upright model)")
     r.add_argument("--split", type=int, default=0, help="scene folder: which split's references (default 0)")
     r.add_argument("--refs", help="scene folder: two frame names, e.g. 00,02 (overrides --split)")
-    r.add_argument("-o", "--output", default="scene.ply", help="output PLY (default scene.ply)")
+    r.add_argument("-o", "--output", default="scene.ply",
+                   help="output PLY (default scene.ply), or SPZ (a name ending in .spz: a fifth of the bytes)")
     r.add_argument("--json", help="also write the summary JSON to this .json file")
     r.add_argument("--model", type=Path, help="ONNX model (default: the one `serve` uses, built if missing)")
     r.add_argument("--no-build", action="store_true", help="fail instead of building a missing model")

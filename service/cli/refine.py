@@ -28,7 +28,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
         RefineRequest.model_validate(params)
     except ValidationError as exc:
         raise CliError(as_flags(describe_error(exc, prefix="refine"), params, prefix="refine.")) from None
-    check_output(args.out, "--out", (".ply",), "a Gaussian PLY")
+    check_output(args.out, "--out", (".ply", ".spz"), "a Gaussian PLY or SPZ")
     g = read_gaussians(args.ply)
     erp_a, erp_b, c2w_a, c2w_b, desc = load_pair(args)
     if c2w_a is None:
@@ -62,12 +62,12 @@ def add_parser(sub) -> None:
                        description="refine the colours of a PLY on its two "
                                    "reference panoramas (a scene folder, or two images + --poses), geometry fixed, "
                                    "behind the cross-view guard. A JSON summary goes to stdout.")
-    f.add_argument("ply", type=Path, help="Gaussians to refine (3DGS PLY, e.g. from 'omnisplat reconstruct')")
+    f.add_argument("ply", type=Path, help="Gaussians to refine (3DGS PLY or SPZ, e.g. from 'omnisplat reconstruct')")
     f.add_argument("inputs", nargs="+", help="scene folder, or two ERP images")
     f.add_argument("--poses", help="JSON file {\"convention\": ..., \"c2w\": [A, B]} (with two images)")
     f.add_argument("--refs", help="scene folder: the two reference frame names, 'A,B'")
     f.add_argument("--split", type=int, default=0, help="scene folder: split whose references to use")
-    f.add_argument("--out", type=Path, required=True, help="refined PLY")
+    f.add_argument("--out", type=Path, required=True, help="refined PLY (or SPZ: a name ending in .spz)")
     f.add_argument("--iterations", type=int, default=100)
     f.add_argument("--height", type=int, default=128, help="Yin/Yang working height h")
     f.add_argument("--sh-degree", type=int, default=0, choices=(0, 1))

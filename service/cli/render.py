@@ -112,7 +112,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 def add_parser(sub) -> None:
     v = sub.add_parser("render", help="Gaussian PLY + camera pose -> image",
                        description="Render a view of a Gaussian PLY with the CPU rasterizer.")
-    v.add_argument("ply", help="3DGS PLY file")
+    v.add_argument("ply", help="3DGS PLY file (or SPZ)")
     v.add_argument("--c2w", help="camera-to-world as 16 (or 12) comma-separated numbers, row-major, OpenCV "
                    "(write --c2w=-0.8,... when the first number is negative)")
     v.add_argument("--pose", help='JSON file with a 4x4 matrix or {"convention": ..., "c2w": M}')

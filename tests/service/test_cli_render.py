@@ -158,3 +158,29 @@ def test_render_refuses_to_overwrite_its_inputs_and_makes_its_folders(tmp_path, 
     assert "is one of the command's inputs" in capsys.readouterr().err
     assert cli.main([*argv, str(tmp_path / "new" / "deeper" / "view.png")]) == 0  # as reconstruct makes them
     assert (tmp_path / "new" / "deeper" / "view.png").is_file()
+
+
+def test_render_reads_spz_as_it_reads_the_ply(tmp_path, capsys):
+    """An SPZ file (told from a PLY by its gzip magic) renders as the PLY it came from, within its quantisation."""
+    from PIL import Image
+
+    from rasterizer.gaussians import Gaussians
+    from rasterizer.spz import spz_bytes
+
+    rng = np.random.default_rng(5)
+    n = 400
+    d = rng.normal(size=(n, 3))
+    g = Gaussians(d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(1.5, 3, (n, 1)), rng.uniform(0.05, 0.2, (n, 3)),
+                  rng.normal(size=(n, 4)), rng.uniform(0.3, 1, n), rng.uniform(-0.8, 0.8, (n, 4, 3)))
+    write_ply(tmp_path / "s.ply", g)
+    (tmp_path / "s.spz").write_bytes(spz_bytes(g))
+    images = []
+    for name in ("s.ply", "s.spz"):
+        assert cli.main(render_argv(tmp_path, name)) == 0, capsys.readouterr().err
+        images.append(np.asarray(Image.open(tmp_path / "view.png"), dtype=np.float64) / 255)
+    mse = np.mean((images[0] - images[1]) ** 2)
+    assert images[0].std() > 0.01 and 10 * np.log10(1 / mse) > 35
+    (tmp_path / "bad.spz").write_bytes(b"\x1f\x8b" + b"\x00" * 20)
+    assert cli.main(render_argv(tmp_path, "bad.spz")) == 2
+    err = capsys.readouterr().err
+    assert "cannot read" in err and "bad.spz" in err and "Traceback" not in err
