@@ -6,7 +6,7 @@ view with the metrics of conventions section 6 (:mod:`bench.metrics`): PSNR, sha
 the captured image) and GMSD (0 = identical structure), which see the blur and ghosting PSNR misses.
 Synthetic scenes (with depth) are scored on the whole image, real captures above the nadir cap
 (:data:`bench.metrics.NADIR_CAP_DEG`: their rig shows below it). Per scene it also reports the Gaussian
-count, PLY size, POST seconds and the process's peak RSS, per input size (``--width``).
+count, PLY and SPZ size, POST seconds and the process's peak RSS, per input size (``--width``).
 """
 
 from __future__ import annotations
@@ -46,12 +46,13 @@ def measure_split(encoder, scene, split_index: int = 0, options: dict | None = N
 
     width: resize the inputs to this ERP width first (bilinear: a larger copy has no more detail, it
     measures cost). render_width: render (and score against the images resized to) this width instead
-    of the input's. Returns a JSON-able row: counts, PLY MB, seconds, peak RSS MB and one entry per view.
+    of the input's. Returns a JSON-able row: counts, PLY and SPZ MB, seconds, peak RSS MB and one entry per view.
     """
     import time
 
     from rasterizer.ply import ply_bytes, read_ply
     from rasterizer.render import render
+    from rasterizer.spz import spz_bytes
     from rasterizer.yin_yang import resize_erp
     from service.pipeline import PipelineOptions, build_scene
 
@@ -69,7 +70,8 @@ def measure_split(encoder, scene, split_index: int = 0, options: dict | None = N
     post_s = time.perf_counter() - t0
     gaussians = read_ply(ply)  # what the store serves
     row = {"scene": scene.name, "split": f"{ra}+{rb}", "input": list(images[ra].shape[:2]), "cap_deg": cap_deg,
-           "gaussians": len(gaussians), "ply_mb": round(len(ply) / 2**20, 2), "post_s": round(post_s, 3),
+           "gaussians": len(gaussians), "ply_mb": round(len(ply) / 2**20, 2),
+           "spz_mb": round(len(spz_bytes(gaussians)) / 2**20, 2), "post_s": round(post_s, 3),
            "timings": {k: round(v, 3) for k, v in built.timings.items()}, "views": []}
     for name in split.references + split.targets:
         ref = images[name]
@@ -90,7 +92,7 @@ def build_parser():
 
     ap = argparse.ArgumentParser(prog="omnisplat-bench detail", description=(
         "PSNR, sharpness and GMSD of renders at the references' own poses and at the targets; per scene "
-        "its Gaussian count, PLY size, POST seconds and peak RSS."))
+        "its Gaussian count, PLY and SPZ size, POST seconds and peak RSS."))
     ap.add_argument("--scene", action="append",
                     help=f"dev scene folder name, repeatable (default: {', '.join(DEFAULT_SCENES)})")
     ap.add_argument("--split", type=int, default=0, help="split index of each scene (default 0)")
@@ -125,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         h, w = row["input"]
         scored = f"above {row['cap_deg'] - 90:g} deg latitude" if row["cap_deg"] else "every row"
         print(f"{row['scene']} {row['split']} {w}x{h}: {row['gaussians']} Gaussians, PLY {row['ply_mb']} MB, "
-              f"POST {row['post_s']} s, peak RSS {row['peak_rss_mb']} MB (scored: {scored})", flush=True)
+              f"SPZ {row['spz_mb']} MB, POST {row['post_s']} s, peak RSS {row['peak_rss_mb']} MB (scored: {scored})", flush=True)
         for v in row["views"]:
             print(f"  {v['role']:9s} {v['view']:7s} PSNR {v['psnr']:6.2f}  sharpness {v['sharpness']:.3f}  "
                   f"GMSD {v['gmsd']:.4f}  render {v['render_s']:.2f} s", flush=True)
