@@ -128,7 +128,7 @@ def spz_bytes(g: Gaussians, *, rows: int = SPZ_CHUNK_ROWS) -> bytes:
     ok = finite_rows(g)
     g = g if ok.all() else g.subset(ok)
     n, sh_degree = len(g), 1 if g.sh.shape[1] == 4 else 0
-    bits = fractional_bits(g.means * _FLIP)
+    bits = fractional_bits(g.means)  # the turn to RUB changes no coordinate's magnitude
     widths = [9, 1, 3, 3, 3] + [9] * sh_degree
     arrays = [np.empty((n, k), dtype=np.uint8) for k in widths]
     for start in range(0, n, max(1, int(rows))):

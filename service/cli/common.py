@@ -195,9 +195,9 @@ def read_gaussians(path: str | Path):
     from rasterizer.spz import read_spz
 
     try:
-        with open(path, "rb") as f:
-            spz = f.read(2) == GZIP_MAGIC
-        g = read_spz(Path(path).read_bytes()) if spz else read_ply(path)
+        data = Path(path).read_bytes()
+        spz = data[:2] == GZIP_MAGIC
+        g = read_spz(data) if spz else read_ply(data)
     except (OSError, ValueError, IndexError) as exc:
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
         if isinstance(exc, IndexError):

@@ -22,7 +22,7 @@ from ..deps import (
 from ..edits import EditRequest, SelectionRequest
 from ..errors import BadInput, NotFound
 from ..inputs import DEFAULT_RENDER_WIDTH, Projection, check_render_query
-from ..scenes import storing
+from ..scenes import links, storing
 from ..schemas import SceneCreated, error_responses
 from ..store import SCENE_ID_PATTERN
 
@@ -112,8 +112,5 @@ async def create_edit(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, r
     request = body.model_dump(exclude_none=True)
     meta, created = await gate.run(storing, work.create_edit, store, scene_id, request)
     response.headers["Location"] = f"/v1/scenes/{meta['id']}"
-    base = f"/v1/scenes/{meta['id']}"
-    links = {"self": base, "render": f"{base}/render", "ply": f"{base}/gaussians.ply", "spz": f"{base}/gaussians.spz",
-             "parent": f"/v1/scenes/{scene_id}"}
     return SceneCreated(id=meta["id"], num_gaussians=meta["num_gaussians"], timings=meta.get("timings", {}),
-                        links=links, cached=not created)
+                        links=links(meta["id"]), cached=not created)

@@ -183,6 +183,16 @@ def _render_etag(scene_id: str, query: RenderQuery) -> str:
     return '"' + hashlib.sha256(key.encode()).hexdigest()[:32] + '"'
 
 
+def _file_download(request: Request, store, scene_id: str, suffix: str) -> tuple[dict[str, str], Response | None]:
+    """The headers of a download of the scene's ``gaussians.{suffix}`` (its ETag, a content hash that never
+    changes, and the file name), and the 304 to send instead when the client holds it (else None); a 404 for
+    an unknown scene."""
+    _require_scene(store, scene_id)
+    etag = f'"{scene_id}-{suffix}"'
+    headers = {**cache_headers(etag), "Content-Disposition": f'attachment; filename="{scene_id}.{suffix}"'}
+    return headers, not_modified(request, etag)
+
+
 def _file_responses(description: str) -> dict:
     """OpenAPI responses of a scene file's download: 200 binary (``description``), 304, the errors."""
     return {200: {"content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
@@ -194,13 +204,11 @@ def _file_responses(description: str) -> dict:
     responses=_file_responses("binary little-endian INRIA 3DGS PLY in the input world frame"),
 )
 async def scene_ply(request: Request, scene_id: SceneId, store: StoreDep, gate: RenderGateDep) -> Response:
-    _require_scene(store, scene_id)
-    etag = f'"{scene_id}-ply"'  # the scene id is a content hash: its PLY never changes
-    if (unchanged := not_modified(request, etag)) is not None:
+    headers, unchanged = _file_download(request, store, scene_id, "ply")
+    if unchanged is not None:
         return unchanged
     size, blocks = await gate.run(work.ply_stream, store, scene_id)
-    headers = {**cache_headers(etag), "Content-Length": str(size),
-               "Content-Disposition": f'attachment; filename="{scene_id}.ply"'}
+    headers["Content-Length"] = str(size)
     if is_head(request):  # the same headers; the body (tens of MB) is not made only to be dropped
         blocks.close()
         return Response(headers=headers, media_type="application/octet-stream")
@@ -223,12 +231,10 @@ async def scene_ply(request: Request, scene_id: SceneId, store: StoreDep, gate: 
     responses=_file_responses("gzip-compressed SPZ version 2"),
 )
 async def scene_spz(request: Request, scene_id: SceneId, store: StoreDep, gate: RenderGateDep) -> Response:
-    _require_scene(store, scene_id)
-    etag = f'"{scene_id}-spz"'  # the scene id is a content hash: its SPZ never changes
-    if (unchanged := not_modified(request, etag)) is not None:
+    headers, unchanged = _file_download(request, store, scene_id, "spz")
+    if unchanged is not None:
         return unchanged
     data = await gate.run(work.spz_file, store, scene_id)
-    headers = {**cache_headers(etag), "Content-Disposition": f'attachment; filename="{scene_id}.spz"'}
     if is_head(request):
         return Response(headers={**headers, "Content-Length": str(len(data))}, media_type="application/octet-stream")
     return Response(data, media_type="application/octet-stream", headers=headers)
