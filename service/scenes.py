@@ -21,7 +21,7 @@ from rasterizer.render import to_uint8
 from rasterizer.rig import NoRigError, RigLayer, overlay_rig, require_rig_layer
 from rasterizer.threads import map_threads
 
-from .edits import edit_artifacts
+from .edits import EDIT_ARTIFACT, edit_artifacts
 from .encoder import unit_image_at_size
 from .errors import BadInput, ServiceError, StoreUnavailable
 from .images import check_header, decode_rgb, encode
@@ -53,10 +53,19 @@ def storing(fn: Callable[..., T], *args: Any) -> T:
         release_memory(force=True)  # after a reconstruction or an edit: its arrays are freed now
 
 
-def links(scene_id: str) -> dict[str, str]:
+def links(store: SceneStore, scene_id: str, meta: dict | None = None) -> dict[str, str | None]:
+    """The URLs of a stored scene (:class:`service.schemas.Links`): itself, its renders, downloads and viewer; the
+    selections, segments and edits of its objects when it keeps the correspondences they read (null otherwise:
+    a refinement that changed the Gaussians' count drops them); the scene it was made from (an edit's or a
+    refinement's ``parent``; null for a reconstruction). ``meta``: the scene's metadata when the caller has it."""
     base = f"/v1/scenes/{scene_id}"
+    meta = store.meta(scene_id) if meta is None else meta
+    editable = store.artifact(scene_id, EDIT_ARTIFACT) is not None
+    parent = meta.get("parent")
     return {"self": base, "render": f"{base}/render", "ply": f"{base}/gaussians.ply", "spz": f"{base}/gaussians.spz",
-            "selections": f"{base}/selections", "segments": f"{base}/segments", "edits": f"{base}/edits"}
+            "viewer": f"{base}/viewer", **{name: f"{base}/{name}" if editable else None
+                                           for name in ("selections", "segments", "edits")},
+            "parent": f"/v1/scenes/{parent}" if isinstance(parent, str) else None}
 
 
 def scene_id_for(model_sha256: str, image_a: bytes, image_b: bytes, poses: Poses | None, options: dict) -> str:

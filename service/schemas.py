@@ -17,10 +17,18 @@ class ErrorResponse(BaseModel):
 
 
 class Links(BaseModel):
+    """Where to go from a scene. The object links are null when the scene keeps no correspondences (a
+    refinement that changed the Gaussians' count), ``parent`` is null for a reconstruction."""
+
     self: str
     render: str
     ply: str
     spz: str
+    viewer: str = Field(description="a web 3DGS viewer page of the scene")
+    selections: str | None = Field(description="POST a selection of an object here")
+    segments: str | None = Field(description="GET the automatic segments (PNG)")
+    edits: str | None = Field(description="POST an edit of a selection here (the result is a new scene)")
+    parent: str | None = Field(description="the scene this one was made from by an edit or a refinement")
 
 
 class SceneCreated(BaseModel):

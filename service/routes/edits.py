@@ -113,4 +113,4 @@ async def create_edit(scene_id: SceneId, store: StoreDep, gate: RenderGateDep, r
     meta, created = await gate.run(storing, work.create_edit, store, scene_id, request)
     response.headers["Location"] = f"/v1/scenes/{meta['id']}"
     return SceneCreated(id=meta["id"], num_gaussians=meta["num_gaussians"], timings=meta.get("timings", {}),
-                        links=links(meta["id"]), cached=not created)
+                        links=links(store, meta["id"], meta), cached=not created)

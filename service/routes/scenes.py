@@ -112,14 +112,14 @@ async def create_scene(
     if store.exists(scene_id):
         meta = store.meta(scene_id)
         return SceneCreated(id=scene_id, num_gaussians=meta["num_gaussians"], timings=meta.get("timings", {}),
-                            links=work.links(scene_id), cached=True)
+                            links=work.links(store, scene_id, meta), cached=True)
     await anyio.to_thread.run_sync(work.check_free_space, store, settings.min_free_store_bytes)
     meta, timings = await gate.run(work.storing, work.create_scene, runtime, store, scene_id, data_a, data_b,
                                    parsed_poses, parsed_options, pipeline_options, pose_options, limits)
     metrics.observe_stages(timings)
     metrics.scenes_created.inc()
     return SceneCreated(id=scene_id, num_gaussians=meta["num_gaussians"], timings=timings,
-                        links=work.links(scene_id))
+                        links=work.links(store, scene_id, meta))
 
 
 _IMAGE_CONTENT = {t: {"schema": {"type": "string", "format": "binary"}} for t in MEDIA_TYPES.values()}
@@ -245,7 +245,7 @@ async def scene_spz(request: Request, scene_id: SceneId, store: StoreDep, gate: 
 async def scene_meta(scene_id: SceneId, store: StoreDep) -> SceneMeta:
     _require_scene(store, scene_id)
     meta = await anyio.to_thread.run_sync(store.meta, scene_id)
-    return SceneMeta(**{**meta, "links": work.links(scene_id)})
+    return SceneMeta(**{**meta, "links": work.links(store, scene_id, meta)})
 
 
 @router.delete("/{scene_id}", status_code=204, response_class=Response, summary="Delete a scene",

@@ -78,6 +78,11 @@ def test_select_mask_segments_and_edits(client, scene, live):
     assert again["id"] == removed["id"] and again["cached"] is True
     meta = client.get(f"/v1/scenes/{removed['id']}").json()
     assert meta["parent"] == scene and 0.0 <= meta["edit"]["uncovered"]["a"] <= 1.0
+    # every link the edit's answers give leads somewhere, back to the scene it was made from too
+    assert removed["links"] == meta["links"] and meta["links"]["parent"] == f"/v1/scenes/{scene}"
+    assert client.get(f"/v1/scenes/{scene}").json()["links"]["parent"] is None
+    assert client.get(meta["links"]["parent"]).json()["id"] == scene
+    assert client.get(meta["links"]["segments"], params={"view": "a", "width": 64}).status_code == 200
     # the environment shell (last Gaussians) loses the removed pixels' blocks and stays counted
     shell = client.get(f"/v1/scenes/{scene}").json()["shell"]
     assert 0 < meta["shell"] < shell
@@ -118,7 +123,10 @@ def test_bad_selection_and_edit_inputs(client, scene, live):
     copy = post_scene(client, _png(np.full((512, 1024, 3), 0.4) + np.random.default_rng(0).random((512, 1024, 3)) * 0.5),
                       _png(np.random.default_rng(1).random((512, 1024, 3))))
     plain = copy.json()["id"]
+    assert copy.json()["links"]["selections"] == f"/v1/scenes/{plain}/selections"
     (live.store / "scenes" / plain / "edit.npz").unlink()
+    links = client.get(f"/v1/scenes/{plain}").json()["links"]  # it offers no object links it cannot follow
+    assert links["selections"] is links["segments"] is links["edits"] is None and links["ply"]
     _error(client.post(f"/v1/scenes/{plain}/selections", json={"view": "a", "points": [[0.5, 0.5]]}), 409,
            "correspondences_missing")
     _error(client.post(f"/v1/scenes/{plain}/edits", json={"selection": sel, "op": "remove"}), 409,
