@@ -21,7 +21,9 @@ from __future__ import annotations
 import argparse
 import collections
 import json
+import math
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -317,21 +319,30 @@ def kill_during_writes(model: Path, store: Path, imgs, rounds: int) -> dict:
     return {"rounds": per_round, "acknowledged": len(acknowledged), **check}
 
 
-def full_and_read_only_store(model: Path, imgs, size_mb: int) -> dict:
-    """A ``size_mb`` tmpfs store filled up, then remounted read-only (root only; unmounted after)."""
+def full_and_read_only_store(model: Path, imgs, scenes: float = 2.5) -> dict:
+    """A tmpfs store with room for about ``scenes`` of the model's scenes filled up, then remounted read-only
+    (root only; unmounted after). The tmpfs is sized after the first scene is written (a remount), so the
+    check fills the disk whatever the model's scene size."""
     a, b, ca, cb = imgs
     mnt = Path(tempfile.mkdtemp(prefix="omnisplat-tmpfs-"))
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_mb}m", "tmpfs", str(mnt)],
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1g", "tmpfs", str(mnt)],
                              capture_output=True, text=True)
     if mounted.returncode != 0:
         mnt.rmdir()
         return {"skipped": f"cannot mount a tmpfs: {mounted.stderr.strip()[:120]}"}
-    out: dict = {"tmpfs_mb": size_mb}
+    out: dict = {}
     try:
         # a tiny free-space margin first, so that the disk really fills up under a write
         with Server(model, mnt, min_free_store_bytes=64 * 1024) as srv, \
                 httpx.Client(base_url=srv.url, timeout=120) as c:
-            statuses = []
+            first = _post(c, a, b, _poses(ca, cb), _far(1999))
+            if first.status_code != 201:
+                raise RuntimeError(f"the first scene of the store-full check was not stored: {first.text[:300]}")
+            scene_bytes = sum(f.stat().st_size for f in (mnt / "scenes" / first.json()["id"]).iterdir())
+            size_mb = math.ceil(shutil.disk_usage(mnt).used / 2**20 + scenes * scene_bytes / 2**20)
+            subprocess.run(["mount", "-o", f"remount,size={size_mb}m", str(mnt)], check=True)
+            out.update(tmpfs_mb=size_mb, scene_mb=round(scene_bytes / 2**20, 1))
+            statuses = [first.status_code]
             for i in range(40):  # until the disk is full
                 r = _post(c, a, b, _poses(ca, cb), _far(2000 + i))
                 statuses.append(r.status_code)
@@ -340,8 +351,11 @@ def full_and_read_only_store(model: Path, imgs, size_mb: int) -> dict:
             out["full"] = {"statuses": sorted(set(statuses)), "posts": len(statuses),
                            "code": r.json()["error"]["code"] if r.status_code >= 400 else None,
                            "readyz": c.get("/readyz").status_code}
-        # the default margin: refused before any work, and not ready
-        with Server(model, mnt, store_ok=False, min_free_store_bytes=4 * 1024 * 1024) as srv, \
+        # a margin beyond what the full disk has left (the default's role on a real disk): refused before any
+        # work, and not ready
+        margin = shutil.disk_usage(mnt).free + 2**20
+        out["free_mb_when_full"] = round((margin - 2**20) / 2**20, 1)
+        with Server(model, mnt, store_ok=False, min_free_store_bytes=margin) as srv, \
                 httpx.Client(base_url=srv.url, timeout=120) as c:
             r = _post(c, a, b, _poses(ca, cb), _far(2500))
             out["free_space_precheck"] = {"post": r.status_code, "seconds": round(r.elapsed.total_seconds(), 3),
@@ -423,7 +437,7 @@ def main(argv: list[str] | None = None) -> int:
         if "kill_9_during_writes" in sections:
             res["kill_9_during_writes"] = kill_during_writes(model, tmp / "store-kill", imgs, args.kill_rounds)
         if "store_full_and_read_only" in sections:
-            res["store_full_and_read_only"] = full_and_read_only_store(model, imgs, 8)
+            res["store_full_and_read_only"] = full_and_read_only_store(model, imgs)
     kill = res.get("kill_9_during_writes", {"lost": [], "corrupt": []})
     summary = {"sections": sorted(sections), "server_errors_5xx": _server_errors(res), "lost_scenes": len(kill["lost"]),
                "corrupt_scenes": len(kill["corrupt"]),
