@@ -103,8 +103,12 @@ def bad_inputs(srv: Server, imgs) -> dict:
 
     a, b, ca, cb = imgs
     poses = _poses(ca, cb)
-    grey16 = io.BytesIO()
-    Image.fromarray((np.arange(128 * 256).reshape(128, 256) % 65536).astype(np.uint16)).save(grey16, format="PNG")
+    grey16 = []  # the pair as 16-bit grey PNGs: a format that decodes to other than 8-bit RGB
+    for data in (a, b):
+        buf = io.BytesIO()
+        luma = np.asarray(Image.open(io.BytesIO(data)).convert("L"), np.uint16) * 257
+        Image.fromarray(luma).save(buf, format="PNG")
+        grey16.append(buf.getvalue())
     far = np.eye(4)
     far[0, 3] = 1e7
     moved = far.copy()
@@ -127,7 +131,7 @@ def bad_inputs(srv: Server, imgs) -> dict:
                                                            [[1, 0, 0, 1e20], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])),
             "baseline_2um": lambda: _post(c, a, b, _poses(np.eye(4).tolist(),
                                                           [[1, 0, 0, 2e-6], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])),
-            "grey16_png": lambda: _post(c, grey16.getvalue(), grey16.getvalue(), poses),
+            "grey16_png": lambda: _post(c, grey16[0], grey16[1], poses),
             "not_an_image": lambda: _post(c, b"hello", b, poses),
             "render_perspective_4096x2048": lambda: c.get(f"/v1/scenes/{sid}/render", params={
                 "c2w": eye, "projection": "perspective", "width": 4096, "height": 2048}),
@@ -283,7 +287,7 @@ def _verify_store(srv: Server, acknowledged: set[str]) -> dict:
 def kill_during_writes(model: Path, store: Path, imgs, rounds: int) -> dict:
     """Four clients posting new scenes back to back, kill -9 mid-stream, restart; then verify the store.
 
-    The kill comes 1.5 to 4.5 times one POST's duration (measured first, on the same server) after the
+    The kill comes 2 to 6 times one POST's duration (measured first, on the same server) after the
     clients start, so that with any model some scenes are acknowledged and others are cut off mid-write."""
     a, b, ca, cb = imgs
     rng = np.random.default_rng(0)
@@ -319,7 +323,7 @@ def kill_during_writes(model: Path, store: Path, imgs, rounds: int) -> dict:
         with ThreadPoolExecutor(4) as pool:
             for _ in range(4):
                 pool.submit(client)
-            time.sleep(float(rng.uniform(1.5, 4.5)) * post_s)
+            time.sleep(float(rng.uniform(2.0, 6.0)) * post_s)
             srv.kill9()
         per_round.append({"answered": sorted(set(s for s in statuses if s is not None)),
                           "created": statuses.count(201), "cut_off": statuses.count(None)})

@@ -137,6 +137,8 @@ def test_a_refined_scene_can_be_selected_and_edited_like_its_parent(client, scen
         time.sleep(0.1)
     assert job["status"] == "done", job
     refined = job["scene_id"]
+    links = client.get(f"/v1/scenes/{refined}").json()["links"]
+    assert links["parent"] == f"/v1/scenes/{scene}" and links["selections"] == f"/v1/scenes/{refined}/selections"
     point = {"view": "a", "points": [[0.5, 0.6]]}
     parent_sel = client.post(f"/v1/scenes/{scene}/selections", json=point)
     refined_sel = client.post(f"/v1/scenes/{refined}/selections", json=point)
