@@ -296,14 +296,16 @@ def kill_during_writes(model: Path, store: Path, imgs, rounds: int) -> dict:
     counter = iter(range(10**6))
     srv = Server(model, store, inference_queue=8)
     srv.start()
-    with httpx.Client(base_url=srv.url, timeout=300) as c:
-        t0 = time.monotonic()
-        first = _post(c, a, b, _poses(ca, cb), _far(next(counter)))
-        post_s = time.monotonic() - t0
+    try:
+        with httpx.Client(base_url=srv.url, timeout=300) as c:
+            t0 = time.monotonic()
+            first = _post(c, a, b, _poses(ca, cb), _far(next(counter)))
+            post_s = time.monotonic() - t0
+    finally:
+        srv.stop()
     if first.status_code != 201:
         raise RuntimeError(f"the kill check's first scene was not stored: {first.text[:300]}")
     acknowledged.add(first.json()["id"])
-    srv.stop()
     for _ in range(rounds):
         srv.start()
         statuses: list = []
