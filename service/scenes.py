@@ -53,13 +53,12 @@ def storing(fn: Callable[..., T], *args: Any) -> T:
         release_memory(force=True)  # after a reconstruction or an edit: its arrays are freed now
 
 
-def links(store: SceneStore, scene_id: str, meta: dict | None = None) -> dict[str, str | None]:
+def links(store: SceneStore, scene_id: str, meta: dict) -> dict[str, str | None]:
     """The URLs of a stored scene (:class:`service.schemas.Links`): itself, its renders, downloads and viewer; the
     selections, segments and edits of its objects when it keeps the correspondences they read (null otherwise:
     a refinement that changed the Gaussians' count drops them); the scene it was made from (an edit's or a
-    refinement's ``parent``; null for a reconstruction). ``meta``: the scene's metadata when the caller has it."""
+    refinement's ``parent``; null for a reconstruction). ``meta``: the scene's metadata, which every caller holds."""
     base = f"/v1/scenes/{scene_id}"
-    meta = store.meta(scene_id) if meta is None else meta
     editable = store.artifact(scene_id, EDIT_ARTIFACT) is not None
     parent = meta.get("parent")
     return {"self": base, "render": f"{base}/render", "ply": f"{base}/gaussians.ply", "spz": f"{base}/gaussians.spz",
