@@ -6,7 +6,8 @@ Starts ``omnisplat serve`` as a subprocess on 127.0.0.1 (fresh temporary store),
 ``height`` x 2 ``height`` panoramas (512 by default; ``--height 2880 --repeats 1`` gives a 5760x2880 pair's peak
 memory; the dev scene when present, else synthetic ones) ``repeats`` times with
 distinct options so each POST really reconstructs, then as often without poses (estimated from the
-images, as for a hand-held capture), then GETs ``repeats`` renders of each view
+images, as for a hand-held capture; each time other pictures, a pixel apart), then the last of those again
+with other options (the pose stage keeps a picture's features), then GETs ``repeats`` renders of each view
 (a 1024-wide ERP and a 1280x720 90-degree perspective, from the dev scene's target pose when
 present) and reads the server's peak RSS (VmHWM) from /proc. Prints a table of the medians with
 the machine, date and load (before and after). Timings on a shared CPU are noisy.
@@ -78,12 +79,16 @@ VIEWS = (("GET ERP render, 1024 wide", {"width": 1024}),
                                                        "fov_deg": 90.0}))
 
 
-def post_inputs(height: int, fmt: str = "PNG") -> tuple[bytes, bytes, list, list]:
+def post_inputs(height: int, fmt: str = "PNG", variant: int = 0) -> tuple[bytes, bytes, list, list]:
     """(image A, image B, c2w A, c2w B) for a POST, as PNG or JPEG (quality 92, what cameras write): the dev
-    scene's first split at ``height`` if present, else noise."""
+    scene's first split at ``height`` if present, else noise. ``variant`` k > 0 inverts pixel (0, k) of both
+    images: other pictures to the service, whose pose stage keeps the features of pictures it has seen."""
     from PIL import Image
 
     def encode(arr: np.ndarray) -> bytes:
+        if variant:
+            arr = arr.copy()
+            arr[0, variant] = 255 - arr[0, variant]
         buf = io.BytesIO()
         Image.fromarray(arr).save(buf, format=fmt, **({"quality": 92} if fmt == "JPEG" else {}))
         return buf.getvalue()
@@ -126,9 +131,12 @@ def _table(result: dict, machine: str) -> str:
     """The medians as a markdown table, with the machine line and the load at the end."""
     rows = ["| request | median |", "|---|---|",
             f"| POST {result['inputs']} | {result['post_scene_seconds']['median']:.2f} s |",
-            f"| POST the same without poses (estimated from the images) | "
+            f"| POST another pair without poses (estimated from the images) | "
             f"{result['post_without_poses_seconds']['median']:.2f} s (poses stage "
-            f"{result['post_without_poses_seconds']['median_poses_stage']:.2f} s) |"]
+            f"{result['post_without_poses_seconds']['median_poses_stage']:.2f} s) |",
+            f"| POST that pair again without poses, other options (its features kept) | "
+            f"{result['post_again_without_poses_seconds']['median']:.2f} s (poses stage "
+            f"{result['post_again_without_poses_seconds']['median_poses_stage']:.2f} s) |"]
     for label, r in result["renders"].items():
         rows.append(f"| {label} | {r['median_seconds']:.2f} s (render stage {r['median_render_stage_seconds']:.2f} s) |")
     rss = result["peak_rss_mb"]
@@ -172,10 +180,11 @@ def main(argv: list[str] | None = None) -> int:
             render_s = {label: [] for label, _ in VIEWS}
             render_stage = {label: [] for label, _ in VIEWS}
             with httpx.Client(base_url=url, timeout=600) as c:
-                def post(fields: dict, far: float, label: str) -> dict:
-                    """One POST of the pair; a distinct far plane -> a distinct scene id -> a real reconstruction."""
+                def post(fields: dict, far: float, label: str, images: tuple = (a, b)) -> dict:
+                    """One POST of a pair; a distinct far plane -> a distinct scene id -> a real reconstruction."""
                     t = time.perf_counter()
-                    r = c.post("/v1/scenes", files={"image_a": (f"a.{args.format}", a), "image_b": (f"b.{args.format}", b)},
+                    ia, ib = images
+                    r = c.post("/v1/scenes", files={"image_a": (f"a.{args.format}", ia), "image_b": (f"b.{args.format}", ib)},
                                data={**fields, "options": json.dumps({"far": far})})
                     seconds = time.perf_counter() - t
                     r.raise_for_status()
@@ -188,11 +197,16 @@ def main(argv: list[str] | None = None) -> int:
                     sid, n = body["id"], body["num_gaussians"]
                     for k, v in body["timings"].items():
                         stage_sums.setdefault(k, []).append(v)
-                unposed_s, pose_stage = [], []
-                for i in range(args.repeats):  # what a user without poses waits for: the same, poses estimated
-                    body = post({}, 30.0 + 0.01 * i, f"POST without poses {i + 1}/{args.repeats}")
+                unposed_s, pose_stage, again_s, again_stage = [], [], [], []
+                for i in range(args.repeats):  # what a user without poses waits for: new pictures, poses estimated
+                    pa, pb = post_inputs(args.height, args.format.upper(), variant=i + 1)[:2]
+                    body = post({}, 30.0 + 0.01 * i, f"POST without poses {i + 1}/{args.repeats}", (pa, pb))
                     unposed_s.append(body["seconds"])
                     pose_stage.append(body["timings"]["poses"])
+                for i in range(args.repeats):  # the last pair again with other options: its features are kept
+                    body = post({}, 40.0 + 0.01 * i, f"POST again without poses {i + 1}/{args.repeats}", (pa, pb))
+                    again_s.append(body["seconds"])
+                    again_stage.append(body["timings"]["poses"])
                 c2w = ",".join(str(v) for v in np.asarray(_target_pose(ca), dtype=float).ravel())
                 for label, params in VIEWS:
                     for i in range(args.repeats):
@@ -213,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
                 "post_stage_median_seconds": {k: statistics.median(v) for k, v in stage_sums.items()},
                 "post_without_poses_seconds": {"median": statistics.median(unposed_s), "all": unposed_s,
                                                "median_poses_stage": statistics.median(pose_stage)},
+                "post_again_without_poses_seconds": {"median": statistics.median(again_s), "all": again_s,
+                                                     "median_poses_stage": statistics.median(again_stage)},
                 "renders": {label: {"params": params, "median_seconds": statistics.median(render_s[label]),
                                     "all_seconds": render_s[label],
                                     "median_render_stage_seconds": statistics.median(render_stage[label])}

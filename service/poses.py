@@ -28,8 +28,12 @@ as a whole against the other (mirrored, upside down) is refused as such (:mod:`s
 
 from __future__ import annotations
 
+import copy
+import hashlib
+import threading
 import time
-from dataclasses import dataclass
+from collections import OrderedDict
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -213,17 +217,61 @@ class Panorama:
     gravity: dict
 
 
+#: Panoramas through :func:`prepare` kept by content for later estimates (least recently used out first): a
+#: client that posts a picture again, the same pair with other options or the next pair of a walk through a
+#: house, skips its features and lines (about 8 MB each).
+PREPARED_CACHE_SIZE = 4
+_prepared: OrderedDict[bytes, Panorama] = OrderedDict()
+_prepared_lock = threading.Lock()
+
+
+def _content_key(gray: np.ndarray, data: bytes | None) -> bytes:
+    """Digest of what :func:`prepare` reads: the grey ERP (size and pixels) and the file's bytes (its XMP)."""
+    h = hashlib.blake2b(digest_size=20)
+    h.update(repr(gray.shape).encode())
+    h.update(np.ascontiguousarray(gray).data)
+    h.update(b"-" if data is None else hashlib.blake2b(data, digest_size=20).digest())
+    return h.digest()
+
+
+def _readonly(pano: Panorama) -> Panorama:
+    for a in (pano.gray, pano.bearings, pano.descriptors, pano.level):
+        a.flags.writeable = False
+    return pano
+
+
 def prepare(erp: np.ndarray, data: bytes | None = None) -> Panorama:
     """Features and gravity of one panorama (``data``: the file's bytes, for the camera's own tilt reading).
 
     The panorama is levelled only when its tilt exceeds :data:`LEVEL_MIN_TILT_DEG`; ``gravity["applied"]``
-    says whether it was."""
+    says whether it was. The result is kept (:data:`PREPARED_CACHE_SIZE`, arrays read-only) and returned
+    again for the same grey pixels and file bytes, with its own copy of the gravity dict."""
     gray = gray_erp(erp)
-    f, d = features(gray)
-    down, ginfo = panorama_gravity(gray, data)
-    applied = ginfo["tilt_deg"] > LEVEL_MIN_TILT_DEG
-    level = level_rotation(down) if applied else np.eye(3)
-    return Panorama(gray, f @ level.T, d, level, {**ginfo, "down": [float(v) for v in down], "applied": bool(applied)})
+    key = _content_key(gray, data)
+    with _prepared_lock:
+        hit = _prepared.get(key)
+        if hit is not None:
+            _prepared.move_to_end(key)
+    if hit is None:
+        if np.shares_memory(gray, erp):  # a grey ERP comes back as it is: keep a copy, not the caller's array
+            gray = gray.copy()
+        f, d = features(gray)
+        down, ginfo = panorama_gravity(gray, data)
+        applied = ginfo["tilt_deg"] > LEVEL_MIN_TILT_DEG
+        level = level_rotation(down) if applied else np.eye(3)
+        hit = _readonly(Panorama(gray, f @ level.T, d, level,
+                                 {**ginfo, "down": [float(v) for v in down], "applied": bool(applied)}))
+        with _prepared_lock:
+            _prepared[key] = hit
+            while len(_prepared) > PREPARED_CACHE_SIZE:
+                _prepared.popitem(last=False)
+    return replace(hit, gravity=copy.deepcopy(hit.gravity))
+
+
+def clear_prepared_cache() -> None:
+    """Forget every kept :func:`prepare` result (benchmarks that time the features)."""
+    with _prepared_lock:
+        _prepared.clear()
 
 
 def _guided_refine_general(fa, fb, dist: Distances, R, t):

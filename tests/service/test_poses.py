@@ -8,51 +8,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rasterizer.geometry import direction_from_lat_lon, erp_lat_lon, lat_lon_from_direction
+from rasterizer.geometry import lat_lon_from_direction
 from rasterizer.relative_pose import yaw_rotation
 from rasterizer.scene_folder import load_scene
 from service.matching import Distances, putative_matches
 from service.pose_flips import FLIPS, MIRROR_BINS
 from service.poses import PoseEstimationFailed, PoseOptions, estimate_poses, poses_for_scene
-from tests.service._support import LiveServer, make_settings
-
-ROOM_MIN = np.array([-3.0, -1.2, -3.5])  # camera A at the origin, OpenCV (y down): floor at y = 1.5
-ROOM_MAX = np.array([3.5, 1.5, 4.0])
-_LATTICE = np.random.default_rng(7).random((64, 64, 64, 3)).astype(np.float32)
-
-
-def _noise(p: np.ndarray, cell: float) -> np.ndarray:
-    """Trilinear value noise on a random lattice with ``cell`` metres spacing, (..., 3) in [0, 1]."""
-    q = p / cell
-    i = np.floor(q).astype(int)
-    f = q - i
-    f = f * f * (3 - 2 * f)
-    out = 0.0
-    for dx in (0, 1):
-        for dy in (0, 1):
-            for dz in (0, 1):
-                w = (f[..., 0] if dx else 1 - f[..., 0]) * (f[..., 1] if dy else 1 - f[..., 1]) * \
-                    (f[..., 2] if dz else 1 - f[..., 2])
-                out = out + w[..., None] * _LATTICE[(i[..., 0] + dx) % 64, (i[..., 1] + dy) % 64, (i[..., 2] + dz) % 64]
-    return out
-
-
-def room_erp(c2w: np.ndarray, height: int = 384, supersample: int = 1) -> np.ndarray:
-    """uint8 ERP (H, 2H, 3) of the textured box room seen from ``c2w`` (ray-cast, OpenCV frames): each face
-    shaded differently and the walls in 0.7-m panels, so that the room has vertical edges as real rooms do.
-    ``supersample``: rays per pixel side, box-filtered (smooth edges, as a camera's optics give)."""
-    lat, lon = erp_lat_lon(height * supersample, 2 * height * supersample)
-    d = direction_from_lat_lon(lat, lon) @ c2w[:3, :3].T
-    o = c2w[:3, 3]
-    with np.errstate(divide="ignore"):
-        tt = np.where(d > 0, (ROOM_MAX - o) / d, (ROOM_MIN - o) / d)
-    p = o + np.min(tt, axis=-1, keepdims=True) * d
-    face = np.argmin(tt, axis=-1) * 2 + (np.take_along_axis(d, np.argmin(tt, axis=-1)[..., None], -1)[..., 0] > 0)
-    panel = np.where(face // 2 == 0, np.floor(p[..., 2] / 0.7), np.floor(p[..., 0] / 0.7)) % 2
-    shade = np.array([0.8, 1.0, 0.7, 0.9, 0.75, 0.95])[face] * np.where(face // 2 == 1, 1.0, 0.6 + 0.4 * panel)
-    tex = (0.55 * _noise(p, 0.08) + 0.45 * _noise(p, 0.3)) * shade[..., None]
-    tex = tex.reshape(height, supersample, 2 * height, supersample, 3).mean((1, 3))
-    return (np.clip(tex, 0, 1) * 255).astype(np.uint8)
+from tests.service._support import LiveServer, make_settings, room_erp
 
 
 def _pose(yaw_deg: float, t) -> np.ndarray:
