@@ -219,7 +219,7 @@ class Panorama:
 
 #: Panoramas through :func:`prepare` kept by content for later estimates (least recently used out first): a
 #: client that posts a picture again, the same pair with other options or the next pair of a walk through a
-#: house, skips its features and lines (about 8 MB each).
+#: house, skips its features and lines (1-3.4 MB each on the dev panoramas).
 PREPARED_CACHE_SIZE = 4
 _prepared: OrderedDict[bytes, Panorama] = OrderedDict()
 _prepared_lock = threading.Lock()
