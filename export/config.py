@@ -101,7 +101,7 @@ class EncoderConfig:
     near_per_baseline: float = NEAR_PER_BASELINE
     far_per_baseline: float = FAR_PER_BASELINE
     name: str = "omnisplat-trainingfree"
-    version: str = "0.16.0"
+    version: str = "0.17.0"
 
     def __post_init__(self) -> None:
         if self.width != 2 * self.height:

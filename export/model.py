@@ -23,7 +23,8 @@ refinement can replace a stage without touching the geometry):
 9. optional cascade stage (:class:`export.fine_sweep.FineSweep`, ``fine_hypotheses``
    > 0): a per-pixel sweep of a few hypotheses around that depth on a grid
    ``fine_downscale`` times smaller than the Gaussians', its own left-right
-   check and planar fill (``fine_fill``), then the guided upsampling;
+   check and planar fill (``fine_fill``), then the guided upsampling; the output confidence is the larger of
+   the coarse one and the cascade's where its left-right check passes;
 10. :class:`GaussianHead`;
 11. :class:`export.matches.Matches`: each pixel's match in the other view at its
     final range, with score and a full-resolution left-right / occlusion flag.
@@ -184,11 +185,13 @@ class OmniSplatEncoder(nn.Module):
         return clamp_below_floor(planes, inv, rays, c2w, self.cfg.floor_clamp_tol)
 
     def cascade(self, inv, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes):
-        """Coarse inverse range (2G, 1, h, w) -> refined on the fine grid, with that grid's grey guide.
+        """Coarse inverse range (2G, 1, h, w) -> (refined on the fine grid, that grid's grey guide, the fine
+        confidence or None).
 
         Guided upsampling of the coarse map seeds :class:`FineSweep`; with
         ``fine_fill`` its steep-confidence pixels that pass a fine left-right
-        check (and are observable) then refill the rest by the planar fill.
+        check (and are observable) then refill the rest by the planar fill, and its gentle confidence where
+        the check passes (0 elsewhere) is returned for the output confidence (:meth:`forward`).
         """
         cfg = self.cfg
         g_count, wrap = self.num_grids, cfg.erp_encoder
@@ -199,9 +202,9 @@ class OmniSplatEncoder(nn.Module):
         seed = guided_upsample(grey_low, inv, grey, cfg.upsample_radius, cfg.upsample_eps, wrap).clamp(min=lo, max=hi)
         # (2G, 1, h, w) one coarse candidate step at each pixel
         step = plane_step(seed, inv_depths)
-        refined, _, conf_fill = self.fine(seed, grey, self.fine_rays, rel_rt, step * cfg.fine_step, lo, hi)
+        refined, conf, conf_fill = self.fine(seed, grey, self.fine_rays, rel_rt, step * cfg.fine_step, lo, hi)
         if not cfg.fine_fill:
-            return refined, grey
+            return refined, grey, None
         ok = self.fine.lr_consistency(refined, self.fine_rays, rel_rt,
                                       lambda e: plane_step(e, inv_depths) * cfg.fine_lr_tol)
         obs = F.interpolate(obs.reshape(2 * g_count, 1, *obs.shape[-2:]), size=size, mode="bilinear",
@@ -210,7 +213,7 @@ class OmniSplatEncoder(nn.Module):
         guide = torch.cat([guide, grey * float(cfg.fill_eps ** -0.5)], dim=1)
         value, weight = self.layout(planes, refined, conf_fill * ok * obs, self.fine_rays, c2w, self.fine_levels)
         filled = linear_push_pull(value, weight, guide, self.fine_levels, inv_depths[0])  # far: see forward()
-        return guided_filter(grey, filled, 1, cfg.upsample_eps, wrap), grey
+        return guided_filter(grey, filled, 1, cfg.upsample_eps, wrap), grey, conf * ok * obs
 
     # -- forward -------------------------------------------------------------
     def forward(self, erp_a, erp_b, warp_grids, rel_rt, inv_depths, c2w, cam_quats):
@@ -249,8 +252,10 @@ class OmniSplatEncoder(nn.Module):
         filled = self.floor_clamp(planes, filled, self.feat_rays, c2w)
 
         size = (self.full_h, self.full_w)
+        fine_conf = None
         if self.fine is not None:
-            filled, grey_low = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths, c2w, planes)
+            filled, grey_low, fine_conf = self.cascade(filled, grey_low, grey_full, obs, rel_rt, inv_depths, c2w,
+                                                       planes)
         if filled.shape[-2:] != size:
             inv_full = guided_upsample(grey_low, filled, grey_full, cfg.upsample_radius, cfg.upsample_eps, wrap)
         else:
@@ -258,6 +263,8 @@ class OmniSplatEncoder(nn.Module):
         inv_full = self.floor_clamp(planes, inv_full, self.head.rays, c2w)
         inv_full = inv_full.clamp(min=inv_depths[0], max=inv_depths[d_count - 1])
         conf_full = weight if cfg.downscale == 1 else F.interpolate(weight, size=size, mode="bilinear", align_corners=False)
+        if fine_conf is not None:  # a match the cascade confirms at its finer grid is confident there
+            conf_full = torch.maximum(conf_full, F.interpolate(fine_conf, size=size, mode="bilinear", align_corners=False))
         rng = (1.0 / inv_full).reshape(2, g_count, *size)
         conf_full = conf_full.reshape(2, g_count, *size)
 

@@ -76,7 +76,7 @@ def _off(got: np.ndarray, want: np.ndarray, name: str) -> np.ndarray:
     bad = ~np.isclose(got, want, rtol=RTOL.get(name, 1e-4), atol=ATOL[name])
     if name == "matches":  # (2, G, H, W, 5): one row per Gaussian-grid pixel; a status flip counts as a flip
         return bad.reshape(-1, bad.shape[-1]).any(axis=1)
-    return bad.reshape(bad.shape[0], -1).any(axis=1) if bad.ndim > 1 and name != "range_maps" else bad
+    return bad.reshape(bad.shape[0], -1).any(axis=1) if bad.ndim > 1 and name not in ("range_maps", "confidence") else bad
 
 
 def test_onnxruntime_matches_torch_on_dev_images(exported, m3d_dir):

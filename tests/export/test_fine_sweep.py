@@ -183,3 +183,37 @@ def test_config_checks_the_fine_stage():
         make_config("quality", fine_hypotheses=4)
     with pytest.raises(ValueError, match="fine_downscale"):
         make_config("quality", height=128, width=256, fine_hypotheses=5, fine_downscale=3)
+
+
+def test_output_confidence_is_the_larger_of_the_coarse_and_the_cascades():
+    """The encoder's confidence (opacity, footprint, matches) takes the cascade's where it is higher: a fine map
+    put in place of the cascade's comes out upsampled under a max, and the real one never lowers the coarse one."""
+    from export.model import OmniSplatEncoder
+    from export.onnx_export import dummy_inputs
+
+    cfg = make_config("quality", height=64, width=128)
+    model = OmniSplatEncoder(cfg).eval()
+    inputs = dummy_inputs(cfg)
+    real = model.cascade
+    fine_shape = (4, 1, model.fine_h, model.fine_w)
+    fine = torch.zeros(fine_shape)
+    fine[:, :, : model.fine_h // 2] = 0.9
+
+    def with_fine(value):
+        def cascade(*args):
+            filled, grey, conf = real(*args)
+            assert conf.shape == fine_shape and 0.0 <= float(conf.min()) and float(conf.max()) <= 1.0
+            return filled, grey, value
+        return cascade
+
+    with torch.no_grad():
+        got = {}
+        for name, value in (("coarse", torch.zeros(fine_shape)), ("fine", fine)):
+            model.cascade = with_fine(value)
+            got[name] = model(*inputs)[6]  # confidence (2, G, H, W)
+        model.cascade = real
+        both = model(*inputs)[6]
+    up = torch.nn.functional.interpolate(fine, size=got["coarse"].shape[-2:], mode="bilinear", align_corners=False)
+    torch.testing.assert_close(got["fine"], torch.maximum(got["coarse"], up.reshape(got["coarse"].shape)))
+    assert float(got["fine"][..., : cfg.full_size[0] // 2 - 2, :].min()) >= 0.9 - 1e-6
+    assert bool(torch.all(both >= got["coarse"]))
