@@ -253,7 +253,7 @@ def prepare(erp: np.ndarray, data: bytes | None = None) -> Panorama:
         if hit is not None:
             _prepared.move_to_end(key)
     if hit is None:
-        if np.shares_memory(gray, erp):  # a grey ERP comes back as it is: keep a copy, not the caller's array
+        if np.may_share_memory(gray, erp):  # a grey ERP comes back as it is: keep a copy, not the caller's array
             gray = gray.copy()
         f, d = features(gray)
         down, ginfo = panorama_gravity(gray, data)
