@@ -15,6 +15,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from rasterizer.compaction import CompactionOptions, ply_bytes_for_count
+from rasterizer.compaction.split import MIN_UPLOAD_RATIO
 from rasterizer.rig import MAX_RIG_CAP_DEG
 from rasterizer.view_colour import DEFAULT_SH_DEGREE, SH_DEGREES
 
@@ -48,6 +49,9 @@ class CompactionSettings(BaseModel):
                                   "merge further, least textured first, then the least visible are dropped (null: no cap)")
     max_bytes: int | None = Field(_COMPACTION.max_bytes, ge=0, description="keep the PLY within this many bytes "
                                   "(null: no cap)")
+    split_textured: bool = Field(_COMPACTION.split_textured, description=(
+        f"where the uploads are at least {MIN_UPLOAD_RATIO:g}x as wide as the model's input, split each textured "
+        "pixel's Gaussian into 2x2 finer ones that carry the upload's detail (within max_count / max_bytes)"))
 
     def build(self) -> CompactionOptions:
         return CompactionOptions(**self.model_dump())

@@ -2,8 +2,9 @@
 
 Steps: optional scene-adaptive depth range (:mod:`service.scene_adaptive`),
 the ONNX encoder, compaction (:mod:`rasterizer.compaction`: transparent
-Gaussians, merge of smooth 2x2 blocks, optional cap; the scene metadata's
-``compaction`` says how many each step removed), and a final guard that
+Gaussians, merge of smooth 2x2 blocks, optional cap, then textured pixels split
+into 2x2 where the uploads are finer than the grid; the scene metadata's
+``compaction`` says how many each step removed or added), and a final guard that
 drops any non-finite Gaussian. Options come as the API's ``options`` JSON
 object; structured keys ``compaction`` and ``adaptive_range`` hold the
 step options, ``near``/``far``, ``sh_degree`` (view-dependent colour, 1, or one colour per
@@ -15,15 +16,21 @@ the rig, 0 = off; absent = automatic, 20 where both references show a rig) go to
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
+import numpy as np
 from pydantic import ValidationError
 
 from rasterizer.compaction import CompactionOptions, Provenance, compact_result
+from rasterizer.compaction.options import count_limit
+from rasterizer.compaction.result import CompactionResult
+from rasterizer.compaction.split import fine_erp, split_textured
 from rasterizer.edit.scene import EditData
 from rasterizer.gaussians import Gaussians
 from rasterizer.ply import finite_rows
+from rasterizer.rig import rig_mask
+from rasterizer.threads import map_threads
 from rasterizer.view_colour import DEFAULT_SH_DEGREE
 
 from .options import PipelineSettings, describe_error
@@ -68,6 +75,20 @@ class PipelineOptions:
         return cls(settings.near, settings.far, compaction, adaptive, sh_degree, settings.rig_cap_deg)
 
 
+def _split_textured(res: CompactionResult, provenance: Provenance, uploads, opts: CompactionOptions,
+                    rig_cap_deg: float | None) -> CompactionResult:
+    """:func:`~rasterizer.compaction.split.split_textured` where both uploads are finer than the grids (else
+    ``res``), never in the rig cap, within the options' count cap."""
+    grids, h, w = provenance.grids, provenance.height, provenance.width
+    fine = map_threads(lambda erp: fine_erp(erp, grids, h, w), uploads)
+    if any(f is None for f in fine):  # nothing finer than the grid: reported as no split
+        return replace(res, stats={**res.stats, "split_textured": {"split": 0, "added": 0, "seconds": 0.0}})
+    exclude = None
+    if rig_cap_deg:
+        exclude = np.broadcast_to(rig_mask(grids, h, w, rig_cap_deg), (provenance.views, len(grids), h, w))
+    return split_textured(res, np.stack(fine), exclude=exclude, limit=count_limit(opts, res.gaussians.sh.shape[1]))
+
+
 @dataclass(frozen=True)
 class SceneBuild:
     """edit: correspondences, range maps and each Gaussian's provenance (None for a model without ``matches``)."""
@@ -78,8 +99,13 @@ class SceneBuild:
     edit: EditData | None = None
 
 
-def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions) -> SceneBuild:
-    """Reconstruct and compact; ``info`` says what each step did (incl. ``compaction`` stats)."""
+def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions, *,
+                uploads: tuple[np.ndarray, np.ndarray] | None = None) -> SceneBuild:
+    """Reconstruct and compact; ``info`` says what each step did (incl. ``compaction`` stats).
+
+    uploads: the two panoramas as uploaded when ``erp_a`` / ``erp_b`` are already resampled (default: those),
+    the source of the detail finer than the encoder's grid (:mod:`rasterizer.compaction.split`).
+    """
     if options.adaptive_range.enabled:  # off by default: then straight to the encoder
         rec = reconstruct_adaptive(encoder, erp_a, erp_b, c2w_a, c2w_b, options=options.adaptive_range,
                                    near=options.near, far=options.far, sh_degree=options.sh_degree,
@@ -92,8 +118,12 @@ def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions) -
     t0 = time.perf_counter()
     provenance = Provenance.from_reconstruction(rec, c2w_a, c2w_b)
     res = compact_result(rec.gaussians, provenance, options.compaction, confidence=rec.confidence)
-    gaussians, stats = res.gaussians, res.stats
     timings["compaction"] = time.perf_counter() - t0
+    if options.compaction.split_textured:
+        t0 = time.perf_counter()
+        res = _split_textured(res, provenance, uploads or (erp_a, erp_b), options.compaction, info.get("rig_cap_deg"))
+        timings["split_textured"] = time.perf_counter() - t0
+    gaussians, stats = res.gaussians, res.stats
     info["compaction"] = stats
     matches = getattr(rec, "matches", None)
     edit = None if matches is None else EditData(

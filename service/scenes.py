@@ -135,10 +135,12 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
         check_sweep_range(c2w_a, c2w_b, options, sweep_per_baseline(runtime))
     t0 = time.perf_counter()
     height = runtime.encoder.height
-    erp_a, erp_b = map_threads(_at_model_size, (erp_a, erp_b), (height, height))  # resampled once, here
+    uploads = (erp_a, erp_b)  # the split's finer detail (rasterizer.compaction.split)
+    erp_a, erp_b = map_threads(_at_model_size, uploads, (height, height))  # resampled once, here
     timings["resample"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    build = build_scene(runtime.encoder, erp_a, erp_b, c2w_a, c2w_b, pipeline_options)
+    build = build_scene(runtime.encoder, erp_a, erp_b, c2w_a, c2w_b, pipeline_options, uploads=uploads)
+    del uploads
     stages = dict(build.timings)
     timings["resample"] += stages.pop("resample", 0.0)  # the encoder's own, after the one above
     timings.update(stages)
@@ -174,8 +176,9 @@ def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_
 
 def read_width(model_height: int) -> int:
     """The widest ERP that a reconstruction's stages read: the pose features' and checks' grey panorama
-    (:data:`service.photometric.MAX_ERP_WIDTH`) or the input of a model ``model_height`` rows high."""
-    return max(MAX_ERP_WIDTH, 2 * model_height)
+    (:data:`service.photometric.MAX_ERP_WIDTH`) or the split's detail, twice as fine as the grid of a model
+    ``model_height`` rows high (:func:`rasterizer.compaction.split.fine_grids`)."""
+    return max(MAX_ERP_WIDTH, 4 * model_height)
 
 
 def sweep_per_baseline(runtime: ModelRuntime) -> tuple[float, float]:

@@ -31,6 +31,9 @@ class CompactionOptions:
     smooth_plane_tol (rms distance from the block's plane / range) and
     smooth_max_incidence_deg (largest angle between the plane's normal and
     the ray; also what rejects depth steps). max_count, max_bytes: optional cap (None = off); max_bytes counts the PLY.
+    split_textured: textured pixels of an upload finer than the grid become 2x2 surfels
+    (:func:`rasterizer.compaction.split.split_textured`, which needs the upload: the service's
+    ``build_scene`` runs it after the other steps, within the cap).
     """
 
     min_opacity: float = 1.0 / 255.0
@@ -49,6 +52,7 @@ class CompactionOptions:
     smooth_max_incidence_deg: float = 55.0
     max_count: int | None = None
     max_bytes: int | None = None
+    split_textured: bool = True
 
     def __post_init__(self) -> None:
         for name in ("min_opacity", "min_confidence", "smooth_colour_tol", "smooth_opacity_tol", "smooth_plane_tol"):
@@ -69,7 +73,7 @@ class CompactionOptions:
     @classmethod
     def off(cls) -> "CompactionOptions":
         """Every step disabled (compact() then returns its input unchanged)."""
-        return cls(min_opacity=0.0, min_confidence=0.0, merge_smooth=False)
+        return cls(min_opacity=0.0, min_confidence=0.0, merge_smooth=False, split_textured=False)
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "CompactionOptions":

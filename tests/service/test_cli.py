@@ -652,5 +652,5 @@ def test_reconstruct_reads_wide_jpegs_as_the_api_does(tmp_path, model_path, monk
             "--model", str(model_path), "--no-build", "-o", str(tmp_path / "scene.ply")]
     assert cli.main(argv) == 0 and widths == [2048]  # the test model reads 256 columns
     widths.clear()
-    monkeypatch.setattr(scenes, "read_width", lambda model_height: 2200)  # as a model 1100 rows high would read
+    monkeypatch.setattr(scenes, "read_width", lambda model_height: 2200)  # as a model 550 rows high would read
     assert cli.main(argv) == 0 and widths == [2048, 2200]

@@ -13,9 +13,9 @@ from tests.service._support import edit_server, post_scene
 IDENTITY = ",".join(str(float(x)) for x in np.eye(4).ravel())
 
 
-def _png(img) -> bytes:
+def _png(img, step: int = 4) -> bytes:
     buf = io.BytesIO()
-    Image.fromarray((np.asarray(img)[::4, ::4] * 255).astype(np.uint8)).save(buf, format="PNG")
+    Image.fromarray((np.asarray(img)[::step, ::step] * 255).astype(np.uint8)).save(buf, format="PNG")
     return buf.getvalue()
 
 
@@ -188,3 +188,22 @@ def test_cli_select_and_edit(scene, live, capsys):
     assert "[0, 1]" in capsys.readouterr().err
     assert main(["edit", scene, "--store", str(live.store), "--selection", "0" * 32, "--op", "remove"]) == 2
     assert "selection_not_found" in capsys.readouterr().err
+
+
+def test_a_scene_with_split_pixels_selects_and_removes_them_whole(client, m3d_dir):
+    """Uploads twice the model's width split textured pixels into 2x2 Gaussians (rasterizer.compaction.split);
+    the children keep their pixel's provenance, so a selection takes all four and a removal leaves none."""
+    s = load_scene(m3d_dir)
+    fa, fb = s.frames["00"], s.frames["02"]
+    poses = json.dumps({"convention": "opencv", "c2w": [fa.c2w.tolist(), fb.c2w.tolist()]})
+    r = post_scene(client, _png(fa.image(), 2), _png(fb.image(), 2), poses=poses)
+    assert r.status_code == 201, r.text
+    scene = r.json()["id"]
+    meta = client.get(f"/v1/scenes/{scene}").json()
+    assert meta["compaction"]["split_textured"]["split"] > 0
+    sel = client.post(f"/v1/scenes/{scene}/selections", json={"view": "a", "points": [[0.95, 0.5]]})
+    assert sel.status_code == 201, sel.text
+    assert sel.json()["num_gaussians"] > 0
+    r = client.post(f"/v1/scenes/{scene}/edits", json={"selection": sel.json()["id"], "op": "remove"})
+    assert r.status_code == 201, r.text
+    assert r.json()["num_gaussians"] == meta["num_gaussians"] - sel.json()["num_gaussians"]

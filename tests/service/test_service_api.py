@@ -489,6 +489,31 @@ def test_compaction_options_change_the_count_and_are_reported(client):
     assert no_smooth.json()["num_gaussians"] == default.json()["num_gaussians"] + ds["removed"]["merge_smooth"]
 
 
+def test_uploads_finer_than_the_model_split_textured_pixels_within_the_cap(client):
+    # the test model reads 256 columns: 512-wide uploads carry detail its grid cannot hold
+    a, b = panorama(height=256, seed=12), panorama(height=256, seed=12, shift=10)
+    fine = post_scene(client, a, b)
+    assert fine.status_code == 201, fine.text
+    st = client.get(f"/v1/scenes/{fine.json()['id']}").json()["compaction"]
+    split = st["split_textured"]["split"]
+    assert split > 0 and st["split_textured"]["added"] == 4 * split and st["removed"]["split_textured"] == -3 * split
+    assert sum(st["removed"].values()) == st["input"] - st["output"] and st["output"] == fine.json()["num_gaussians"]
+    whole = post_scene(client, a, b, options=json.dumps({"compaction": {"split_textured": False}}))
+    assert whole.status_code == 201, whole.text
+    n_whole = whole.json()["num_gaussians"]
+    assert fine.json()["num_gaussians"] == n_whole + 3 * split
+    assert "split_textured" not in client.get(f"/v1/scenes/{whole.json()['id']}").json()["compaction"]
+    capped = post_scene(client, a, b, options=json.dumps({"compaction": {"max_count": n_whole + 301}}))
+    assert capped.status_code == 201, capped.text
+    cs = client.get(f"/v1/scenes/{capped.json()['id']}").json()["compaction"]
+    assert cs["split_textured"]["split"] == 100 and capped.json()["num_gaussians"] == n_whole + 300
+    # uploads at the model's own width hold nothing finer: nothing splits
+    small = post_scene(client, panorama(seed=12), panorama(seed=12, shift=5))
+    assert client.get(f"/v1/scenes/{small.json()['id']}").json()["compaction"]["split_textured"]["split"] == 0
+    bad = post_scene(client, a, b, options=json.dumps({"compaction": {"split_textured": "yes"}}))
+    assert bad.status_code == 422 and "split_textured" in bad.text
+
+
 @pytest.mark.parametrize("options, word", [
     ({"compaction": {"resolve_overlap": "split"}}, "options.compaction.resolve_overlap: unknown option"),
     ({"compaction": {"merge_duplicates": True}}, "options.compaction.merge_duplicates: unknown option"),
