@@ -225,9 +225,12 @@ def _up2(m: np.ndarray, valid: np.ndarray, axis: int) -> np.ndarray:
     """Bilinear 2x upsampling of block values along ``axis`` (half-pixel centres: 3/4 of the block, 1/4 of the
     nearer neighbour); a neighbour that is not ``valid`` (or off the edge) is replaced by the block itself."""
     n = m.shape[axis]
+    every = bool(valid.all())
     out = []
     for idx, edge in ((np.r_[0, np.arange(n - 1)], 0), (np.r_[np.arange(1, n), n - 1], n - 1)):
-        nb = np.where(np.take(valid, idx, axis=axis - 1), np.take(m, idx, axis=axis), m)
+        nb = np.take(m, idx, axis=axis)
+        if not every:
+            nb = np.where(np.take(valid, idx, axis=axis - 1), nb, m)
         out.append(0.75 * m + 0.25 * nb)
     shape = list(m.shape)
     shape[axis] = 2 * n
@@ -278,8 +281,10 @@ def block_texture_contrast(dc: np.ndarray, present: np.ndarray, level: int) -> t
     t, whole = block_texture(dc, present, level)
     p = np.asarray(present, bool)
     n = np.maximum(p.reshape(p.shape[0], -1).sum(axis=1), 1)
-    mean = np.where(p, dc, 0).reshape(3, p.shape[0], -1).sum(axis=2) / n  # (3, G)
-    dev = np.where(p, np.abs(dc - mean[:, :, None, None]), 0).reshape(3, p.shape[0], -1).sum(axis=2) / n
+    every = bool(p.all())  # the same sums without the masking passes
+    mean = (dc if every else np.where(p, dc, 0)).reshape(3, p.shape[0], -1).sum(axis=2) / n  # (3, G)
+    dev = np.abs(dc - mean[:, :, None, None])
+    dev = (dev if every else np.where(p, dev, 0)).reshape(3, p.shape[0], -1).sum(axis=2) / n
     return t, whole, _luma(dev.astype(np.float32))[:, None, None]
 
 

@@ -12,7 +12,11 @@ the block its ray falls in. The four children
 - lie where the rays of the four fine pixels of the surfel's grid pixel meet the surfel's plane (through its
   mean, normal to its thinnest axis); a ray that meets it more than :data:`MAX_CHILD_SIGMAS` standard
   deviations from the mean (grazing incidence) takes the surfel's range instead;
-- have half its scales, its rotation, opacity and view-dependent band;
+- have half its scales, its rotation and view-dependent band, and opacity 1 - sqrt(1 - its opacity): two
+  children on one point composite to its alpha. At the upload's pitch the children overlap as the surfels
+  do at the grid's, where its own opacity would be right; a render at the grid's pitch spreads each child
+  over about its parent's footprint (the renderer's low-pass), where four would compound it. The middle
+  way measured best at both widths (docs/design.md, "Detail at the upload's pitch");
 - take its colour plus the difference of the fine ERP at the child's ray from the mean of the four, clipped to
   [0, 1], so the colour fit's and the view-colour fit's work is kept and only the finer detail is added.
 
@@ -119,7 +123,12 @@ def _children(parents: Gaussians, view: np.ndarray, grid: np.ndarray, row: np.nd
     sh = four(parents.sh)
     sh[:, 0, :] = rgb_to_sh_dc(rgb.reshape(-1, 3))
     return Gaussians(means=(centre + t[:, None] * ray).astype(np.float32), scales=four(parents.scales) * np.float32(0.5),
-                     quats=four(parents.quats), opacities=four(parents.opacities), sh=sh)
+                     quats=four(parents.quats), opacities=four(child_opacity(parents.opacities)), sh=sh)
+
+
+def child_opacity(opacity: np.ndarray) -> np.ndarray:
+    """(n,) float32 opacity of a split surfel's children: 1 - sqrt(1 - opacity) (module docstring)."""
+    return (1.0 - np.sqrt(1.0 - np.clip(opacity.astype(np.float64), 0.0, 1.0))).astype(np.float32)
 
 
 def texture_ratio(fine: np.ndarray) -> np.ndarray:
@@ -175,13 +184,17 @@ def split_textured(result: CompactionResult, fine: np.ndarray, *, exclude: np.nd
     counts = np.ones(n, np.int64)
     counts[split] = 4
     out = g.subset(np.repeat(np.arange(n), counts))
-    if split.size:
-        kids = _children(g.subset(split), view[split], grid[split], row[split], col[split], fine, prov.c2w,
-                         prov.grids, h, w)
-        first = (np.cumsum(counts) - counts)[split]
-        at = (first[:, None] + np.arange(4)).reshape(-1)
-        for name in ("means", "scales", "sh"):
-            getattr(out, name)[at] = getattr(kids, name)
+    first = np.cumsum(counts) - counts
+
+    def write_children(part: np.ndarray) -> None:  # one view's parents (their children's rows are their own)
+        if part.size:
+            kids = _children(g.subset(part), view[part], grid[part], row[part], col[part], fine, prov.c2w,
+                             prov.grids, h, w)
+            at = (first[part][:, None] + np.arange(4)).reshape(-1)
+            for name in ("means", "scales", "opacities", "sh"):
+                getattr(out, name)[at] = getattr(kids, name)
+
+    map_threads(write_children, [split[view[split] == v] for v in range(prov.views)])  # the views side by side
     kept_inputs = np.flatnonzero(result.block[:front] == 1)  # aligned with result.index
     index = result.index[~np.isin(kept_inputs, split)]
     removed = {**result.stats.get("removed", {}), "split_textured": -3 * int(split.size)}

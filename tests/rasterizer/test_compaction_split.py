@@ -90,6 +90,10 @@ def test_textured_pixels_split_in_place_and_the_rest_is_kept():
     assert set(np.unique(counts)) <= {1, 4} and (counts == 4).sum() == st["split"]
     for name in ("means", "scales", "opacities", "sh"):
         np.testing.assert_array_equal(getattr(out.gaussians, name)[front:], getattr(res.gaussians, name)[n - shell:])
+    # a parent kept whole is unchanged
+    whole = np.repeat(counts == 1, counts)
+    kept = res.gaussians.subset(np.flatnonzero(np.isin(res.provenance.flat_index(n)[:n - shell], pos[:front][whole])))
+    np.testing.assert_array_equal(out.gaussians.opacities[:front][whole], kept.opacities)
     # only where the world is striped (x > 0), never on the ramp beyond two grid pixels (0.13 m) of its edge
     children = np.repeat(counts == 4, counts)
     assert out.gaussians.means[:front][children][:, 0].min() > -0.3
@@ -118,7 +122,8 @@ def test_children_lie_on_the_parent_plane_with_its_colour_on_average():
     assert np.all(np.linalg.norm(local, axis=2)[on_plane] <= MAX_CHILD_SIGMAS + 1e-6)
     np.testing.assert_allclose(kids.scales.reshape(k, 4, 3), np.repeat(0.5 * parents.scales[:, None, :], 4, axis=1),
                                rtol=1e-6)
-    np.testing.assert_array_equal(kids.opacities.reshape(k, 4), np.repeat(parents.opacities[:, None], 4, axis=1))
+    two = 1 - (1 - kids.opacities.reshape(k, 4).astype(np.float64)) ** 2  # two children composite to the parent's alpha
+    np.testing.assert_allclose(two, np.repeat(parents.opacities[:, None], 4, axis=1), atol=1e-6)
     rgb = sh_dc_to_rgb(kids.sh[:, 0]).reshape(k, 4, 3)
     unclipped = np.all((rgb > 1e-4) & (rgb < 1 - 1e-4), axis=(1, 2))
     np.testing.assert_allclose(rgb[unclipped].mean(axis=1), sh_dc_to_rgb(parents.sh[unclipped, 0]), atol=1e-5)
