@@ -3,13 +3,22 @@ reference's own render closer to the fine upload; flat ones, the rig cap, the sh
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from bench.metrics import psnr, sharpness
 from rasterizer import geometry as geo
 from rasterizer.camera import sample_erp
 from rasterizer.compaction import CompactionOptions, Provenance, compact_result
 from rasterizer.compaction.merge import TEXTURE_TOL
-from rasterizer.compaction.split import MAX_CHILD_SIGMAS, MIN_UPLOAD_RATIO, fine_erp, split_textured, texture_ratio
+from rasterizer.compaction.split import (
+    MAX_CHILD_SIGMAS,
+    MIN_UPLOAD_RATIO,
+    child_opacity,
+    fine_erp,
+    split_textured,
+    texture_ratio,
+)
 from rasterizer.depth_gaussians import gaussians_from_depth
 from rasterizer.gaussians import Gaussians, quat_to_rotmat, sh_dc_to_rgb
 from rasterizer.render import render
@@ -214,3 +223,41 @@ def test_bad_fine_shape_is_refused():
     res, fine, _, _ = _scene()
     with pytest.raises(ValueError, match="fine ERPs must be"):
         split_textured(res, fine[:, :-2])
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), log_scale=st.floats(-12.0, 6.0), log_range=st.floats(-6.0, 6.0),
+       opacity=st.floats(0.0, 1.0))
+def test_children_of_any_parent_are_finite_and_near_it(seed, log_scale, log_range, opacity):
+    """Random orientations, footprints from about 1e-6 to 400 and ranges from about 0.005 to 1000 (points at the
+    camera, huge rooms), any opacity: children stay finite, each within MAX_CHILD_SIGMAS of its parent or at its
+    range, opacity in [0, 1]."""
+    res, fine, poses, shell = _scene(textured_x=-3.0)
+    g = res.gaussians
+    front = len(g) - shell
+    rng = np.random.default_rng(seed)
+    view = res.provenance.decode(len(g))[0][:front]
+    q = rng.standard_normal((front, 4))
+    scale = np.exp(log_scale) * rng.uniform(0.1, 1.0, (front, 3))
+    centre = poses[view, :3, 3]
+    means = centre + np.exp(log_range) * (g.means[:front] - centre)
+    g2 = g.with_(means=np.concatenate([means, g.means[front:]]).astype(np.float32),
+                 quats=np.concatenate([q / np.linalg.norm(q, axis=1, keepdims=True), g.quats[front:]]).astype(np.float32),
+                 scales=np.concatenate([scale, g.scales[front:]]).astype(np.float32),
+                 opacities=np.concatenate([np.full(front, opacity), g.opacities[front:]]).astype(np.float32))
+    out = split_textured(type(res)(g2, res.provenance, res.block, res.index, res.stats), fine)
+    assert out.stats["split_textured"]["split"] > 0
+    out.gaussians.check_finite()
+    kids = out.gaussians.opacities[:len(out.gaussians) - shell]
+    assert np.all((kids >= 0) & (kids <= 1))
+    pos = out.provenance.flat_index(len(out.gaussians))[:len(out.gaussians) - shell]
+    parent_of = np.searchsorted(res.provenance.flat_index(len(g))[:front], pos)
+    v = view[parent_of]
+    child = out.gaussians.means[:len(pos)].astype(np.float64)
+    ratio = (np.linalg.norm(child - poses[v, :3, 3], axis=1)
+             / np.linalg.norm(g2.means[parent_of].astype(np.float64) - poses[v, :3, 3], axis=1))
+    rot = quat_to_rotmat(g2.quats[parent_of].astype(np.float64))
+    local = np.einsum("nji,nj->ni", rot, child - g2.means[parent_of]) / g2.scales[parent_of].astype(np.float64)
+    assert np.all((np.linalg.norm(local, axis=1) <= MAX_CHILD_SIGMAS * 1.001) | (np.abs(ratio - 1) < 1e-5))
+    np.testing.assert_allclose(1 - (1 - child_opacity(np.array([opacity], np.float32)).astype(np.float64)) ** 2,
+                               np.float32(opacity), atol=1e-6)
