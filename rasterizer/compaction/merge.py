@@ -227,7 +227,7 @@ def _up2(m: np.ndarray, valid: np.ndarray, axis: int) -> np.ndarray:
     n = m.shape[axis]
     every = bool(valid.all())
     out = []
-    for idx, edge in ((np.r_[0, np.arange(n - 1)], 0), (np.r_[np.arange(1, n), n - 1], n - 1)):
+    for idx in (np.r_[0, np.arange(n - 1)], np.r_[np.arange(1, n), n - 1]):  # the neighbour before, after
         nb = np.take(m, idx, axis=axis)
         if not every:
             nb = np.where(np.take(valid, idx, axis=axis - 1), nb, m)

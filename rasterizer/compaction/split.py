@@ -163,7 +163,8 @@ def split_textured(result: CompactionResult, fine: np.ndarray, *, exclude: np.nd
     flat = prov.flat_index(n)
     front = n - int(result.stats.get("shell", 0))
     view, grid, row, col = prov.decode(n)
-    cand = np.flatnonzero(result.block[:front] == 1)
+    whole = np.flatnonzero(result.block[:front] == 1)  # pixels kept as they are, aligned with result.index
+    cand = whole
     if exclude is not None:
         cand = cand[~np.asarray(exclude, bool).reshape(-1)[flat[cand]]]
     ratios = map_threads(texture_ratio, list(fine))
@@ -195,8 +196,7 @@ def split_textured(result: CompactionResult, fine: np.ndarray, *, exclude: np.nd
                 getattr(out, name)[at] = getattr(kids, name)
 
     map_threads(write_children, [split[view[split] == v] for v in range(prov.views)])  # the views side by side
-    kept_inputs = np.flatnonzero(result.block[:front] == 1)  # aligned with result.index
-    index = result.index[~np.isin(kept_inputs, split)]
+    index = result.index[~np.isin(whole, split)]
     removed = {**result.stats.get("removed", {}), "split_textured": -3 * int(split.size)}
     stats = {**result.stats, "output": len(out), "removed": removed,
              "split_textured": {"split": int(split.size), "added": 4 * int(split.size),
