@@ -40,14 +40,13 @@ both grids and averaging their 6% overlap.
 
 from __future__ import annotations
 
-import threading
-from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from .gaussians import rotmat_to_quat
 from .geometry import YIN_LAT_MAX, YIN_LON_MAX, grid_directions, rigid_inverse
+from .lru import LRUCache
 
 #: Names of the encoder graph's inputs and outputs, in order: the contract between
 #: :mod:`export` (which writes the graph) and :mod:`service.encoder` (which feeds it).
@@ -277,14 +276,14 @@ def _warp_grids_uncached(rels: np.ndarray, inv: np.ndarray, grids: tuple[str, ..
 #: Small LRU of warp grids keyed by (relative poses, candidates, grids, size): a service
 #: re-rendering the same pair (or a benchmark repeating it) skips the numpy work.
 #: Entries are read-only; quality-preset grids are ~50 MB each.
+#: The bound is read at every call (0 turns the cache off) and every insert: a change at run time applies at once.
 WARP_CACHE_SIZE = 2
-_warp_cache: OrderedDict = OrderedDict()
-_warp_cache_lock = threading.Lock()
+_warp_cache: LRUCache[tuple, np.ndarray] = LRUCache(lambda: WARP_CACHE_SIZE)
 
 
 def clear_warp_cache() -> None:
-    with _warp_cache_lock:
-        _warp_cache.clear()
+    """Forget every kept warp grid."""
+    _warp_cache.clear()
 
 
 def warp_grids(
@@ -311,18 +310,12 @@ def warp_grids(
     if not cache or WARP_CACHE_SIZE <= 0:
         return _warp_grids_uncached(rels, inv, grids, int(height), int(width), workers)
     key = (rels.tobytes(), inv.tobytes(), grids, int(height), int(width))
-    with _warp_cache_lock:
-        hit = _warp_cache.get(key)
-        if hit is not None:
-            _warp_cache.move_to_end(key)
-            return hit
+    hit = _warp_cache.get(key)
+    if hit is not None:
+        return hit
     out = _warp_grids_uncached(rels, inv, grids, int(height), int(width), workers)
     out.flags.writeable = False
-    with _warp_cache_lock:
-        _warp_cache[key] = out
-        _warp_cache.move_to_end(key)
-        while len(_warp_cache) > WARP_CACHE_SIZE:
-            _warp_cache.popitem(last=False)
+    _warp_cache.put(key, out)
     return out
 
 

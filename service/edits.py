@@ -21,15 +21,14 @@ from __future__ import annotations
 import contextlib
 import io
 import math
-import threading
 import time
-from collections import OrderedDict
 from collections.abc import Iterator
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, ValidationInfo, field_validator, model_validator
 
+from rasterizer.lru import LRUCache
 from rasterizer.sweep import MAX_SCENE_EXTENT
 
 from .errors import BadInput, NotFound, ServiceError
@@ -37,6 +36,9 @@ from .images import encode
 from .inputs import RENDER_CUT_SIGMA, RenderQuery
 from .references import REFERENCES_ARTIFACT, ReferencesMissing, load_references
 from .store import SCENE_ID_PATTERN, SceneNotFound, SceneStore, canonical_json, content_id
+
+if TYPE_CHECKING:
+    from rasterizer.edit.scene import SceneIndex
 
 EDIT_ARTIFACT = "edit.npz"
 INDEX_ARTIFACT = "edit_index.npz"
@@ -125,8 +127,7 @@ class CorrespondencesMissing(ServiceError):
     code = "correspondences_missing"
 
 
-_cache: OrderedDict = OrderedDict()
-_cache_lock = threading.Lock()
+_cache: LRUCache[str, SceneIndex] = LRUCache(lambda: INDEX_CACHE)  # scene id -> index; the bound is read at each insert
 
 
 @contextlib.contextmanager
@@ -169,11 +170,9 @@ def scene_index(store: SceneStore, scene_id: str):
 
     if not store.exists(scene_id):
         raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
-    with _cache_lock:
-        hit = _cache.get(scene_id)
-        if hit is not None:
-            _cache.move_to_end(scene_id)
-            return hit
+    hit = _cache.get(scene_id)
+    if hit is not None:
+        return hit
     with scene_reads(store, scene_id):
         data = _edit_data(store, scene_id)
         images, _ = load_references(store, scene_id)
@@ -187,10 +186,7 @@ def scene_index(store: SceneStore, scene_id: str):
         index.set_segments(saved["segments"], saved["segment_sizes"])
     if saved is None or "gaussian_labels" not in saved:
         store.put_artifact(scene_id, INDEX_ARTIFACT, index_bytes(index))
-    with _cache_lock:
-        _cache[scene_id] = index
-        while len(_cache) > INDEX_CACHE:
-            _cache.popitem(last=False)
+    _cache.put(scene_id, index)
     return index
 
 

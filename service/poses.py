@@ -30,9 +30,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
-import threading
 import time
-from collections import OrderedDict
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -41,6 +39,7 @@ import numpy as np
 from rasterizer.floor_sweep import FloorHidden, floor_ratio
 from rasterizer.geometry import lat_lon_from_direction, rigid_inverse
 from rasterizer.gravity import level_rotation
+from rasterizer.lru import LRUCache
 from rasterizer.relative_pose import (
     INLIER_DEG,
     epipolar_error,
@@ -221,8 +220,7 @@ class Panorama:
 #: client that posts a picture again, the same pair with other options or the next pair of a walk through a
 #: house, skips its features and lines (1-3.4 MB each on the dev panoramas).
 PREPARED_CACHE_SIZE = 4
-_prepared: OrderedDict[bytes, Panorama] = OrderedDict()
-_prepared_lock = threading.Lock()
+_prepared: LRUCache[bytes, Panorama] = LRUCache(lambda: PREPARED_CACHE_SIZE)  # the bound is read at each insert
 
 
 def _content_key(gray: np.ndarray, data: bytes | None) -> bytes:
@@ -248,10 +246,7 @@ def prepare(erp: np.ndarray, data: bytes | None = None) -> Panorama:
     again for the same grey pixels and file bytes, with its own copy of the gravity dict."""
     gray = gray_erp(erp)
     key = _content_key(gray, data)
-    with _prepared_lock:
-        hit = _prepared.get(key)
-        if hit is not None:
-            _prepared.move_to_end(key)
+    hit = _prepared.get(key)
     if hit is None:
         if np.may_share_memory(gray, erp):  # a grey ERP comes back as it is: keep a copy, not the caller's array
             gray = gray.copy()
@@ -261,17 +256,13 @@ def prepare(erp: np.ndarray, data: bytes | None = None) -> Panorama:
         level = level_rotation(down) if applied else np.eye(3)
         hit = _readonly(Panorama(gray, f @ level.T, d, level,
                                  {**ginfo, "down": [float(v) for v in down], "applied": bool(applied)}))
-        with _prepared_lock:
-            _prepared[key] = hit
-            while len(_prepared) > PREPARED_CACHE_SIZE:
-                _prepared.popitem(last=False)
+        _prepared.put(key, hit)
     return replace(hit, gravity=copy.deepcopy(hit.gravity))
 
 
 def clear_prepared_cache() -> None:
     """Forget every kept :func:`prepare` result (benchmarks that time the features)."""
-    with _prepared_lock:
-        _prepared.clear()
+    _prepared.clear()
 
 
 def _guided_refine_general(fa, fb, dist: Distances, R, t):

@@ -36,7 +36,7 @@ import shutil
 import threading
 import time
 import uuid
-from collections import Counter, OrderedDict
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Callable
@@ -44,6 +44,7 @@ from typing import Any, Callable
 import numpy as np
 
 from rasterizer.gaussians import Gaussians
+from rasterizer.lru import LRUCache
 
 log = logging.getLogger("omnisplat.store")
 
@@ -212,51 +213,9 @@ def json_safe(obj: Any) -> Any:
     return str(obj)
 
 
-class _LRU:
-    """Bounded by entry count and by bytes; thread-safe."""
-
-    def __init__(self, max_items: int, max_bytes: int) -> None:
-        self.max_items, self.max_bytes = max_items, max_bytes
-        self._data: OrderedDict[str, tuple[Gaussians, int]] = OrderedDict()
-        self._bytes = 0
-        self._lock = threading.Lock()
-        self.hits = self.misses = 0
-
-    def get(self, key: str) -> Gaussians | None:
-        with self._lock:
-            item = self._data.get(key)
-            if item is None:
-                self.misses += 1
-                return None
-            self._data.move_to_end(key)
-            self.hits += 1
-            return item[0]
-
-    def put(self, key: str, g: Gaussians) -> None:
-        size = sum(getattr(g, f).nbytes for f in _FIELDS)
-        with self._lock:
-            if key in self._data:
-                self._bytes -= self._data.pop(key)[1]
-            if self.max_items <= 0 or size > self.max_bytes:
-                return
-            self._data[key] = (g, size)
-            self._bytes += size
-            while len(self._data) > self.max_items or self._bytes > self.max_bytes:
-                _, (_, s) = self._data.popitem(last=False)
-                self._bytes -= s
-
-    def drop(self, key: str) -> None:
-        with self._lock:
-            item = self._data.pop(key, None)
-            if item is not None:
-                self._bytes -= item[1]
-
-    @property
-    def nbytes(self) -> int:
-        return self._bytes
-
-    def __len__(self) -> int:
-        return len(self._data)
+def _gaussians_nbytes(g: Gaussians) -> int:
+    """Bytes of one scene's Gaussians in the cache (its stored fields)."""
+    return sum(getattr(g, f).nbytes for f in _FIELDS)
 
 
 class SceneStore:
@@ -280,8 +239,8 @@ class SceneStore:
         self.max_scenes = max_scenes
         self.budget_bytes = int(budget_bytes)
         self.min_free_bytes = int(min_free_bytes)
-        self.cache = _LRU(cache_scenes, cache_bytes)
-        self._meta_cache: OrderedDict[str, dict] = OrderedDict()  # small; bounded by _META_CACHE
+        self.cache: LRUCache[str, Gaussians] = LRUCache(cache_scenes, cache_bytes, size=_gaussians_nbytes)
+        self._meta_cache: LRUCache[str, dict] = LRUCache(_META_CACHE)  # small: metadata dicts only
         self._lock = threading.Lock()
         self._room = threading.Lock()  # eviction + the write it makes room for happen together
         self._used: dict[str, float] = {}  # scene id -> last use (unix time); absent: the folder's mtime
@@ -533,8 +492,7 @@ class SceneStore:
         """Remove a scene; it disappears in one rename, the files go afterwards."""
         folder = self._dir(scene_id)
         self.cache.drop(scene_id)
-        with self._lock:
-            self._meta_cache.pop(scene_id, None)
+        self._meta_cache.drop(scene_id)
         self._used.pop(scene_id, None)
         grave = self.trash_dir / f"{scene_id}-{uuid.uuid4().hex}"
         try:
@@ -547,8 +505,7 @@ class SceneStore:
 
     # -- read -------------------------------------------------------------------
     def meta(self, scene_id: str) -> dict:
-        with self._lock:
-            cached = self._meta_cache.get(scene_id)
+        cached = self._meta_cache.get(scene_id)
         if cached is not None and self.exists(scene_id):
             return cached
         path = self._dir(scene_id) / "meta.json"
@@ -558,10 +515,7 @@ class SceneStore:
             raise SceneNotFound(scene_id) from None
         except ValueError as exc:
             raise StoreCorrupt(f"scene {scene_id}: meta.json unreadable ({exc})") from None
-        with self._lock:
-            self._meta_cache[scene_id] = meta
-            while len(self._meta_cache) > _META_CACHE:
-                self._meta_cache.popitem(last=False)
+        self._meta_cache.put(scene_id, meta)
         return meta
 
     def gaussians(self, scene_id: str) -> Gaussians:
