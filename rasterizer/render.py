@@ -102,13 +102,16 @@ def render_camera(gaussians: Gaussians, camera: Camera, threads: int = 1,
 
 def _render_resized(gaussians: Gaussians, camera: Camera, scale: float, threads: int,
                     cut_sigma: float | None) -> RenderOutput:
-    """``camera``'s view rendered on the pinhole grid ``scale`` times as fine, resized to the camera's size."""
+    """``camera``'s view rendered on the pinhole grid ``scale`` times as fine, resized to the camera's size:
+    the colour by Catmull-Rom, which keeps the full-size render's edges (a bilinear resize kept 0.6-0.8 of
+    its high-frequency energy on some views of the dev scenes; docs/design.md, "At the scene's own
+    resolution"), clipped at 0 against its overshoot; alpha and range bilinearly, within their samples'
+    range."""
     colour, alpha, range_sum = _premultiplied(gaussians, reduced_pinhole(camera, scale), threads, cut_sigma)
-    stack = resize_pinhole(np.concatenate([colour, alpha[:, :, None], range_sum[:, :, None]], axis=2),
-                           camera.width, camera.height)
-    alpha = np.clip(stack[:, :, 3], 0.0, 1.0)
-    return RenderOutput(np.ascontiguousarray(stack[:, :, :3]), np.ascontiguousarray(alpha),
-                        normalise_range(np.ascontiguousarray(stack[:, :, 4]), alpha))
+    colour = np.maximum(resize_pinhole(colour, camera.width, camera.height, kernel="cubic"), 0.0)
+    stack = resize_pinhole(np.dstack([alpha, range_sum]), camera.width, camera.height)
+    alpha = np.clip(stack[:, :, 0], 0.0, 1.0)
+    return RenderOutput(colour, np.ascontiguousarray(alpha), normalise_range(np.ascontiguousarray(stack[:, :, 1]), alpha))
 
 
 def _render_yinyang(gaussians: Gaussians, c2w: np.ndarray, width: int, height: int, near: float,
@@ -212,7 +215,7 @@ def render(gaussians: Gaussians, c2w, *, projection: str = "erp", width: int, he
         for everything else. The alpha and range outputs are the same either way.
     resolution : "exact" (default) rasterises at the requested size. "scene" renders a perspective
         view, or the Yin and Yang grids of a "yinyang" ERP, on a coarser pixel grid where the
-        requested one is finer than the scene's Gaussians, and resizes it bilinearly
+        requested one is finer than the scene's Gaussians, and resizes it (a perspective view's colour by Catmull-Rom)
         (:mod:`rasterizer.scene_resolution`); other projections render exactly.
     backdrop : with ``resolution="scene"``, for a perspective view or a "yinyang" ERP: the last
         ``backdrop`` Gaussians are a backdrop behind all the others (the environment shell of a
