@@ -50,8 +50,9 @@ class CompactionSettings(BaseModel):
     max_bytes: int | None = Field(_COMPACTION.max_bytes, ge=0, description="keep the PLY within this many bytes "
                                   "(null: no cap)")
     split_textured: bool = Field(_COMPACTION.split_textured, description=(
-        f"where the uploads are at least {MIN_UPLOAD_RATIO:g}x as wide as the model's input, split each textured "
-        "pixel's Gaussian into 2x2 finer ones that carry the upload's detail (within max_count / max_bytes)"))
+        f"where an upload is at least {MIN_UPLOAD_RATIO:g}x as wide as the model's input, split each textured "
+        "pixel's Gaussian of that reference into 2x2 finer ones that carry the upload's detail (within max_count / "
+        "max_bytes)"))
 
     def build(self) -> CompactionOptions:
         return CompactionOptions(**self.model_dump())

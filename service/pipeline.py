@@ -77,16 +77,16 @@ class PipelineOptions:
 
 def _split_textured(res: CompactionResult, provenance: Provenance, uploads, opts: CompactionOptions,
                     rig_cap_deg: float | None) -> CompactionResult:
-    """:func:`~rasterizer.compaction.split.split_textured` where both uploads are finer than the grids (else
-    ``res``), never in the rig cap, within the options' count cap."""
+    """:func:`~rasterizer.compaction.split.split_textured` of the pixels of each reference whose upload is finer
+    than the grids (the other's stay whole), never in the rig cap, within the options' count cap."""
     grids, h, w = provenance.grids, provenance.height, provenance.width
     fine = map_threads(lambda erp: fine_erp(erp, grids, h, w), uploads)
-    if any(f is None for f in fine):  # nothing finer than the grid: reported as no split
+    if all(f is None for f in fine):  # nothing finer than the grid: reported as no split
         return replace(res, stats={**res.stats, "split_textured": {"split": 0, "added": 0, "seconds": 0.0}})
     exclude = None
     if rig_cap_deg:
         exclude = np.broadcast_to(rig_mask(grids, h, w, rig_cap_deg), (provenance.views, len(grids), h, w))
-    return split_textured(res, np.stack(fine), exclude=exclude, limit=count_limit(opts, res.gaussians.sh.shape[1]))
+    return split_textured(res, fine, exclude=exclude, limit=count_limit(opts, res.gaussians.sh.shape[1]))
 
 
 @dataclass(frozen=True)

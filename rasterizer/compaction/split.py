@@ -20,7 +20,8 @@ the block its ray falls in. The four children
 - take its colour plus the difference of the fine ERP at the child's ray from the mean of the four, clipped to
   [0, 1], so the colour fit's and the view-colour fit's work is kept and only the finer detail is added.
 
-Children replace their parent in place: the output stays in layout order and each child keeps its
+Each view splits by its own upload: where one upload is finer than the grid and the other is not, only the
+first view's pixels split. Children replace their parent in place: the output stays in layout order and each child keeps its
 parent's layout position (selections find them through it). A count cap (``max_count`` / ``max_bytes``)
 is never exceeded: the most textured pixels (texture / contrast) split first, as far as it allows.
 """
@@ -88,10 +89,11 @@ def _fine_directions(kinds: np.ndarray, grids: tuple[str, ...], rows: np.ndarray
     return out
 
 
-def _children(parents: Gaussians, view: np.ndarray, grid: np.ndarray, row: np.ndarray, col: np.ndarray,
+def _children(parents: Gaussians, view: int, grid: np.ndarray, row: np.ndarray, col: np.ndarray,
               fine: np.ndarray, c2w: np.ndarray, grids: tuple[str, ...], height: int, width: int) -> Gaussians:
-    """(4 k) children of k ``parents`` at layout pixels (view, grid, row, col), in fine-pixel order
-    (top-left, top-right, bottom-left, bottom-right) per parent (module docstring); fine: (V, E, 2E, 3)."""
+    """(4 k) children of k ``parents`` at layout pixels (grid, row, col) of one ``view``, in fine-pixel order
+    (top-left, top-right, bottom-left, bottom-right) per parent (module docstring); fine: that view's
+    (E, 2E, 3) fine ERP; c2w: (V, 4, 4) every view's pose."""
     k = len(parents)
 
     def four(x: np.ndarray) -> np.ndarray:
@@ -101,23 +103,18 @@ def _children(parents: Gaussians, view: np.ndarray, grid: np.ndarray, row: np.nd
     scales = four(np.maximum(parents.scales.astype(np.float64), 1e-30))
     normal = rot[np.arange(4 * k), :, np.argmin(scales, axis=1)]
     mean = four(parents.means.astype(np.float64))
-    v4 = four(view)
-    centre = c2w[v4, :3, 3]
+    centre = np.broadcast_to(c2w[view, :3, 3], (4 * k, 3))
     local_ray = _fine_directions(four(grid), grids, (2 * row[:, None] + [0, 0, 1, 1]).reshape(-1),
                                  (2 * col[:, None] + [0, 1, 0, 1]).reshape(-1), height, width)
-    ray = np.einsum("nij,nj->ni", c2w[v4, :3, :3], local_ray)
+    ray = np.einsum("ij,nj->ni", c2w[view, :3, :3], local_ray)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.einsum("ni,ni->n", normal, mean - centre) / np.einsum("ni,ni->n", normal, ray)
         local = np.einsum("nji,nj->ni", rot, centre + t[:, None] * ray - mean) / scales
         near = np.isfinite(t) & (t > 0) & (np.einsum("ni,ni->n", local, local) <= MAX_CHILD_SIGMAS**2)
     t = np.where(near, t, np.linalg.norm(mean - centre, axis=1))
-    e = fine.shape[1]
+    e = fine.shape[0]
     c, r = geo.project_to_grid("erp", local_ray, e, 2 * e)
-    colours = np.empty((4 * k, 3), np.float32)
-    for v in range(fine.shape[0]):
-        at = v4 == v
-        colours[at] = sample_erp(fine[v], c[at], r[at])
-    colours = colours.reshape(k, 4, 3)
+    colours = np.asarray(sample_erp(fine, c, r), np.float32).reshape(k, 4, 3)
     rgb = sh_dc_to_rgb(parents.sh[:, 0, :]).astype(np.float32)
     rgb = np.clip(rgb[:, None, :] + (colours - colours.mean(axis=1, keepdims=True)), 0.0, 1.0)
     sh = four(parents.sh)
@@ -140,11 +137,12 @@ def texture_ratio(fine: np.ndarray) -> np.ndarray:
         return np.where(contrast > 0, texture / contrast, 0.0).astype(np.float32)[0]
 
 
-def split_textured(result: CompactionResult, fine: np.ndarray, *, exclude: np.ndarray | None = None,
+def split_textured(result: CompactionResult, fine, *, exclude: np.ndarray | None = None,
                    limit: int | None = None) -> CompactionResult:
     """``result`` with its textured pixels split into 2x2 children (module docstring).
 
-    fine: (V, E, 2E, 3) float32 in [0, 1], each view's :func:`fine_erp`; exclude: (V, G, H, W) bool pixels
+    fine: each view's :func:`fine_erp`, (E, 2E, 3) float32 in [0, 1], or None for a view whose upload holds
+    nothing finer than the grid (its pixels stay whole; a (V, E, 2E, 3) array also serves); exclude: (V, G, H, W) bool pixels
     never split (the rig cap, whose colours come from the other view); limit: the most Gaussians the output
     may hold (None: no cap). The shell after the pixel-aligned Gaussians (``stats["shell"]``) is kept as it
     is. ``stats`` gains ``split_textured`` ({"split": pixels, "added": children, "seconds"}) and
@@ -155,19 +153,20 @@ def split_textured(result: CompactionResult, fine: np.ndarray, *, exclude: np.nd
     prov = result.provenance
     g = result.gaussians
     n = len(g)
-    fine = np.asarray(fine, dtype=np.float32)
     h, w = prov.height, prov.width
     e = grid_erp_width(prov.grids, h, w)
-    if fine.shape != (prov.views, e, 2 * e, 3):
-        raise ValueError(f"fine ERPs must be {(prov.views, e, 2 * e, 3)}, got {fine.shape}")
+    fine = [None if f is None else np.asarray(f, dtype=np.float32) for f in fine]
+    shapes = [None if f is None else f.shape for f in fine]
+    if len(fine) != prov.views or any(s is not None and s != (e, 2 * e, 3) for s in shapes):
+        raise ValueError(f"fine ERPs must be {prov.views} of shape {(e, 2 * e, 3)} (or None), got {shapes}")
     flat = prov.flat_index(n)
     front = n - int(result.stats.get("shell", 0))
     view, grid, row, col = prov.decode(n)
     whole = np.flatnonzero(result.block[:front] == 1)  # pixels kept as they are, aligned with result.index
-    cand = whole
+    cand = whole[np.array([f is not None for f in fine])[view[whole]]]
     if exclude is not None:
         cand = cand[~np.asarray(exclude, bool).reshape(-1)[flat[cand]]]
-    ratios = map_threads(texture_ratio, list(fine))
+    ratios = map_threads(lambda f: None if f is None else texture_ratio(f), fine)
     r = np.empty(cand.size, np.float32)
     for gi, kind in enumerate(prov.grids):  # each candidate's block: the one its pixel's ray falls in
         at = np.flatnonzero(grid[cand] == gi)
@@ -175,6 +174,8 @@ def split_textured(result: CompactionResult, fine: np.ndarray, *, exclude: np.nd
         c = np.mod(np.rint(c).astype(np.int64), e)
         rr = np.clip(np.rint(rr).astype(np.int64), 0, e // 2 - 1)
         for v, ratio in enumerate(ratios):
+            if ratio is None:
+                continue
             on = view[cand[at]] == v
             r[at[on]] = ratio[rr[on], c[on]]
     textured = r > np.float32(TEXTURE_TOL)
@@ -187,15 +188,15 @@ def split_textured(result: CompactionResult, fine: np.ndarray, *, exclude: np.nd
     out = g.subset(np.repeat(np.arange(n), counts))
     first = np.cumsum(counts) - counts
 
-    def write_children(part: np.ndarray) -> None:  # one view's parents (their children's rows are their own)
+    def write_children(v: int) -> None:  # one view's parents (their children's rows are their own)
+        part = split[view[split] == v]
         if part.size:
-            kids = _children(g.subset(part), view[part], grid[part], row[part], col[part], fine, prov.c2w,
-                             prov.grids, h, w)
+            kids = _children(g.subset(part), v, grid[part], row[part], col[part], fine[v], prov.c2w, prov.grids, h, w)
             at = (first[part][:, None] + np.arange(4)).reshape(-1)
             for name in ("means", "scales", "opacities", "sh"):
                 getattr(out, name)[at] = getattr(kids, name)
 
-    map_threads(write_children, [split[view[split] == v] for v in range(prov.views)])  # the views side by side
+    map_threads(write_children, list(range(prov.views)))  # the views side by side
     index = result.index[~np.isin(whole, split)]
     removed = {**result.stats.get("removed", {}), "split_textured": -3 * int(split.size)}
     stats = {**result.stats, "output": len(out), "removed": removed,

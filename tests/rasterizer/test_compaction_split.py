@@ -219,10 +219,40 @@ def test_grazing_and_degenerate_parents_stay_finite():
     assert ratio.min() > 0.5 and ratio.max() < 2.0
 
 
+def test_a_view_without_a_finer_upload_keeps_its_pixels_whole():
+    """One view's upload finer than the grid, the other's not (None): the first view's pixels split as they do
+    when both are fine, to the bit, and the second's stay whole; with neither, nothing changes."""
+    res, fine, _, shell = _scene(textured_x=-3.0)
+    both = split_textured(res, fine)
+    one = split_textured(res, [fine[0], None])
+    n_both, n_one = len(both.gaussians), len(one.gaussians)
+
+    def split_pixels(out, n):
+        pos = out.provenance.flat_index(n)[:n - shell]
+        keys, counts = np.unique(pos, return_counts=True)
+        return keys[counts == 4]
+
+    views_both = res.provenance.decode(len(res.gaussians))[0]
+    flat_res = res.provenance.flat_index(len(res.gaussians))
+    view_of = dict(zip(flat_res.tolist(), views_both.tolist()))
+    in_both, in_one = split_pixels(both, n_both), split_pixels(one, n_one)
+    assert in_one.size > 0 and all(view_of[k] == 0 for k in in_one.tolist())
+    np.testing.assert_array_equal(in_one, [k for k in in_both.tolist() if view_of[k] == 0])
+    assert one.stats["split_textured"]["split"] == in_one.size
+    rows_both = np.isin(both.provenance.flat_index(n_both), in_one)
+    rows_one = np.isin(one.provenance.flat_index(n_one), in_one)
+    for name in ("means", "scales", "quats", "opacities", "sh"):
+        np.testing.assert_array_equal(getattr(one.gaussians, name)[rows_one], getattr(both.gaussians, name)[rows_both])
+    none = split_textured(res, [None, None])
+    assert none.stats["split_textured"]["split"] == 0 and len(none.gaussians) == len(res.gaussians)
+
+
 def test_bad_fine_shape_is_refused():
     res, fine, _, _ = _scene()
     with pytest.raises(ValueError, match="fine ERPs must be"):
         split_textured(res, fine[:, :-2])
+    with pytest.raises(ValueError, match="fine ERPs must be"):
+        split_textured(res, [fine[0]])  # one view's upload for two views
 
 
 @settings(max_examples=25, deadline=None)

@@ -507,6 +507,10 @@ def test_uploads_finer_than_the_model_split_textured_pixels_within_the_cap(clien
     assert capped.status_code == 201, capped.text
     cs = client.get(f"/v1/scenes/{capped.json()['id']}").json()["compaction"]
     assert cs["split_textured"]["split"] == 100 and capped.json()["num_gaussians"] == n_whole + 300
+    # one upload finer than the model, the other at its width: that reference's pixels alone split
+    mixed = post_scene(client, a, panorama(seed=12, shift=5))
+    assert mixed.status_code == 201, mixed.text
+    assert 0 < client.get(f"/v1/scenes/{mixed.json()['id']}").json()["compaction"]["split_textured"]["split"] < split
     # uploads at the model's own width hold nothing finer: nothing splits
     small = post_scene(client, panorama(seed=12), panorama(seed=12, shift=5))
     assert client.get(f"/v1/scenes/{small.json()['id']}").json()["compaction"]["split_textured"]["split"] == 0
