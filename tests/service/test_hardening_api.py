@@ -303,3 +303,14 @@ def test_openapi_declares_the_api_keys_401_where_it_is_checked(client):
         assert all("401" not in op["responses"] for op in paths[path].values())
     assert schema["components"]["securitySchemes"]["apiKey"]["scheme"] == "bearer"
     assert "ErrorResponse" in schema["components"]["schemas"]
+
+
+# -- odd inputs: never a 500, and a message that names the input at fault --------------------------------
+
+def test_an_adaptive_range_without_a_confident_pixel_keeps_the_default(client):
+    """min_confidence 1 with min_fraction 0 leaves no pixel for the percentiles: the default range, not a 500."""
+    options = '{"adaptive_range": {"enabled": true, "min_confidence": 1.0, "min_fraction": 0}}'
+    r = _post(client, options=options, seed=95)
+    assert r.status_code == 201, r.text
+    adaptive = client.get(f"/v1/scenes/{r.json()['id']}").json()["info"]["adaptive_range"]
+    assert adaptive["confident_fraction"] == 0.0 and "reason" in adaptive, adaptive
