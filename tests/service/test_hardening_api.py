@@ -314,3 +314,12 @@ def test_an_adaptive_range_without_a_confident_pixel_keeps_the_default(client):
     assert r.status_code == 201, r.text
     adaptive = client.get(f"/v1/scenes/{r.json()['id']}").json()["info"]["adaptive_range"]
     assert adaptive["confident_fraction"] == 0.0 and "reason" in adaptive, adaptive
+
+
+def test_a_scene_emptied_by_min_opacity_names_it_not_the_poses(client, live):
+    """The 422 empty_scene names the option that removed every Gaussian, not near/far, poses or images."""
+    r = _post(client, options='{"min_opacity": 0.999999}', seed=94)
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["code"] == "empty_scene" and "min_opacity" in err["message"], err
+    assert "near/far" not in err["message"] and "poses" not in err["message"], err
