@@ -323,3 +323,45 @@ def test_a_scene_emptied_by_min_opacity_names_it_not_the_poses(client, live):
     err = r.json()["error"]
     assert err["code"] == "empty_scene" and "min_opacity" in err["message"], err
     assert "near/far" not in err["message"] and "poses" not in err["message"], err
+
+
+@pytest.mark.parametrize("field", ["poses", "options"])
+def test_an_integer_too_long_for_python_is_named_by_its_digits(client, live, field):
+    """Past 4300 digits Python's own words tell the client to call sys.set_int_max_str_digits(): not shown."""
+    huge = "1" + "0" * 5000
+    poses, options = (POSES.replace("0.5", huge), None) if field == "poses" else (POSES, f'{{"near": {huge}}}')
+    r = _post(client, poses=poses, options=options)
+    assert r.status_code == 422, r.text
+    msg = r.json()["error"]["message"]
+    assert msg.startswith(field) and "5001 digits" in msg and "sys." not in msg, msg
+
+
+@pytest.mark.parametrize("path, body, words", [
+    ("selections", "[" * 100_000 + "]" * 100_000, "nested too deeply"),
+    ("selections", '{"segment": 1' + "0" * 5000 + "}", "more than 4300 digits"),
+    ("refine", '{"iterations": 1' + "0" * 5000 + "}", "more than 4300 digits"),
+    ("edits", '{"selection": "' + "0" * 32 + '", "op": "translate", "offset": [1' + "0" * 5000 + ", 0, 0]}",
+     "more than 4300 digits"),
+    ("selections", b'{"view": "\xff", "points": [[0.5, 0.6]]}', "not UTF-8"),
+])
+def test_a_json_body_the_parser_refuses_is_422_saying_why(client, scene, path, body, words):
+    """Not the parser's generic "There was an error parsing the body": what in the body it could not read."""
+    r = client.post(f"/v1/scenes/{scene}/{path}", content=body, headers={"Content-Type": "application/json"})
+    assert r.status_code == 422, r.text
+    msg = r.json()["error"]["message"]
+    assert msg.startswith("request body: not valid JSON") and words in msg and "parsing the body" not in msg, msg
+    assert "sys." not in msg and client.get("/healthz").status_code == 200
+
+
+def test_a_form_refused_while_it_is_read_is_answered_at_once(live):
+    """A text field sent twice is refused as the form is read; the answer to the parse error does not read the
+    body again (that read would wait for the client to hang up: the body has all arrived)."""
+    boundary = "b0undary"
+    parts = [("Ai", None, b"true"), ("Ai", None, b"[]"), ("image_a", "a", b"\x87w"), ("image_b", "b", b">")]
+    body = b"".join(f'--{boundary}\r\nContent-Disposition: form-data; name="{name}"'.encode()
+                    + (f'; filename="{file}"'.encode() if file else b"") + b"\r\n\r\n" + value + b"\r\n"
+                    for name, file, value in parts) + f"--{boundary}--\r\n".encode()
+    with live.client() as c:
+        r = c.post("/v1/scenes", content=body, headers={"Content-Type": f"multipart/form-data; boundary={boundary}"},
+                   timeout=20)
+    assert r.status_code == 422 and r.json()["error"]["code"] == "duplicate_field", r.text
