@@ -365,3 +365,16 @@ def test_a_form_refused_while_it_is_read_is_answered_at_once(live):
         r = c.post("/v1/scenes", content=body, headers={"Content-Type": f"multipart/form-data; boundary={boundary}"},
                    timeout=20)
     assert r.status_code == 422 and r.json()["error"]["code"] == "duplicate_field", r.text
+
+
+@pytest.mark.parametrize("content, content_type", [(b'{"image_a": "a.png"}', "application/json"),
+                                                    (panorama(seed=93), "image/png"), (b"", None)])
+def test_a_scene_upload_that_is_no_form_is_415_naming_what_was_sent(client, live, content, content_type):
+    """A JSON object or a bare image: the answer names the Content-Type, not only the missing image_a and image_b."""
+    before = stored_scene_count(live.settings.store_dir)
+    r = client.post("/v1/scenes", content=content, headers={"Content-Type": content_type} if content_type else {})
+    assert r.status_code == 415, r.text
+    err = r.json()["error"]
+    assert err["code"] == "unsupported_media_type" and "multipart/form-data" in err["message"], err
+    assert (repr(content_type) if content_type else "no Content-Type") in err["message"], err
+    assert stored_scene_count(live.settings.store_dir) == before
