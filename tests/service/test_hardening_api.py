@@ -378,3 +378,14 @@ def test_a_scene_upload_that_is_no_form_is_415_naming_what_was_sent(client, live
     assert err["code"] == "unsupported_media_type" and "multipart/form-data" in err["message"], err
     assert (repr(content_type) if content_type else "no Content-Type") in err["message"], err
     assert stored_scene_count(live.settings.store_dir) == before
+
+
+@pytest.mark.parametrize("params, name", [({"fov_deg": "999"}, "fov_deg"), ({"fov_deg": "0.001"}, "fov_deg"),
+                                          ({"fov_deg": "nan"}, "fov_deg"),
+                                          ({"c2w": "2,0,0,0,0,2,0,0,0,0,2,0,0,0,0,1"}, "c2w"),
+                                          ({"c2w": "1,0,0"}, "c2w")])
+def test_viewer_camera_the_render_api_refuses_is_422_naming_it(client, scene, params, name):
+    """The page would take fov_deg 999 and draw its view turned over, without a word."""
+    r = client.get(f"/v1/scenes/{scene}/viewer", params=params)
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["message"].startswith(name), r.text
