@@ -104,6 +104,20 @@ async def unique_body_keys(request: Request) -> None:
         check_unique_keys(body)
 
 
+#: media types a form arrives in (files need multipart; a urlencoded one is answered field by field)
+FORM_MEDIA_TYPES = ("multipart/form-data", "application/x-www-form-urlencoded")
+
+
+async def form_body(request: Request) -> None:
+    """415 when a form route's body is not a form (a JSON object, a bare image): its fields would be read as absent,
+    and the answer would only list them as missing."""
+    content_type = request.headers.get("content-type", "")
+    if content_type.split(";", 1)[0].strip().lower() not in FORM_MEDIA_TYPES:
+        got = f"Content-Type {content_type[:60]!r}" if content_type else "no Content-Type"
+        raise BadInput(f"request body: must be a multipart/form-data form with the files image_a and image_b "
+                       f"(got {got})", code="unsupported_media_type", status=415)
+
+
 SettingsDep = Annotated[Settings, Depends(_settings)]
 StoreDep = Annotated[SceneStore, Depends(_store)]
 MetricsDep = Annotated[ServiceMetrics, Depends(_metrics)]
@@ -117,5 +131,7 @@ SingleQueryValues = Depends(single_query_values)
 KnownQueryParameters = Depends(known_query_parameters)
 #: route dependency of the routes that take a JSON body
 UniqueBodyKeys = Depends(unique_body_keys)
+#: route dependency of the routes that take a form (POST /v1/scenes)
+FormBody = Depends(form_body)
 SceneId = Annotated[str, Path(pattern=SCENE_ID_PATTERN, description="32 lower-case hex digits",
                               examples=["0123456789abcdef0123456789abcdef"])]

@@ -8,6 +8,7 @@ or not ready, 500 only for bugs.
 from __future__ import annotations
 
 import errno
+import json
 import logging
 
 from fastapi import FastAPI, Request
@@ -154,6 +155,23 @@ def _validation_message(exc: RequestValidationError) -> str:
     return "; ".join(parts) or "invalid request"
 
 
+#: integers of more digits than this end a JSON body's parsing (Python's own limit on converting text to int)
+MAX_BODY_INT_DIGITS = 4300
+
+
+def body_parse_fault(cause: BaseException | None) -> str | None:
+    """Why FastAPI's parser refused a JSON body ("There was an error parsing the body"), in the user's terms, from
+    the error it raised: nested too deeply, an integer longer than Python converts (its own words name its
+    settings), or bytes that are not UTF-8 text; None for any other cause (a form's, the upload limits')."""
+    if isinstance(cause, RecursionError):
+        return "arrays or objects nested too deeply"
+    if isinstance(cause, UnicodeDecodeError):
+        return f"not UTF-8 text ({cause.reason} at byte {cause.start})"
+    if isinstance(cause, ValueError) and not isinstance(cause, json.JSONDecodeError) and "digits" in str(cause):
+        return f"an integer of more than {MAX_BODY_INT_DIGITS} digits"
+    return None
+
+
 def _allowed_methods(request: Request) -> str | None:
     """Allow header of a 405: the methods of every route matching the path (not only the first)."""
     from starlette.routing import Match
@@ -198,6 +216,9 @@ def install_error_handlers(app: FastAPI) -> None:
             return error_response(413, "form_field_too_large", f"a text form field is too large ({exc.detail}): "
                                   "poses and options are small JSON objects; images go as files")
         if exc.status_code == 400 and "parsing the body" in str(exc.detail):  # one status for a malformed body
+            fault = body_parse_fault(exc.__cause__)  # the body is not read again: a form's may be half read
+            if fault:
+                return error_response(422, "invalid_request", f"request body: not valid JSON ({fault})")
             return error_response(422, "invalid_request", f"the request body could not be parsed ({exc.detail})")
         return error_response(exc.status_code, code, str(exc.detail), headers or None)
 

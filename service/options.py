@@ -105,7 +105,21 @@ class PipelineSettings(BaseModel):
 
     @model_validator(mode="after")
     def _no_option_left_unused(self) -> "PipelineSettings":
-        """Options that another option overrides are refused, not dropped: the request would not be what it says."""
+        """Options that another option overrides are refused, not dropped: the request would not be what it says.
+        Settings of a step that is off count too: an ``adaptive_range`` object without ``"enabled": true`` (its
+        default is off) and ``smooth_*`` tolerances beside ``"merge_smooth": false`` would change nothing."""
+        adaptive = self.adaptive_range
+        if isinstance(adaptive, AdaptiveRangeSettings) and not adaptive.enabled:
+            unused = sorted(adaptive.model_fields_set - {"enabled"})
+            if unused:
+                raise ValueError(f"adaptive_range.{', adaptive_range.'.join(unused)} set, but the adaptive range is "
+                                 'off ("enabled" is false or left out, and off by default): add "enabled": true, or '
+                                 "leave the settings out")
+        if self.compaction is not False and not self.compaction.merge_smooth:
+            unused = sorted(k for k in self.compaction.model_fields_set if k.startswith("smooth_"))
+            if unused:
+                raise ValueError(f"compaction.{', compaction.'.join(unused)} set, but compaction.merge_smooth is false: "
+                                 "the tolerances only steer the smooth merge; leave them out, or the merge on")
         if self.min_opacity is None:
             return self
         if self.compaction is False:
@@ -170,6 +184,8 @@ def describe_error(exc: ValidationError, prefix: str = "options") -> str:
         shown = "" if isinstance(got, (dict, list)) else f" (got {str(got)[:40]!r})" if isinstance(got, str) \
             else f" (got {got!r})"
         msg = str(err.get("msg", "invalid")).removeprefix("Value error, ")
+        if len(loc) > 80:  # an unknown key is named by its start, not a megabyte of it
+            loc = f"{loc[:60]}... ({len(loc)} characters)"
         if err.get("type") == "extra_forbidden":
             msg = "unknown option (see the SceneOptions schema at /docs)"
         lines.append(f"{prefix}{'.' + loc if loc else ''}: {msg}{shown}")

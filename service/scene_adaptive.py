@@ -71,7 +71,7 @@ def range_from_maps(range_maps: np.ndarray, confidence: np.ndarray, near: float,
     ok = (c >= opts.min_confidence) & np.isfinite(r) & (r > near * 1.001) & (r < far * 0.999)
     frac = float(ok.mean()) if r.size else 0.0
     info = {"confident_fraction": round(frac, 4), "coarse_near": near, "coarse_far": far}
-    if frac < opts.min_fraction:
+    if frac < opts.min_fraction or not ok.any():  # min_fraction 0 still needs one pixel to take percentiles of
         info["reason"] = "too few confident pixels; default range kept"
         return near, far, info
     lo, hi = np.percentile(r[ok], [opts.low_pct, opts.high_pct])
@@ -82,6 +82,10 @@ def range_from_maps(range_maps: np.ndarray, confidence: np.ndarray, near: float,
         mid = np.sqrt(new_near * new_far)
         new_near = max(near, mid / np.sqrt(opts.min_ratio))
         new_far = min(far, new_near * opts.min_ratio)
+    if not new_far > new_near:  # one range everywhere, no margin and min_ratio 1: no sweep fits between them
+        info.update({"p_low": float(lo), "p_high": float(hi), "reason": "confident ranges span no interval; "
+                     "default range kept"})
+        return near, far, info
     info.update({"p_low": float(lo), "p_high": float(hi), "near": new_near, "far": new_far})
     return new_near, new_far, info
 

@@ -106,12 +106,27 @@ def check_free_space(store: SceneStore, need_bytes: int) -> None:
                                "a new scene may need; no work was done")
 
 
-def check_not_empty(build: SceneBuild) -> None:
-    """422 ``empty_scene`` when no Gaussian survived the reconstruction (the API's POST and the CLI's reconstruct)."""
-    if len(build.gaussians) == 0:
-        raise BadInput("the reconstruction is empty: no Gaussian survived (near/far, poses or images "
-                       f"leave nothing to triangulate; sweep range {build.info.get('near')}..{build.info.get('far')})",
-                       code="empty_scene")
+#: The options that set the compaction steps able to empty a scene, as the API names them (the CLI passes its flags).
+STEP_OPTIONS = {"min_opacity": "min_opacity (with compaction.min_confidence)",
+                "cap": "compaction.max_count / compaction.max_bytes"}
+
+
+def check_not_empty(build: SceneBuild, step_names: dict[str, str] = STEP_OPTIONS) -> None:
+    """422 ``empty_scene`` when no Gaussian survived the reconstruction (the API's POST and the CLI's reconstruct).
+
+    When compaction removed every Gaussian the encoder gave, the message names the options that did it
+    (``step_names``: compaction step -> option or flag): near/far, poses and images did not empty the scene then."""
+    if len(build.gaussians):
+        return
+    stats = build.info.get("compaction") or {}
+    removed = stats.get("removed") or {}
+    parts = [f"{name} removed {removed[step]}" for step, name in step_names.items() if removed.get(step)]
+    counts = f"of the {stats.get('input')} Gaussians the encoder gave, {', '.join(parts)}" if parts else ""
+    if parts and stats.get("output") == 0:
+        raise BadInput(f"the reconstruction is empty: {counts}; lower that threshold", code="empty_scene")
+    raise BadInput("the reconstruction is empty: no Gaussian survived (near/far, poses or images leave nothing to "
+                   f"triangulate; sweep range {build.info.get('near')}..{build.info.get('far')})"
+                   + (f"; {counts}" if counts else ""), code="empty_scene")
 
 
 def create_scene(runtime: ModelRuntime, store: SceneStore, scene_id: str, image_a: bytes, image_b: bytes,

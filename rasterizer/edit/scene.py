@@ -46,11 +46,11 @@ class EditData:
     def to_bytes(self, compress: bool = False) -> bytes:
         """npz: packed matches (:func:`correspondences.pack`), float16 ranges, int32 index, uint8 block.
 
-        The ranges are stored in units of a power of two near their median (``range_scale``), so a scene in
-        any unit keeps float16's 3 significant digits without overflowing (65504) or falling to subnormals;
-        a power of two keeps the same float16 digits a metre-scale scene had. Not zlib-compressed by default:
-        every scene creation pays the packing, and ``omnisplat-bench edit`` measures both (m3d_bedroom:
-        about twice the bytes, a tenth of the seconds).
+        The ranges are stored in units of a power of two near their median (``range_scale``; larger when the
+        farthest would overflow), so a scene in any unit keeps float16's 3 significant digits without overflowing
+        (65504) or falling to subnormals; a power of two keeps the same float16 digits a metre-scale scene had.
+        Not zlib-compressed by default: every scene creation pays the packing, and ``omnisplat-bench edit``
+        measures both (m3d_bedroom: about twice the bytes, a tenth of the seconds).
         """
         scale = _range_scale(self.range_maps)
         buf = io.BytesIO()
@@ -79,13 +79,21 @@ class EditData:
                         self.index[keep], self.block[keep])
 
 
+#: float16's largest finite value: the largest range stored in units of :func:`_range_scale`.
+_MAX_SCALED_RANGE = 65504.0
+
+
 def _range_scale(ranges: np.ndarray) -> float:
-    """The power of two nearest the median positive finite range (1 when there is none)."""
+    """The power of two nearest the median positive finite range (1 when there is none), raised where the largest
+    range would overflow float16 in its units: a sweep whose far plane lies more than 65504 medians out (near and
+    far options up to 1e12 apart) keeps every range finite, its nearest ones as float16 subnormals (fewer digits)."""
     r = np.asarray(ranges, dtype=np.float32).reshape(-1)
     pos = r[np.isfinite(r) & (r > 0)]
     if pos.size == 0:
         return 1.0
-    return float(2.0 ** np.round(np.log2(float(np.median(pos)))))
+    median = np.round(np.log2(float(np.median(pos))))
+    largest = np.ceil(np.log2(float(pos.max()) / _MAX_SCALED_RANGE))
+    return float(2.0 ** max(median, largest))
 
 
 @dataclass

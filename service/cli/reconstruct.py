@@ -121,14 +121,6 @@ OPTION_FLAGS = {"compaction.max_count": "max-gaussians", "compaction.max_bytes":
 STEP_FLAGS = {"min_opacity": "--min-opacity", "cap": "--max-gaussians / --max-bytes"}
 
 
-def empty_hint(info: dict) -> str:
-    """What an empty reconstruction's compaction removed, in the flags that set it ('' if nothing)."""
-    stats = info.get("compaction") or {}
-    removed = stats.get("removed") or {}
-    parts = [f"{flag} removed {removed[step]}" for step, flag in STEP_FLAGS.items() if removed.get(step)]
-    return f"; of the {stats.get('input')} Gaussians the encoder gave, " + ", ".join(parts) if parts else ""
-
-
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..photometric import MAX_ERP_WIDTH
     from ..pipeline import build_scene
@@ -191,9 +183,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..scenes import check_not_empty
 
     try:  # the API's 422 empty_scene: no PLY without a Gaussian is written
-        check_not_empty(rec)
+        check_not_empty(rec, STEP_FLAGS)  # an empty compaction named in the flags that set it
     except ServiceError as exc:
-        raise CliError(exc.message + empty_hint(rec.info)) from None
+        raise CliError(exc.message) from None
     if given is not None:  # the API's 422 poses_mismatch
         from ..pose_check import check_given_poses
 

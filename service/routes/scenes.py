@@ -12,6 +12,7 @@ from fastapi.responses import StreamingResponse
 
 from .. import scenes as work
 from ..deps import (
+    FormBody,
     HeavyRenderGateDep,
     InferenceGateDep,
     KnownQueryParameters,
@@ -74,7 +75,7 @@ def _require_scene(store, scene_id: str) -> None:
 
 @router.post(
     "", status_code=201, response_model=SceneCreated, summary="Reconstruct a scene from two ERP panoramas",
-    responses=error_responses(400, 408, 413, 422, 503, 507),
+    responses=error_responses(400, 408, 413, 415, 422, 503, 507), dependencies=[FormBody],
 )
 async def create_scene(
     request: Request,

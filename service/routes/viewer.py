@@ -20,6 +20,7 @@ from __future__ import annotations
 import html
 import json
 import logging
+import math
 import os
 from pathlib import Path
 from typing import Annotated, Literal
@@ -32,7 +33,7 @@ from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 from ..access import KEY_COOKIE, DuplicateKey, query_key
 from ..deps import KnownQueryParameters, SceneId, SettingsDep, SingleQueryValues, StoreDep
 from ..errors import BadInput, NotFound, ServiceError
-from ..inputs import DEFAULT_FOV_DEG
+from ..inputs import DEFAULT_FOV_DEG, MAX_FOV_DEG, MIN_FOV_DEG, parse_c2w_query
 from ..schemas import error_responses
 
 router = APIRouter(tags=["viewer"], dependencies=[KnownQueryParameters, SingleQueryValues])
@@ -100,13 +101,29 @@ def _page(scene_id: str, meta: dict) -> str:
             .replace("{{COUNT}}", html.escape(str(config["num_gaussians"]))))
 
 
+def _check_camera(c2w: str | None, fov_deg: str | None) -> None:
+    """422 naming the parameter when the page's camera is one the render API refuses: the page would show a
+    sheared, mirrored or inside-out view (a field of view past 180 deg turns it over) without a word."""
+    if c2w is not None:
+        parse_c2w_query(c2w)
+    if fov_deg is not None:
+        try:
+            value = float(fov_deg)
+        except ValueError:
+            value = math.nan
+        if not MIN_FOV_DEG <= value <= MAX_FOV_DEG:
+            raise BadInput(f"fov_deg: must be a number between {MIN_FOV_DEG:g} and {MAX_FOV_DEG:g} degrees, got "
+                           f"{fov_deg[:40]!r}", code="invalid_render_query")
+
+
 @router.get(
     "/v1/scenes/{scene_id}/viewer", response_class=HTMLResponse, summary="Web 3DGS viewer page for a scene",
     description="An HTML page running GaussianSplats3D (three.js, served by this service from its pinned "
                 "npm packages, no CDN) on the scene's `gaussians.ply`, camera at reference A, black "
                 "background (the same as the render API's default plain compositing). Orbit with the mouse, "
                 "fly with W/A/S/D/Q/E. The query may place the camera: `c2w` (16 or 12 numbers, row-major, "
-                "OpenCV), `fov_deg` (horizontal), `width`, `height` (canvas pixels), `bare=1` (no info panel); "
+                "OpenCV), `fov_deg` (horizontal; both checked as the render API checks them: 422 for a non-rigid `c2w` or "
+                "a field of view outside 1-170 deg), `width`, `height` (canvas pixels), `bare=1` (no info panel); "
                 "`format=spz` loads `gaussians.spz` instead (a fifth of the bytes, for slow links; the browser "
                 "takes longer to parse it); any other parameter is a 422. 503 `viewer_unavailable` when the "
                 "npm packages are not installed (`npm ci`).",
@@ -133,6 +150,7 @@ async def viewer_page(request: Request, scene_id: SceneId, store: StoreDep, sett
                           alias="format", description="which file the page loads: the PLY (default) or the SPZ, a "
                                                       "fifth of the bytes (read by the page)")] = "ply",
                       ) -> Response:
+    _check_camera(c2w, fov_deg)
     del c2w, fov_deg, width, height, bare, file  # declared so that the query check accepts them; the page's script reads them
     try:
         key = query_key(request.scope).decode("utf-8", "replace") if key is not None else None

@@ -333,3 +333,18 @@ def test_edit_data_keeps_ranges_of_a_scene_in_any_unit(scale):
     np.testing.assert_allclose(back, ranges, rtol=1e-3)
     if scale == 1.0:
         np.testing.assert_array_equal(back, ranges.astype(np.float16).astype(np.float32))
+
+
+def test_edit_data_keeps_ranges_finite_when_the_far_ones_lie_beyond_65504_medians():
+    """Most ranges a few millimetres and a tenth at 10 km (near and far options 1e9 apart): in units of the median
+    the far ones overflow float16, so the stored unit grows until they fit, and none is stored as inf."""
+    from rasterizer.edit.scene import EditData
+
+    rng = np.random.default_rng(1)
+    ranges = rng.uniform(0.003, 0.006, size=(2, 2, 8, 24)).astype(np.float32)
+    ranges[:, :, :1] = rng.uniform(5e3, 1e4, size=(2, 2, 1, 24))
+    matches = np.zeros((2, 2, 8, 24, 5), np.float32)
+    data = EditData(("yin", "yang"), 8, 24, matches, ranges, np.arange(10), np.ones(10, np.int64))
+    back = EditData.from_bytes(data.to_bytes()).range_maps
+    assert np.isfinite(back).all()
+    np.testing.assert_allclose(back, ranges, rtol=1e-3)

@@ -303,3 +303,89 @@ def test_openapi_declares_the_api_keys_401_where_it_is_checked(client):
         assert all("401" not in op["responses"] for op in paths[path].values())
     assert schema["components"]["securitySchemes"]["apiKey"]["scheme"] == "bearer"
     assert "ErrorResponse" in schema["components"]["schemas"]
+
+
+# -- odd inputs: never a 500, and a message that names the input at fault --------------------------------
+
+def test_an_adaptive_range_without_a_confident_pixel_keeps_the_default(client):
+    """min_confidence 1 with min_fraction 0 leaves no pixel for the percentiles: the default range, not a 500."""
+    options = '{"adaptive_range": {"enabled": true, "min_confidence": 1.0, "min_fraction": 0}}'
+    r = _post(client, options=options, seed=95)
+    assert r.status_code == 201, r.text
+    adaptive = client.get(f"/v1/scenes/{r.json()['id']}").json()["info"]["adaptive_range"]
+    assert adaptive["confident_fraction"] == 0.0 and "reason" in adaptive, adaptive
+
+
+def test_a_scene_emptied_by_min_opacity_names_it_not_the_poses(client, live):
+    """The 422 empty_scene names the option that removed every Gaussian, not near/far, poses or images."""
+    r = _post(client, options='{"min_opacity": 0.999999}', seed=94)
+    assert r.status_code == 422, r.text
+    err = r.json()["error"]
+    assert err["code"] == "empty_scene" and "min_opacity" in err["message"], err
+    assert "near/far" not in err["message"] and "poses" not in err["message"], err
+
+
+@pytest.mark.parametrize("field", ["poses", "options"])
+def test_an_integer_too_long_for_python_is_named_by_its_digits(client, live, field):
+    """Past 4300 digits Python's own words tell the client to call sys.set_int_max_str_digits(): not shown."""
+    huge = "1" + "0" * 5000
+    poses, options = (POSES.replace("0.5", huge), None) if field == "poses" else (POSES, f'{{"near": {huge}}}')
+    r = _post(client, poses=poses, options=options)
+    assert r.status_code == 422, r.text
+    msg = r.json()["error"]["message"]
+    assert msg.startswith(field) and "5001 digits" in msg and "sys." not in msg, msg
+
+
+@pytest.mark.parametrize("path, body, words", [
+    ("selections", "[" * 100_000 + "]" * 100_000, "nested too deeply"),
+    ("selections", '{"segment": 1' + "0" * 5000 + "}", "more than 4300 digits"),
+    ("refine", '{"iterations": 1' + "0" * 5000 + "}", "more than 4300 digits"),
+    ("edits", '{"selection": "' + "0" * 32 + '", "op": "translate", "offset": [1' + "0" * 5000 + ", 0, 0]}",
+     "more than 4300 digits"),
+    ("selections", b'{"view": "\xff", "points": [[0.5, 0.6]]}', "not UTF-8"),
+])
+def test_a_json_body_the_parser_refuses_is_422_saying_why(client, scene, path, body, words):
+    """Not the parser's generic "There was an error parsing the body": what in the body it could not read."""
+    r = client.post(f"/v1/scenes/{scene}/{path}", content=body, headers={"Content-Type": "application/json"})
+    assert r.status_code == 422, r.text
+    msg = r.json()["error"]["message"]
+    assert msg.startswith("request body: not valid JSON") and words in msg and "parsing the body" not in msg, msg
+    assert "sys." not in msg and client.get("/healthz").status_code == 200
+
+
+def test_a_form_refused_while_it_is_read_is_answered_at_once(live):
+    """A text field sent twice is refused as the form is read; the answer to the parse error does not read the
+    body again (that read would wait for the client to hang up: the body has all arrived)."""
+    boundary = "b0undary"
+    parts = [("Ai", None, b"true"), ("Ai", None, b"[]"), ("image_a", "a", b"\x87w"), ("image_b", "b", b">")]
+    body = b"".join(f'--{boundary}\r\nContent-Disposition: form-data; name="{name}"'.encode()
+                    + (f'; filename="{file}"'.encode() if file else b"") + b"\r\n\r\n" + value + b"\r\n"
+                    for name, file, value in parts) + f"--{boundary}--\r\n".encode()
+    with live.client() as c:
+        r = c.post("/v1/scenes", content=body, headers={"Content-Type": f"multipart/form-data; boundary={boundary}"},
+                   timeout=20)
+    assert r.status_code == 422 and r.json()["error"]["code"] == "duplicate_field", r.text
+
+
+@pytest.mark.parametrize("content, content_type", [(b'{"image_a": "a.png"}', "application/json"),
+                                                    (panorama(seed=93), "image/png"), (b"", None)])
+def test_a_scene_upload_that_is_no_form_is_415_naming_what_was_sent(client, live, content, content_type):
+    """A JSON object or a bare image: the answer names the Content-Type, not only the missing image_a and image_b."""
+    before = stored_scene_count(live.settings.store_dir)
+    r = client.post("/v1/scenes", content=content, headers={"Content-Type": content_type} if content_type else {})
+    assert r.status_code == 415, r.text
+    err = r.json()["error"]
+    assert err["code"] == "unsupported_media_type" and "multipart/form-data" in err["message"], err
+    assert (repr(content_type) if content_type else "no Content-Type") in err["message"], err
+    assert stored_scene_count(live.settings.store_dir) == before
+
+
+@pytest.mark.parametrize("params, name", [({"fov_deg": "999"}, "fov_deg"), ({"fov_deg": "0.001"}, "fov_deg"),
+                                          ({"fov_deg": "nan"}, "fov_deg"),
+                                          ({"c2w": "2,0,0,0,0,2,0,0,0,0,2,0,0,0,0,1"}, "c2w"),
+                                          ({"c2w": "1,0,0"}, "c2w")])
+def test_viewer_camera_the_render_api_refuses_is_422_naming_it(client, scene, params, name):
+    """The page would take fov_deg 999 and draw its view turned over, without a word."""
+    r = client.get(f"/v1/scenes/{scene}/viewer", params=params)
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["message"].startswith(name), r.text

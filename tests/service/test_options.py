@@ -71,10 +71,35 @@ def test_an_option_that_another_overrides_is_refused(options, words):
     assert words in message, message
 
 
+@pytest.mark.parametrize("options, named", [
+    ('{"adaptive_range": {"margin": 0.3}}', ["adaptive_range.margin"]),  # "enabled" left out: off, margin unused
+    ('{"adaptive_range": {"enabled": false, "low_pct": 5, "min_ratio": 2}}',
+     ["adaptive_range.low_pct", "adaptive_range.min_ratio"]),
+    ('{"compaction": {"merge_smooth": false, "smooth_colour_tol": 0.06}}', ["compaction.smooth_colour_tol"]),
+    ('{"compaction": {"merge_smooth": false, "smooth_plane_tol": 0.01, "smooth_max_incidence_deg": 45}}',
+     ["compaction.smooth_max_incidence_deg", "compaction.smooth_plane_tol"]),
+])
+def test_settings_of_a_step_that_is_off_are_refused(options, named):
+    """They would change nothing: an adaptive_range object without "enabled": true runs no coarse pass."""
+    message = refusal(options)
+    assert all(name in message for name in named), message
+    assert ('"enabled": true' if "adaptive" in options else "merge_smooth is false") in message, message
+
+
 @pytest.mark.parametrize("options", ['{"min_opacity": 0.5, "compaction": {"min_opacity": 0.5}}',
-                                     '{"adaptive_range": false, "near": 0.5}', '{"min_opacity": 0.1}'])
+                                     '{"adaptive_range": false, "near": 0.5}', '{"min_opacity": 0.1}',
+                                     '{"adaptive_range": {"enabled": true, "margin": 0.3}}',
+                                     '{"adaptive_range": {"enabled": false}}',
+                                     '{"compaction": {"merge_smooth": false, "max_count": 1000}}',
+                                     '{"compaction": {"merge_smooth": true, "smooth_colour_tol": 0.06}}'])
 def test_options_that_agree_are_accepted(options):
     parse_options(options, None)
+
+
+def test_a_long_unknown_key_is_named_shortened():
+    """A 100,000-character key is named by its start and length, not whole."""
+    message = refusal(json.dumps({"x" * 100_000: 1}))
+    assert "unknown option" in message and "(100000 characters)" in message and len(message) < 300, message[:300]
 
 
 def test_smallest_byte_cap_keeps_one_gaussian():

@@ -41,6 +41,21 @@ def test_too_few_confident_pixels_keeps_default():
     assert (near, far) == (0.3, 20.0) and "reason" in info
 
 
+def test_no_confident_pixel_keeps_default_even_when_min_fraction_is_0():
+    """min_confidence 1 with min_fraction 0: no pixel to take percentiles of (an IndexError, a 500 from the API)."""
+    r, conf = _maps()
+    conf[:] = 0.9
+    near, far, info = range_from_maps(r, conf, 0.3, 20.0, AdaptiveRangeOptions(min_confidence=1.0, min_fraction=0.0))
+    assert (near, far) == (0.3, 20.0) and "confident" in info["reason"] and info["confident_fraction"] == 0.0
+
+
+def test_one_confident_range_without_margin_keeps_default():
+    """Every confident range equal, margin 0 and min_ratio 1 would give near == far, which no sweep takes."""
+    r = np.full((2, 2, 8, 24), 2.0)
+    near, far, info = range_from_maps(r, np.ones_like(r), 0.3, 20.0, AdaptiveRangeOptions(margin=0.0, min_ratio=1.0))
+    assert (near, far) == (0.3, 20.0) and "span" in info["reason"]
+
+
 def test_options_validation():
     with pytest.raises(AdaptiveRangeError):
         AdaptiveRangeOptions(low_pct=50, high_pct=10)

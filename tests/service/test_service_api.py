@@ -523,7 +523,7 @@ def test_uploads_finer_than_the_model_split_textured_pixels_within_the_cap(clien
     ({"compaction": {"merge_duplicates": True}}, "options.compaction.merge_duplicates: unknown option"),
     ({"compaction": {"no_such_step": 1}}, "no_such_step"),
     ({"compaction": 3}, "compaction"),
-    ({"adaptive_range": {"low_pct": 90, "high_pct": 10}}, "low_pct"),
+    ({"adaptive_range": {"enabled": True, "low_pct": 90, "high_pct": 10}}, "low_pct"),
 ])
 def test_bad_step_options_are_422(client, options, word):
     r = post_scene(client, panorama(seed=12), panorama(seed=12, shift=4), options=json.dumps(options))
