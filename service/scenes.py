@@ -123,7 +123,8 @@ def check_not_empty(build: SceneBuild, step_names: dict[str, str] = STEP_OPTIONS
     parts = [f"{name} removed {removed[step]}" for step, name in step_names.items() if removed.get(step)]
     counts = f"of the {stats.get('input')} Gaussians the encoder gave, {', '.join(parts)}" if parts else ""
     if parts and stats.get("output") == 0:
-        raise BadInput(f"the reconstruction is empty: {counts}; lower that threshold", code="empty_scene")
+        raise BadInput(f"the reconstruction is empty: {counts}; loosen that setting (a lower opacity threshold, "
+                       "a larger cap)", code="empty_scene")
     raise BadInput("the reconstruction is empty: no Gaussian survived (near/far, poses or images leave nothing to "
                    f"triangulate; sweep range {build.info.get('near')}..{build.info.get('far')})"
                    + (f"; {counts}" if counts else ""), code="empty_scene")
