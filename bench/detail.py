@@ -5,9 +5,8 @@
 view with the metrics of conventions section 6 (:mod:`bench.metrics`): PSNR, sharpness (1 = as sharp as
 the captured image) and GMSD (0 = identical structure), which see the blur and ghosting PSNR misses.
 Synthetic scenes (with depth) are scored on the whole image, real captures above the nadir cap
-(:data:`bench.metrics.NADIR_CAP_DEG`: their rig shows below it). Per scene it also reports the surfels' opacity
-histogram, the Gaussian count, PLY and SPZ size, POST seconds and the process's peak RSS, per input size
-(``--width``).
+(:data:`bench.metrics.NADIR_CAP_DEG`: their rig shows below it). Per scene it also reports the Gaussian
+count, PLY and SPZ size, POST seconds and the process's peak RSS, per input size (``--width``).
 """
 
 from __future__ import annotations
@@ -38,22 +37,6 @@ def view_metrics(render: np.ndarray, reference: np.ndarray, cap_deg: float) -> d
     return {"psnr": round(psnr_above_nadir(render, reference, cap_deg), 3),
             "sharpness": round(sharpness(render, reference, cap_deg), 4),
             "gmsd": round(gmsd(render, reference, cap_deg), 4)}
-
-
-#: Upper edges of the opacity histogram's bins (the first bin starts at 0).
-OPACITY_EDGES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.99, 1.0)
-
-
-def opacity_histogram(opacities: np.ndarray) -> dict:
-    """Shares (summing to 1) of ``opacities`` (N,) in the bins ending at :data:`OPACITY_EDGES` (each bin's
-    upper edge inclusive, the first from 0), keyed by upper edge; with the median. How translucent a scene
-    is: a surface of surfels at 0.3-0.4 is layers a viewer sees through, one at 0.99 and above is opaque."""
-    o = np.asarray(opacities, dtype=np.float32).reshape(-1)  # edges in the scenes' float32, as stored
-    counts = np.bincount(np.searchsorted(np.asarray(OPACITY_EDGES, dtype=np.float32), o, side="left"),
-                         minlength=len(OPACITY_EDGES))
-    shares = counts[:len(OPACITY_EDGES)] / max(o.size, 1)
-    return {"median": round(float(np.median(o)), 4) if o.size else None,
-            "shares": {f"{e:g}": round(float(s), 4) for e, s in zip(OPACITY_EDGES, shares)}}
 
 
 def measure_split(encoder, scene, split_index: int = 0, options: dict | None = None, width: int | None = None,
@@ -88,7 +71,6 @@ def measure_split(encoder, scene, split_index: int = 0, options: dict | None = N
     gaussians = read_ply(ply)  # what the store serves
     row = {"scene": scene.name, "split": f"{ra}+{rb}", "input": list(images[ra].shape[:2]), "cap_deg": cap_deg,
            "gaussians": len(gaussians), "ply_mb": round(len(ply) / 2**20, 2),
-           "surfel_opacity": opacity_histogram(gaussians.opacities[:len(gaussians) - int(built.info["shell"])]),
            "spz_mb": round(len(spz_bytes(gaussians)) / 2**20, 2), "post_s": round(post_s, 3),
            "timings": {k: round(v, 3) for k, v in built.timings.items()}, "views": []}
     for name in split.references + split.targets:
@@ -146,9 +128,6 @@ def main(argv: list[str] | None = None) -> int:
         scored = f"above {row['cap_deg'] - 90:g} deg latitude" if row["cap_deg"] else "every row"
         print(f"{row['scene']} {row['split']} {w}x{h}: {row['gaussians']} Gaussians, PLY {row['ply_mb']} MB, "
               f"SPZ {row['spz_mb']} MB, POST {row['post_s']} s, peak RSS {row['peak_rss_mb']} MB (scored: {scored})", flush=True)
-        hist = row["surfel_opacity"]
-        print(f"  surfel opacity: median {hist['median']}; share per bin (upper edge) "
-              + " ".join(f"{e}:{s:.3f}" for e, s in hist["shares"].items()), flush=True)
         for v in row["views"]:
             print(f"  {v['role']:9s} {v['view']:7s} PSNR {v['psnr']:6.2f}  sharpness {v['sharpness']:.3f}  "
                   f"GMSD {v['gmsd']:.4f}  render {v['render_s']:.2f} s", flush=True)

@@ -74,18 +74,3 @@ def test_detail_is_a_bench_command(capsys):
     assert info.value.code == 0
     out = capsys.readouterr().out
     assert "--render-width" in out and "--scene" in out
-
-
-def test_opacity_histogram_shares_sum_to_one_with_each_bin_closed_above():
-    from bench.detail import OPACITY_EDGES, opacity_histogram
-
-    o = np.array([0.0, 0.05, 0.1, 0.1000001, 0.35, 0.35, 0.95, 0.99, 0.995, 1.0], dtype=np.float32)
-    h = opacity_histogram(o)
-    shares = h["shares"]
-    assert list(shares) == [f"{e:g}" for e in OPACITY_EDGES]
-    assert abs(sum(shares.values()) - 1.0) < 1e-9
-    assert shares["0.1"] == 0.3  # 0, 0.05 and 0.1 itself
-    assert shares["0.2"] == 0.1 and shares["0.4"] == 0.2
-    assert shares["0.99"] == 0.2 and shares["1"] == 0.2  # 0.95 and 0.99; 0.995 and 1
-    assert h["median"] == 0.35
-    assert opacity_histogram(np.zeros(0))["median"] is None
