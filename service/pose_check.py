@@ -1,14 +1,15 @@
 """Given poses against their images: a swapped pair, the other axis convention, inverted matrices, or panoramas whose
-forward axis is not at the image centre or that are mirrored, are refused.
+forward axis is not at the image centre, that are mirrored or one of which is upside down, are refused.
 
 A scene built on poses that do not belong to its images comes out as nonsense without a word: two uploads in
 the wrong order, poses written in OpenGL's axes (y up, z backwards) sent as OpenCV's, world-to-camera matrices
 sent as camera-to-world, or panoramas from a tool whose longitude origin or direction differs from ours (the forward
-axis at column 0 or W/4 instead of W/2; longitude growing to the left). Matching cannot confirm such poses, so the
-reconstruction's mean confidence is low. Below :data:`CHECK_BELOW_CONFIDENCE` the poses are read eight ways
-(:func:`readings`: as given, with image_a and image_b swapped, with both cameras in the other convention, as
+axis at column 0 or W/4 instead of W/2; longitude growing to the left), or one panorama upside down. Matching cannot
+confirm such poses, so the reconstruction's mean confidence is low. Below :data:`CHECK_BELOW_CONFIDENCE` the poses are
+read ten ways (:func:`readings`: as given, with image_a and image_b swapped, with both cameras in the other convention, as
 world-to-camera matrices sent as camera-to-world, with both cameras turned about their vertical axis by a quarter,
-half or three quarters of a turn, and for mirrored panoramas) and each reading is scored against the images:
+half or three quarters of a turn, for mirrored panoramas, and for either panorama upside down) and each reading is
+scored against the images:
 
 1. Photometric agreement (:func:`service.photometric.photometric_scores`: the share of textured pixels of A that find
    their window in B along the epipolar curve). An alternative that agrees :data:`MISMATCH_RATIO` times better is a
@@ -63,9 +64,10 @@ def readings(c2w_a: np.ndarray, c2w_b: np.ndarray, convention: str = "opencv") -
     with the images swapped (A taken at ``c2w_b``), with both read in the other axis convention, with both inverted
     (world-to-camera matrices, as COLMAP writes them, sent in the request's ``convention``), with the panoramas'
     longitude origin a quarter, half or three quarters of a turn away from the cameras' forward axis (both cameras
-    turned about their vertical axis by :data:`LONGITUDE_TURNS_DEG`; the set is the same in either convention), and
+    turned about their vertical axis by :data:`LONGITUDE_TURNS_DEG`; the set is the same in either convention),
     with both panoramas mirrored left to right (longitude growing towards the camera's left: each camera's x axis
-    reversed)."""
+    reversed), and with one panorama upside down (turned 180 deg in its image plane, as from a camera mounted
+    upside down or a wrong orientation tag: that camera turned 180 deg about its forward axis)."""
     def relative(a, b):
         rel = rigid_inverse(a) @ b
         return rel[:3, :3], rel[:3, 3]
@@ -88,6 +90,9 @@ def readings(c2w_a: np.ndarray, c2w_b: np.ndarray, convention: str = "opencv") -
     frames = {**{f"longitude {deg}": turned(deg) for deg in LONGITUDE_TURNS_DEG},
               "mirrored": np.diag([-1.0, 1.0, 1.0, 1.0])}  # x axis reversed: orthogonal, so rigid_inverse inverts it
     out.update((name, relative(c2w_a @ m, c2w_b @ m)) for name, m in frames.items())  # both cameras changed alike
+    upside_down = np.diag([-1.0, -1.0, 1.0, 1.0])  # a panorama turned 180 deg in its image plane: lat and lon negated
+    out["image_a upside down"] = relative(c2w_a @ upside_down, c2w_b)
+    out["image_b upside down"] = relative(c2w_a, c2w_b @ upside_down)
     return out
 
 
@@ -178,7 +183,8 @@ def _refuse(scores: dict, best: str, test: str, mean_confidence: float) -> NoRet
 
 
 _READING = {"swapped": "of the two images swapped", "other convention": "read in the other axis convention",
-            "world-to-camera": "inverted", "mirrored": "read for panoramas mirrored left to right"}
+            "world-to-camera": "inverted", "mirrored": "read for panoramas mirrored left to right",
+            "image_a upside down": "read for image_a upside down", "image_b upside down": "read for image_b upside down"}
 _TURN = {f"longitude {deg}": "a half" if deg == 180 else "a quarter" for deg in LONGITUDE_TURNS_DEG}
 _FIX = {"swapped": "check that image_a is the panorama taken at the first pose and image_b the one at the second",
         "other convention": 'check "convention": OpenCV cameras look along +z with +y down, OpenGL ones along -z '
@@ -186,7 +192,10 @@ _FIX = {"swapped": "check that image_a is the panorama taken at the first pose a
         "world-to-camera": '"c2w" takes camera-to-world matrices, whose last column is the camera\'s position: invert '
                            "world-to-camera ones (such as COLMAP writes)",
         "mirrored": "the panoramas' longitude must grow to the right (column 3W/4 looks along the camera's +x): "
-                    "flip both images left to right"}
+                    "flip both images left to right",
+        **{f"image_{v} upside down": f"turn image_{v} the right way up (180 degrees in its plane: the zenith at the top "
+                                     "row); a camera mounted upside down, or an orientation tag that does not fit the "
+                                     "pixels, gives such a panorama" for v in "ab"}}
 _FIX.update({f"longitude {deg}": "check the panoramas' longitude origin: the image centre looks along the camera's "
                                  "forward axis (OpenCV +z, OpenGL -z) and column 3W/4 along its right (+x); turn the poses "
                                  "about their vertical axis, or roll the images, to match" for deg in LONGITUDE_TURNS_DEG})

@@ -35,6 +35,9 @@ def test_each_reading_is_the_relative_pose_of_those_cameras():
         expected[f"longitude {deg}"] = (a @ _c2w(deg, [0, 0, 0]), b @ _c2w(deg, [0, 0, 0]))
     mirror = np.diag([-1.0, 1.0, 1.0, 1.0])  # mirrored panoramas: each camera's x axis reversed
     expected["mirrored"] = (a @ mirror, b @ mirror)
+    turned_over = np.diag([-1.0, -1.0, 1.0, 1.0])  # one panorama upside down: that camera turned about its z axis
+    expected["image_a upside down"] = (a @ turned_over, b)
+    expected["image_b upside down"] = (a, b @ turned_over)
     assert set(got) == set(expected)
     for name, (pa, pb) in expected.items():
         R, t = _relative(pa, pb)
@@ -59,7 +62,8 @@ def test_confident_reconstructions_and_flat_images_are_not_refused():
     scores = check_given_poses(flat, flat, a, b, 0.0)  # checked: nothing agrees with anything
     assert set(scores) == {"photometric"}  # no feature matches are sought where the photometric test decides
     assert set(scores["photometric"]) == {"given", "swapped", "other convention", "world-to-camera", "longitude 90",
-                                          "longitude 180", "longitude 270", "mirrored"}
+                                          "longitude 180", "longitude 270", "mirrored", "image_a upside down",
+                                          "image_b upside down"}
     assert max(scores["photometric"].values()) == 0.0
 
 
@@ -284,6 +288,21 @@ def test_mirrored_panoramas_with_their_poses_are_refused(bedroom_theta_dir):
     assert check_given_poses(img_a, img_b, fa.c2w, fb.c2w, 0.0) is not None  # checked, passed
 
 
+def test_one_panorama_upside_down_with_its_poses_is_refused(bedroom_theta_dir):
+    """bedroom_theta 3 + 7 with the poses they were captured at, one image turned 180 deg in its plane (a camera
+    mounted upside down, or an orientation tag that does not fit the pixels): refused naming that image, with the
+    fix; the same images the right way up pass."""
+    scene = load_scene(bedroom_theta_dir)
+    fa, fb = scene.frames["3"], scene.frames["7"]
+    img_a, img_b = _small(fa.image()), _small(fb.image())
+    for which, (a, b) in (("image_b", (img_a, img_b[::-1, ::-1])), ("image_a", (img_a[::-1, ::-1], img_b))):
+        with pytest.raises(BadInput, match=f"read for {which} upside down .*turn {which} the right way up") as exc:
+            check_given_poses(a, b, fa.c2w, fb.c2w, 0.0)
+        assert exc.value.code == "poses_mismatch" and exc.value.status == 422
+    scores = check_given_poses(img_a, img_b, fa.c2w, fb.c2w, 0.0)["photometric"]
+    assert scores["given"] > max(scores["image_a upside down"], scores["image_b upside down"])
+
+
 def test_a_reading_that_is_the_given_relative_pose_is_no_alternative(m3d_dir):
     """m3d's cameras are turned alike, by 180 deg about their x axis: inverting both matrices gives the same relative
     pose, so the world-to-camera reading is not scored (it would tie with the given one and call in the feature
@@ -299,12 +318,16 @@ def test_a_reading_that_is_the_given_relative_pose_is_no_alternative(m3d_dir):
 
 def test_matches_without_parallax_support_no_reading():
     """Identical bearings (one picture twice, or one place) meet nowhere: their ranges' sign is rounding, so they
-    support none of the readings."""
+    support none of the readings that keep the cameras' relative turn (the upside-down ones turn one camera over, and
+    the same bearings are then other rays, of which a few may meet)."""
     rng = np.random.default_rng(1)
     f = rng.normal(size=(200, 3))
     f /= np.linalg.norm(f, axis=1, keepdims=True)
     poses = readings(np.eye(4), _c2w(0.0, [1.0, 0.0, 0.2]))
-    assert feature_support(f, f.copy(), poses) == dict.fromkeys(poses, 0) and len(poses) == 8
+    assert len(poses) == 10
+    same_turn = {name: p for name, p in poses.items() if "upside down" not in name}
+    assert all(np.allclose(R, np.eye(3)) for R, _ in same_turn.values())
+    assert feature_support(f, f.copy(), same_turn) == dict.fromkeys(same_turn, 0)
 
 
 def test_one_place_twice_with_poses_is_refused_as_no_parallax(bedroom_theta_dir):
