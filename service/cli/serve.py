@@ -30,6 +30,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         problem = str(exc.strerror or exc)
     if problem is not None:
         raise CliError(f"--store {settings.store_dir}: cannot keep scenes there: {problem}")
+    if not args.ray:  # Ray Serve binds its own proxy
+        _check_port_free(settings.host, settings.port)
     model_file(settings, args.no_build)
     encoder = None
     if settings.model_path is not None:  # a model of the user's: one that cannot load fails here, in one line
@@ -42,6 +44,27 @@ def cmd_serve(args: argparse.Namespace) -> int:
     app = create_app(settings, encoder=encoder)  # the checked model is the served one: loaded once
     uvicorn.Server(server_config(app, settings, log_level=args.log_level)).run()
     return 0
+
+
+def _check_port_free(host: str, port: int) -> None:
+    """A CliError when ``host:port`` cannot be bound (another server listens there, or the address is not this
+    machine's), said before a model is built or loaded: uvicorn would find out only after the warm-up began."""
+    import socket
+
+    if int(port) == 0:  # any free port
+        return
+    try:
+        infos = socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise CliError(f"--host {host}: not an address to bind ({exc.strerror})") from None
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+        try:
+            probe.bind(address)
+        except OSError as exc:
+            raise CliError(f"--port {port}: cannot listen on {host}:{port}: {exc.strerror} (another server there? "
+                           "choose another --port)") from None
 
 
 def _ray_serving():

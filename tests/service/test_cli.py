@@ -20,6 +20,13 @@ from tests.service._support import ply_with_nan, render_argv
 ROOT = Path(__file__).resolve().parents[2]
 
 
+@pytest.fixture(autouse=True)
+def _any_port(monkeypatch):
+    """`serve` checks its port before anything else: these tests of its other checks must not depend on what else
+    listens on the default port 8000 of the machine (port 0: any free one, not checked)."""
+    monkeypatch.setenv("OMNISPLAT_PORT", "0")
+
+
 def test_help_lists_every_command(capsys):
     with pytest.raises(SystemExit) as info:
         cli.main(["--help"])
@@ -469,6 +476,21 @@ def test_serve_with_a_named_missing_model_does_not_build_one(tmp_path, capsys, m
     err = capsys.readouterr().err
     assert "typo.onnx does not exist" in err and "only the default model" in err
     assert not (tmp_path / "typo.onnx").exists()
+
+
+def test_serve_on_a_port_in_use_is_a_one_line_error_before_any_model(tmp_path, capsys):
+    """A port another server listens on is said at once, in one line, before a model is looked for or built."""
+    import socket
+
+    with socket.socket() as other:
+        other.bind(("127.0.0.1", 0))
+        other.listen(1)
+        port = other.getsockname()[1]
+        code = cli.main(["serve", "--port", str(port), "--store", str(tmp_path / "store"), "--no-build",
+                         "--model", str(tmp_path / "missing.onnx")])
+    err = capsys.readouterr().err
+    assert code == 2 and f"--port {port}: cannot listen on 127.0.0.1:{port}" in err and "Traceback" not in err
+    assert "does not exist" not in err  # the model was not looked at
 
 
 def test_serve_with_a_store_that_is_a_file_is_a_one_line_error(tmp_path, capsys):
