@@ -63,7 +63,8 @@ class SelectionRequest(BaseModel):
     view: Literal["a", "b"] | None = Field(None, description="reference the points are on")
     points: list[Point] | None = Field(None, max_length=64, description="positive (u, v) points in [0, 1]")
     negative: list[Point] = Field(default_factory=list, max_length=64, description="negative (u, v) points")
-    segment: StrictInt | None = Field(None, ge=0, description="label of an automatic segment (GET .../segments)")
+    segment: StrictInt | None = Field(None, ge=0, le=2**31 - 1, description="label of an automatic segment "
+                                      "(GET .../segments)")
 
     @model_validator(mode="after")
     def _one_kind(self):

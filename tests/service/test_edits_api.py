@@ -109,6 +109,8 @@ def test_bad_selection_and_edit_inputs(client, scene, live):
     assert client.post(f"{url}/selections", json={"view": "a", "points": []}).status_code == 422
     assert client.post(f"{url}/selections", json={"view": "c", "points": [[0.5, 0.5]]}).status_code == 422
     _error(client.post(f"{url}/selections", json={"segment": 10 ** 6}), 404, "unknown_segment")
+    huge = _error(client.post(f"{url}/selections", json={"segment": 10 ** 4000}), 422, "invalid_request")
+    assert "segment" in huge and len(huge) < 200  # named, not repeated digit by digit
     _error(client.post(f"{url}/selections", json={"view": "a", "points": [[0.5, 0.5]], "negative": [[0.5, 0.5]]}),
            422, "invalid_selection")
     unknown = "0" * 32
