@@ -21,8 +21,8 @@ the block its ray falls in. The four children
   [0, 1], so the colour fit's and the view-colour fit's work is kept and only the finer detail is added.
 
 Each view splits by its own upload: where one upload is finer than the grid and the other is not, only the
-first view's pixels split. Children replace their parent in place: the output stays in layout order and each child keeps its
-parent's layout position (selections find them through it). A count cap (``max_count`` / ``max_bytes``)
+finer one's view splits. Children replace their parent in place: the output stays in layout order and each child
+keeps its parent's layout position (selections find them through it). A count cap (``max_count`` / ``max_bytes``)
 is never exceeded: the most textured pixels (texture / contrast) split first, as far as it allows.
 """
 
@@ -142,8 +142,8 @@ def split_textured(result: CompactionResult, fine, *, exclude: np.ndarray | None
     """``result`` with its textured pixels split into 2x2 children (module docstring).
 
     fine: each view's :func:`fine_erp`, (E, 2E, 3) float32 in [0, 1], or None for a view whose upload holds
-    nothing finer than the grid (its pixels stay whole; a (V, E, 2E, 3) array also serves); exclude: (V, G, H, W) bool pixels
-    never split (the rig cap, whose colours come from the other view); limit: the most Gaussians the output
+    nothing finer than the grid (its pixels stay whole; a (V, E, 2E, 3) array also serves); exclude: (V, G, H, W)
+    bool pixels never split (the rig cap, whose colours come from the other view); limit: the most Gaussians the output
     may hold (None: no cap). The shell after the pixel-aligned Gaussians (``stats["shell"]``) is kept as it
     is. ``stats`` gains ``split_textured`` ({"split": pixels, "added": children, "seconds"}) and
     ``removed["split_textured"]`` (split minus added, negative), so the removed counts still sum to input -
