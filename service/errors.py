@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import json
 import logging
+import sys
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -155,10 +156,6 @@ def _validation_message(exc: RequestValidationError) -> str:
     return "; ".join(parts) or "invalid request"
 
 
-#: integers of more digits than this end a JSON body's parsing (Python's own limit on converting text to int)
-MAX_BODY_INT_DIGITS = 4300
-
-
 def body_parse_fault(cause: BaseException | None) -> str | None:
     """Why FastAPI's parser refused a JSON body ("There was an error parsing the body"), in the user's terms, from
     the error it raised: nested too deeply, an integer longer than Python converts (its own words name its
@@ -168,7 +165,7 @@ def body_parse_fault(cause: BaseException | None) -> str | None:
     if isinstance(cause, UnicodeDecodeError):
         return f"not UTF-8 text ({cause.reason} at byte {cause.start})"
     if isinstance(cause, ValueError) and not isinstance(cause, json.JSONDecodeError) and "digits" in str(cause):
-        return f"an integer of more than {MAX_BODY_INT_DIGITS} digits"
+        return f"an integer of more than {sys.get_int_max_str_digits()} digits"  # Python's own limit, as parsed
     return None
 
 

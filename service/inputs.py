@@ -65,7 +65,7 @@ MAX_JSON_INT = 2**53
 
 def _bounded_int(text: str) -> int:
     """A JSON integer within :data:`MAX_JSON_INT`; its digits are counted first (Python refuses to convert more than
-    4300 of them, in words about its own settings)."""
+    ``sys.get_int_max_str_digits()`` of them, in words about its own settings)."""
     if len(text.lstrip("-")) > len(str(MAX_JSON_INT)) or abs(value := int(text)) > MAX_JSON_INT:
         raise ValueError(f"integer {text[:20]}{'...' if len(text) > 20 else ''} ({len(text)} digits) is out of "
                          f"range (at most {MAX_JSON_INT} in magnitude)")
@@ -338,6 +338,15 @@ class RenderQuery:
 MIN_FOV_DEG, MAX_FOV_DEG = 1.0, 170.0
 
 
+def check_fov(fov_deg: float) -> float:
+    """``fov_deg`` (horizontal, degrees) when within :data:`MIN_FOV_DEG`..:data:`MAX_FOV_DEG`; else a 400-class
+    ``invalid_render_query`` naming it (renders and the viewer page's camera)."""
+    if not (math.isfinite(fov_deg) and MIN_FOV_DEG <= fov_deg <= MAX_FOV_DEG):
+        raise BadInput(f"fov_deg: must be between {MIN_FOV_DEG:g} and {MAX_FOV_DEG:g} degrees, got {fov_deg}",
+                       code="invalid_render_query")
+    return fov_deg
+
+
 def check_render_query(c2w: str | np.ndarray, projection: str, width: int, height: int | None, fov_deg: float | None,
                        fmt: str,
                        *, max_width: int, max_pixels: int, compositing: str = "plain", rig: bool = False) -> RenderQuery:
@@ -372,10 +381,7 @@ def check_render_query(c2w: str | np.ndarray, projection: str, width: int, heigh
     if fov_deg is not None and projection != "perspective":  # as height: it would be dropped
         raise BadInput(f"fov_deg: only a perspective render takes a field of view (this one is {projection})",
                        code="invalid_render_query")
-    fov_deg = DEFAULT_FOV_DEG if fov_deg is None else fov_deg
-    if not (math.isfinite(fov_deg) and MIN_FOV_DEG <= fov_deg <= MAX_FOV_DEG):
-        raise BadInput(f"fov_deg: must be between {MIN_FOV_DEG:g} and {MAX_FOV_DEG:g} degrees, got {fov_deg}",
-                       code="invalid_render_query")
+    fov_deg = check_fov(DEFAULT_FOV_DEG if fov_deg is None else fov_deg)
     if projection == "perspective" and height is not None:
         vertical = math.degrees(2.0 * math.atan(math.tan(math.radians(fov_deg) / 2.0) * height / width))
         if vertical > MAX_FOV_DEG:  # a tall, narrow view: rays near 90 deg off axis leave rows blank

@@ -20,7 +20,6 @@ from __future__ import annotations
 import html
 import json
 import logging
-import math
 import os
 from pathlib import Path
 from typing import Annotated, Literal
@@ -33,7 +32,7 @@ from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 from ..access import KEY_COOKIE, DuplicateKey, query_key
 from ..deps import KnownQueryParameters, SceneId, SettingsDep, SingleQueryValues, StoreDep
 from ..errors import BadInput, NotFound, ServiceError
-from ..inputs import DEFAULT_FOV_DEG, MAX_FOV_DEG, MIN_FOV_DEG, parse_c2w_query
+from ..inputs import DEFAULT_FOV_DEG, check_fov, parse_c2w_query
 from ..schemas import error_responses
 
 router = APIRouter(tags=["viewer"], dependencies=[KnownQueryParameters, SingleQueryValues])
@@ -110,10 +109,9 @@ def _check_camera(c2w: str | None, fov_deg: str | None) -> None:
         try:
             value = float(fov_deg)
         except ValueError:
-            value = math.nan
-        if not MIN_FOV_DEG <= value <= MAX_FOV_DEG:
-            raise BadInput(f"fov_deg: must be a number between {MIN_FOV_DEG:g} and {MAX_FOV_DEG:g} degrees, got "
-                           f"{fov_deg[:40]!r}", code="invalid_render_query")
+            raise BadInput(f"fov_deg: must be a number of degrees, got {fov_deg[:40]!r}",
+                           code="invalid_render_query") from None
+        check_fov(value)
 
 
 @router.get(
