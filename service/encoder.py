@@ -170,6 +170,8 @@ class OnnxEncoder:
         self.feature_size = (int(props["feature_height"]), int(props["feature_width"]))
         self.erp_encoder = props.get("erp_encoder", "false") == "true"
         self.grids = tuple(props.get("grids", "erp" if self.erp_encoder else "yin,yang").split(","))
+        #: (rows, columns) of one Gaussian grid (Yin, Yang or ERP): one Gaussian per pixel
+        self.grid_size = (int(props["gaussian_grid_height"]), int(props["gaussian_grid_width"]))
         # default sweep range per unit baseline (models before 0.2 stored the same numbers as
         # near_default / far_default in metres for the 1 m design baseline)
         self.near_per_baseline = float(props.get("near_per_baseline", props.get("near_default", NEAR_PER_BASELINE)))

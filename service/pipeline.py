@@ -16,6 +16,7 @@ the rig, 0 = off; absent = automatic, 20 where both references show a rig) go to
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -25,7 +26,7 @@ from pydantic import ValidationError
 from rasterizer.compaction import CompactionOptions, Provenance, compact_result
 from rasterizer.compaction.options import count_limit
 from rasterizer.compaction.result import CompactionResult
-from rasterizer.compaction.split import fine_erp, split_textured
+from rasterizer.compaction.split import fine_erp, split_textured, texture_ratio
 from rasterizer.edit.scene import EditData
 from rasterizer.gaussians import Gaussians
 from rasterizer.ply import finite_rows
@@ -75,18 +76,44 @@ class PipelineOptions:
         return cls(settings.near, settings.far, compaction, adaptive, sh_degree, settings.rig_cap_deg)
 
 
+def _fine_uploads(uploads, grids: tuple[str, ...], height: int, width: int) -> list:
+    """Each upload's (:func:`~rasterizer.compaction.split.fine_erp`, its
+    :func:`~rasterizer.compaction.split.texture_ratio`) for grids of ``height`` x ``width``, or None where the
+    upload is not finer than them: the split's image-only work, one upload after the other."""
+    out = []
+    for erp in uploads:
+        fine = fine_erp(erp, grids, height, width)
+        out.append(None if fine is None else (fine, texture_ratio(fine)))
+    return out
+
+
+def _timed(fn, *args):
+    """(fn(*args), its wall seconds)."""
+    t0 = time.perf_counter()
+    return fn(*args), time.perf_counter() - t0
+
+
 def _split_textured(res: CompactionResult, provenance: Provenance, uploads, opts: CompactionOptions,
-                    rig_cap_deg: float | None) -> CompactionResult:
+                    rig_cap_deg: float | None, prepared=None) -> CompactionResult:
     """:func:`~rasterizer.compaction.split.split_textured` of the pixels of each reference whose upload is finer
-    than the grids (the other's stay whole), never in the rig cap, within the options' count cap."""
+    than the grids (the other's stay whole), never in the rig cap, within the options' count cap.
+
+    prepared: ``(grids, height, width, _fine_uploads(uploads, grids, height, width))`` made beside the encoder;
+    used when its grids are the reconstruction's, else the fine ERPs are made here.
+    """
     grids, h, w = provenance.grids, provenance.height, provenance.width
-    fine = map_threads(lambda erp: fine_erp(erp, grids, h, w), uploads)
-    if all(f is None for f in fine):  # nothing finer than the grid: reported as no split
+    if prepared is not None and tuple(prepared[:3]) == (grids, h, w):
+        detail = prepared[3]
+    else:
+        detail = map_threads(lambda erp: _fine_uploads([erp], grids, h, w)[0], uploads)
+    if all(d is None for d in detail):  # nothing finer than the grid: reported as no split
         return replace(res, stats={**res.stats, "split_textured": {"split": 0, "added": 0, "seconds": 0.0}})
     exclude = None
     if rig_cap_deg:
         exclude = np.broadcast_to(rig_mask(grids, h, w, rig_cap_deg), (provenance.views, len(grids), h, w))
-    return split_textured(res, fine, exclude=exclude, limit=count_limit(opts, res.gaussians.sh.shape[1]))
+    return split_textured(res, [None if d is None else d[0] for d in detail],
+                          ratios=[None if d is None else d[1] for d in detail], exclude=exclude,
+                          limit=count_limit(opts, res.gaussians.sh.shape[1]))
 
 
 @dataclass(frozen=True)
@@ -106,14 +133,25 @@ def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions, *
     uploads: the two panoramas as uploaded when ``erp_a`` / ``erp_b`` are already resampled (default: those),
     the source of the detail finer than the encoder's grid (:mod:`rasterizer.compaction.split`).
     """
-    if options.adaptive_range.enabled:  # off by default: then straight to the encoder
-        rec = reconstruct_adaptive(encoder, erp_a, erp_b, c2w_a, c2w_b, options=options.adaptive_range,
-                                   near=options.near, far=options.far, sh_degree=options.sh_degree,
-                                   rig_cap_deg=options.rig_cap_deg)
-    else:
-        rec = encoder.reconstruct(erp_a, erp_b, c2w_a, c2w_b, near=options.near, far=options.far,
-                                  sh_degree=options.sh_degree, rig_cap_deg=options.rig_cap_deg)
+    uploads = uploads or (erp_a, erp_b)
+    grids, grid_size = getattr(encoder, "grids", None), getattr(encoder, "grid_size", None)
+    with ThreadPoolExecutor(max_workers=1) as side:
+        prepared = None  # the split's image-only work runs beside the graph, which leaves a core partly idle
+        if options.compaction.split_textured and grids is not None and grid_size is not None:
+            prepared = side.submit(_timed, _fine_uploads, uploads, tuple(grids), *grid_size)
+        if options.adaptive_range.enabled:  # off by default: then straight to the encoder
+            rec = reconstruct_adaptive(encoder, erp_a, erp_b, c2w_a, c2w_b, options=options.adaptive_range,
+                                       near=options.near, far=options.far, sh_degree=options.sh_degree,
+                                       rig_cap_deg=options.rig_cap_deg)
+        else:
+            rec = encoder.reconstruct(erp_a, erp_b, c2w_a, c2w_b, near=options.near, far=options.far,
+                                      sh_degree=options.sh_degree, rig_cap_deg=options.rig_cap_deg)
+        if prepared is not None:
+            detail, detail_seconds = prepared.result()
+            prepared = (tuple(grids), *grid_size, detail)
     timings = {str(k): float(v) for k, v in (rec.timings or {}).items()}
+    if prepared is not None:
+        timings["split_detail"] = detail_seconds  # beside the encoder, not after it
     info = dict(rec.info or {})
     t0 = time.perf_counter()
     provenance = Provenance.from_reconstruction(rec, c2w_a, c2w_b)
@@ -121,7 +159,7 @@ def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions, *
     timings["compaction"] = time.perf_counter() - t0
     if options.compaction.split_textured:
         t0 = time.perf_counter()
-        res = _split_textured(res, provenance, uploads or (erp_a, erp_b), options.compaction, info.get("rig_cap_deg"))
+        res = _split_textured(res, provenance, uploads, options.compaction, info.get("rig_cap_deg"), prepared)
         timings["split_textured"] = time.perf_counter() - t0
     gaussians, stats = res.gaussians, res.stats
     info["compaction"] = stats

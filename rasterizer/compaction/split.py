@@ -137,12 +137,13 @@ def texture_ratio(fine: np.ndarray) -> np.ndarray:
         return np.where(contrast > 0, texture / contrast, 0.0).astype(np.float32)[0]
 
 
-def split_textured(result: CompactionResult, fine, *, exclude: np.ndarray | None = None,
+def split_textured(result: CompactionResult, fine, *, ratios=None, exclude: np.ndarray | None = None,
                    limit: int | None = None) -> CompactionResult:
     """``result`` with its textured pixels split into 2x2 children (module docstring).
 
     fine: each view's :func:`fine_erp`, (E, 2E, 3) float32 in [0, 1], or None for a view whose upload holds
-    nothing finer than the grid (its pixels stay whole; a (V, E, 2E, 3) array also serves); exclude: (V, G, H, W)
+    nothing finer than the grid (its pixels stay whole; a (V, E, 2E, 3) array also serves); ratios: each view's
+    :func:`texture_ratio` of its ``fine`` when the caller has it (None, or a None entry: computed here); exclude: (V, G, H, W)
     bool pixels never split (the rig cap, whose colours come from the other view); limit: the most Gaussians the output
     may hold (None: no cap). The shell after the pixel-aligned Gaussians (``stats["shell"]``) is kept as it
     is. ``stats`` gains ``split_textured`` ({"split": pixels, "added": children, "seconds"}) and
@@ -166,7 +167,12 @@ def split_textured(result: CompactionResult, fine, *, exclude: np.ndarray | None
     cand = whole[np.array([f is not None for f in fine])[view[whole]]]
     if exclude is not None:
         cand = cand[~np.asarray(exclude, bool).reshape(-1)[flat[cand]]]
-    ratios = map_threads(lambda f: None if f is None else texture_ratio(f), fine)
+    given = [None] * len(fine) if ratios is None else list(ratios)
+    if len(given) != len(fine) or any(g is not None and (f is None or g.shape != (e // 2, e))
+                                      for f, g in zip(fine, given)):
+        raise ValueError(f"ratios must be {len(fine)} of shape {(e // 2, e)} beside each fine ERP (or None), got "
+                         f"{[None if g is None else g.shape for g in given]}")
+    ratios = map_threads(lambda f, g: g if g is not None or f is None else texture_ratio(f), fine, given)
     r = np.empty(cand.size, np.float32)
     for gi, kind in enumerate(prov.grids):  # each candidate's block: the one its pixel's ray falls in
         at = np.flatnonzero(grid[cand] == gi)

@@ -255,6 +255,30 @@ def test_bad_fine_shape_is_refused():
         split_textured(res, [fine[0]])  # one view's upload for two views
 
 
+def test_texture_ratios_from_the_caller_give_the_same_split():
+    """Ratios computed beside the encoder (the service's path) split exactly as those computed inside."""
+    res, fine, _, _ = _scene(textured_x=-3.0)
+    inside = split_textured(res, fine)
+    given_ratios = split_textured(res, fine, ratios=[texture_ratio(f) for f in fine])
+    one_given = split_textured(res, fine, ratios=[None, texture_ratio(fine[1])])
+    assert inside.stats["split_textured"]["split"] > 0
+    for out in (given_ratios, one_given):
+        for name in ("means", "scales", "quats", "opacities", "sh"):
+            np.testing.assert_array_equal(getattr(out.gaussians, name), getattr(inside.gaussians, name))
+        np.testing.assert_array_equal(out.provenance.index, inside.provenance.index)
+
+
+def test_bad_texture_ratios_are_refused():
+    res, fine, _, _ = _scene()
+    ratio = texture_ratio(fine[0])
+    with pytest.raises(ValueError, match="ratios must be"):
+        split_textured(res, fine, ratios=[ratio[:-1], None])
+    with pytest.raises(ValueError, match="ratios must be"):
+        split_textured(res, [fine[0], None], ratios=[None, ratio])  # a ratio for a view without a fine ERP
+    with pytest.raises(ValueError, match="ratios must be"):
+        split_textured(res, fine, ratios=[ratio])
+
+
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), log_scale=st.floats(-12.0, 6.0), log_range=st.floats(-6.0, 6.0),
        opacity=st.floats(0.0, 1.0))
