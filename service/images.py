@@ -16,7 +16,8 @@ accepted (413 beyond); a JPEG's marker segments likewise (:func:`scan_jpeg`). Be
 decode, the PNG's compressed image data is inflated
 and counted (not kept): Pillow stops without an error when the compressed stream ends early,
 leaving the missing rows black, so a PNG whose data holds fewer rows than its header
-declares is refused (400).
+declares is refused (400). A JPEG's scans are checked likewise (:mod:`service.jpeg_data`): libjpeg fills a scan
+cut short with grey, or a progressive image cut between scans with a blur, and Pillow does not say.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from rasterizer.threads import map_threads
 
 from .errors import BadInput, InvalidImage, PayloadTooLarge
 from .fisheye import check_not_dual_fisheye
+from .jpeg_data import check_jpeg_data
 
 ACCEPTED_FORMATS = ("PNG", "JPEG", "WEBP", "TIFF", "BMP")
 #: the first bytes of each accepted format's files (a WebP also has "WEBP" at byte 8)
@@ -253,7 +255,8 @@ def check_png_data(data: bytes, layout: PngLayout, field: str) -> None:
                            f"the {layout.height} rows its header declares")
 
 
-#: segments a JPEG may hold before its image data, and bytes of padding or junk between them
+#: segments a JPEG may hold (before its image data; :mod:`service.jpeg_data` counts its scans' too), and bytes of
+#: padding or junk between them
 MAX_JPEG_SEGMENTS = 4096
 MAX_JPEG_GAP_BYTES = 1024 * 1024
 _NOT_FF = re.compile(rb"[^\xff]")
@@ -386,6 +389,8 @@ def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int,
     layout = scan_png(data, field)
     if layout is not None:
         check_png_data(data, layout, field)
+    if header.format in ("JPEG", "MPO"):
+        check_jpeg_data(data, field, MAX_JPEG_SEGMENTS)
     im = _open(data, field, max_pixels)
     shown = header.decoded_size
     try:

@@ -273,7 +273,8 @@ def ply_stream(store: SceneStore, scene_id: str) -> tuple[int, Iterator[bytes]]:
 
 def spz_file(store: SceneStore, scene_id: str) -> bytes:
     """The scene's Gaussians as an SPZ file (:mod:`rasterizer.spz`: about a fifth of the PLY's bytes, made in
-    about 0.6 s for 500k Gaussians); a scene SPZ's 24-bit positions cannot hold is a 422 ``spz_unsupported``."""
+    about 0.6 s for 500k Gaussians); a scene SPZ's 24-bit positions cannot hold, or hold only in steps coarser
+    than its Gaussians' size allows (:func:`rasterizer.spz.check_position_step`), is a 422 ``spz_unsupported``."""
     from rasterizer.spz import SpzError, spz_bytes
 
     try:

@@ -10,6 +10,8 @@ import anyio.to_thread
 from fastapi import APIRouter, File, Form, Query, Request, Response, UploadFile
 from fastapi.responses import StreamingResponse
 
+from rasterizer.spz import MAX_STEP_PER_SIZE
+
 from .. import scenes as work
 from ..deps import (
     FormBody,
@@ -228,7 +230,9 @@ async def scene_ply(request: Request, scene_id: SceneId, store: StoreDep, gate: 
                 "RUB world, x right, y up, z back): about a fifth of the PLY's bytes, for slow links (the web "
                 "viewer loads it with `format=spz`). "
                 "Renders of it differ from the PLY's by its quantisation (about 49 dB on a 1024-wide ERP). "
-                "422 `spz_unsupported` when a Gaussian lies beyond SPZ's 24-bit positions.",
+                "422 `spz_unsupported` when a Gaussian lies beyond SPZ's 24-bit positions, or when the scene lies "
+                f"so far from the origin that their step exceeds 1/{1 / MAX_STEP_PER_SIZE:g} of the Gaussians' "
+                "median size (splats would show moved): download the PLY, or send poses nearer the origin.",
     responses=_file_responses("gzip-compressed SPZ version 2"),
 )
 async def scene_spz(request: Request, scene_id: SceneId, store: StoreDep, gate: RenderGateDep) -> Response:

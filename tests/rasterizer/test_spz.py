@@ -12,7 +12,15 @@ from hypothesis import strategies as st
 from rasterizer.gaussians import Gaussians
 from rasterizer.render import render
 from rasterizer.sh import sh_to_rgb
-from rasterizer.spz import MAX_FRACTIONAL_BITS, SPZ_MAGIC, SpzError, fractional_bits, read_spz, spz_bytes
+from rasterizer.spz import (
+    MAX_FRACTIONAL_BITS,
+    MAX_STEP_PER_SIZE,
+    SPZ_MAGIC,
+    SpzError,
+    fractional_bits,
+    read_spz,
+    spz_bytes,
+)
 
 
 def scene(rng, n=300, k=4, radius=3.0):
@@ -161,3 +169,28 @@ def test_refusals():
                       (gzip.compress(raw[:12] + b"\x03" + raw[13:]), "degree")):
         with pytest.raises(SpzError, match=word):
             read_spz(bad)
+
+
+@pytest.mark.parametrize("unit", [2.0**-10, 1.0, 2.0**10])
+def test_a_scene_far_from_the_origin_is_refused_when_its_step_exceeds_an_eighth_of_its_gaussians_size(unit):
+    """Georeferenced poses put a room thousands of units from the origin, where SPZ's 24-bit step grows past the
+    splats' own size and readers would show them moved. Gaussians of sigmas (1e-4, 1e-2, 5e-2) (median middle
+    axis 1e-2; the thinnest and widest axes would decide at the origin or never): a step of 2^-10 (1/10.24 of
+    1e-2) up to 8191 units out is kept, 2^-9 (1/5.12) beyond is refused; in any (power of 2) unit alike."""
+    assert MAX_STEP_PER_SIZE == 1 / 8
+    rng = np.random.default_rng(3)
+    room = scene(rng, 200, radius=5.0)
+    room = room.with_(scales=np.tile([1e-4, 1e-2, 5e-2], (200, 1))[:, rng.permutation(3)])  # any axis order
+
+    def at(offset):
+        return room.with_(means=(room.means + offset) * unit, scales=room.scales * unit)
+
+    for offset in (0.0, 1e3, 8000.0):
+        back = read_spz(spz_bytes(at(offset)))  # within half a step, and float32's rounding of the result
+        assert np.abs(back.means - at(offset).means).max() <= (2.0**-11 + 2.0**-12) * unit
+    for offset in (9000.0, 1e5, 1e6):
+        with pytest.raises(SpzError) as info:
+            spz_bytes(at(offset))
+        assert "use the PLY, or send poses nearer the origin" in str(info.value)
+        held = (offset + 5) * unit < 2**23  # else beyond SPZ's 24 bits altogether
+        assert ("median size" if held else "24-bit positions hold at most") in str(info.value)

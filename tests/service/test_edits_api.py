@@ -153,6 +153,20 @@ def test_translations_stay_within_the_scenes_extent(client, scene):
     assert "beyond 1e+06" in msg
 
 
+def test_spz_of_a_scene_moved_far_from_the_origin_is_a_422_that_names_the_ply(client, scene):
+    """Moved 6e5 units out (a georeferenced scene's distance), SPZ's 24-bit positions step by 0.125 units, far
+    beyond the splats' size: the SPZ download is refused with what to do, the PLY still served."""
+    url = f"/v1/scenes/{scene}"
+    assert client.get(f"{url}/gaussians.spz").status_code == 200
+    sel = client.post(f"{url}/selections", json={"view": "a", "points": [[0.5, 0.7]]}).json()["id"]
+    r = client.post(f"{url}/edits", json={"selection": sel, "op": "translate", "offset": [6e5, 0, 0]})
+    assert r.status_code == 201, r.text
+    moved = f"/v1/scenes/{r.json()['id']}"
+    msg = _error(client.get(f"{moved}/gaussians.spz"), 422, "spz_unsupported")
+    assert "steps of 0.125" in msg and msg.endswith("use the PLY, or send poses nearer the origin"), msg
+    assert client.get(f"{moved}/gaussians.ply").status_code == 200
+
+
 def test_empty_selection_is_a_clear_422(scene, live, monkeypatch):
     """A prompt whose masks own no Gaussian (forced here) is refused with empty_selection, not stored."""
     from rasterizer.edit import scene as edit_scene

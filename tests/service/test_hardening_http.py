@@ -369,6 +369,16 @@ def test_truncated_png_upload_is_400_not_a_black_scene(slots):
     assert "truncated" in r.json()["error"]["message"]
 
 
+def test_jpeg_cut_short_and_closed_with_an_end_marker_is_400_not_a_grey_scene(slots):
+    """libjpeg fills the rest of the cut scan with grey and Pillow hides its warning: the upload is refused."""
+    jpeg = panorama(seed=143, fmt="JPEG")
+    with slots.client() as c:
+        r = post_scene(c, panorama(seed=142), jpeg[:len(jpeg) * 6 // 10] + b"\xff\xd9", names=("a.png", "b.jpg"))
+    assert r.status_code == 400, r.text
+    assert r.json()["error"]["code"] == "invalid_image"
+    assert r.json()["error"]["message"].startswith("image_b: the JPEG data is truncated or corrupt")
+
+
 def test_two_bad_uploads_name_image_a_first(slots):
     """The two uploads decode side by side; the answer names the first bad one, as when they decoded in turn."""
     with slots.client() as c:

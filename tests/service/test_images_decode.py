@@ -4,6 +4,7 @@ second image, colour modes, and the decode's memory."""
 from __future__ import annotations
 
 import io
+import re
 import tracemalloc
 
 import numpy as np
@@ -272,3 +273,93 @@ def test_jpeg_reduction_is_the_coarsest_exact_scale_that_keeps_the_width(height,
     assert r == 1 or width // r >= min_width
     assert not any(q > r and width % q == 0 and height % q == 0 and width // q >= min_width
                    for q in images.JPEG_REDUCTIONS)
+
+
+def _noise_jpeg(progressive: bool, height: int = 256, **save) -> bytes:
+    """A 2:1 JPEG of random pixels (quality 90): every block holds data, so any cut lands inside a scan."""
+    rgb = np.random.default_rng(7).integers(0, 256, (height, 2 * height, 3), dtype=np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format="JPEG", quality=90, progressive=progressive, **save)
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("progressive", [False, True])
+@pytest.mark.parametrize("kept", [0.3, 0.6, 0.9])
+def test_a_jpeg_cut_short_and_closed_with_an_end_marker_is_400(progressive, kept):
+    """libjpeg decodes such a file without an error (the rest of a baseline scan grey 128, a progressive image
+    blurred) and Pillow hides its warning: the decode is refused, at a reduced scale too."""
+    data = _noise_jpeg(progressive)
+    cut = data[:int(len(data) * kept)] + b"\xff\xd9"
+    Image.open(io.BytesIO(cut)).load()  # what the check must catch: Pillow alone decodes it
+    for min_width in (None, 128):
+        with pytest.raises(InvalidImage, match="the JPEG data is truncated or corrupt") as info:
+            decode_rgb(cut, "image_a", max_pixels=10**9, min_height=64, min_width=min_width)
+        assert info.value.status == 400 and info.value.message.startswith("image_a: ")
+
+
+def test_a_progressive_jpeg_cut_between_two_scans_is_400():
+    """Cut at a scan boundary libjpeg has no warning at all: the scan headers show the coefficients never sent."""
+    data = _noise_jpeg(True)
+    starts = [m.start() for m in re.finditer(rb"\xff\xda", data)]
+    assert len(starts) >= 6
+    for start in starts[1:]:
+        with pytest.raises(InvalidImage, match="DCT coefficients"):
+            decode_rgb(data[:start] + b"\xff\xd9", "image_a", **LIMITS)
+
+
+def _with_segment(data: bytes, marker: int, payload: bytes) -> bytes:
+    """``data`` with a marker segment inserted after its start-of-image marker."""
+    return data[:2] + bytes((0xFF, marker)) + (len(payload) + 2).to_bytes(2, "big") + payload + data[2:]
+
+
+def _valid_jpegs() -> dict[str, bytes]:
+    shown = upright(128)
+    exif = Image.Exif()
+    exif[0x010F] = "camera"
+
+    def save(im, **kw):
+        buf = io.BytesIO()
+        im.save(buf, **{"format": "JPEG", **kw})
+        return buf.getvalue()
+
+    im = Image.fromarray(shown)
+    cases = {}
+    for progressive in (False, True):
+        p = {"progressive": progressive}
+        cases |= {f"RGB {p}": save(im, **p), f"grey {p}": save(im.convert("L"), **p),
+                  f"CMYK {p}": save(im.convert("CMYK"), **p),
+                  f"restart markers {p}": save(im, restart_marker_blocks=3, **p),
+                  f"4:4:4, optimised, EXIF {p}": save(im, subsampling=0, optimize=True, exif=exif.tobytes(), **p),
+                  f"MPF preview {p}": save(im, format="MPO", save_all=True, append_images=[im.resize((64, 32))], **p)}
+    thumbnail = cases["RGB {'progressive': True}"]
+    cut_thumbnail = thumbnail[:thumbnail.index(b"\xff\xda", 400)] + b"\xff\xd9"  # an APP segment's content is no scan
+    cases["EXIF thumbnail cut between scans"] = _with_segment(cases["RGB {'progressive': False}"], 0xE1,
+                                                              b"Exif\x00\x00" + cut_thumbnail)
+    cases["junk before the end marker"] = cases["RGB {'progressive': False}"][:-2] + b"\x00\x00\x00\xff\xd9"
+    return cases
+
+
+@pytest.mark.parametrize("name", sorted(_valid_jpegs()))
+def test_whole_jpegs_of_every_kind_pass_the_data_check(name):
+    """No valid JPEG is refused: grey, CMYK, restart markers, progressive, a camera's MPF preview after the end
+    marker, an APP segment holding a cut JPEG, junk before the end marker (read after every pixel); each decodes
+    to its picture whole and at 1/8 scale."""
+    data = _valid_jpegs()[name]
+    rgb, header = decode_rgb(data, "image_a", **LIMITS)
+    assert header.format in ("JPEG", "MPO") and rgb.shape == (128, 256, 3)
+    shown = Image.fromarray(upright(128))
+    shown = np.asarray(shown.convert("L").convert("RGB") if name.startswith("grey") else shown)
+    assert np.abs(rgb.astype(int) - shown).mean() < 4.0
+    small, header = decode_rgb(data, "image_a", **LIMITS, min_width=32)
+    assert header.reduction == 8 and small.shape == (16, 32, 3)
+
+
+def test_the_jpeg_walk_is_bounded_by_the_segment_limit():
+    """Segments after the first scan are walked in Python: past MAX_JPEG_SEGMENTS of them the file is a 413."""
+    data = _noise_jpeg(False, height=64)
+    eoi = len(data) - 2
+    padded = data[:eoi] + b"\xff\xfe\x00\x02" * (images.MAX_JPEG_SEGMENTS + 1) + data[eoi:]
+    with pytest.raises(PayloadTooLarge) as info:
+        decode_rgb(padded, "image_a", **LIMITS)
+    assert info.value.code == "image_too_many_chunks"
+    decode_rgb(data[:eoi] + b"\xff\xfe\x00\x02" * 10 + data[eoi:], "image_a", **LIMITS)  # a few comments pass
