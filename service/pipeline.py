@@ -94,17 +94,14 @@ def _timed(fn, *args):
 
 
 def _split_textured(res: CompactionResult, provenance: Provenance, uploads, opts: CompactionOptions,
-                    rig_cap_deg: float | None, prepared=None) -> CompactionResult:
+                    rig_cap_deg: float | None, detail: list | None = None) -> CompactionResult:
     """:func:`~rasterizer.compaction.split.split_textured` of the pixels of each reference whose upload is finer
     than the grids (the other's stay whole), never in the rig cap, within the options' count cap.
 
-    prepared: ``(grids, height, width, _fine_uploads(uploads, grids, height, width))`` made beside the encoder;
-    used when its grids are the reconstruction's, else the fine ERPs are made here.
+    detail: :func:`_fine_uploads` of ``uploads`` for the provenance's grids when the caller made it (None: made here).
     """
     grids, h, w = provenance.grids, provenance.height, provenance.width
-    if prepared is not None and tuple(prepared[:3]) == (grids, h, w):
-        detail = prepared[3]
-    else:
+    if detail is None:
         detail = map_threads(lambda erp: _fine_uploads([erp], grids, h, w)[0], uploads)
     if all(d is None for d in detail):  # nothing finer than the grid: reported as no split
         return replace(res, stats={**res.stats, "split_textured": {"split": 0, "added": 0, "seconds": 0.0}})
@@ -134,11 +131,13 @@ def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions, *
     the source of the detail finer than the encoder's grid (:mod:`rasterizer.compaction.split`).
     """
     uploads = uploads or (erp_a, erp_b)
-    grids, grid_size = getattr(encoder, "grids", None), getattr(encoder, "grid_size", None)
+    # the split's image-only work runs beside the graph, whose two threads leave a core partly idle
+    grids, size = getattr(encoder, "grids", None), getattr(encoder, "grid_size", None)
+    layout = None if grids is None or size is None else (tuple(grids), *size)  # (grids, height, width)
+    job = None
     with ThreadPoolExecutor(max_workers=1) as side:
-        prepared = None  # the split's image-only work runs beside the graph, which leaves a core partly idle
-        if options.compaction.split_textured and grids is not None and grid_size is not None:
-            prepared = side.submit(_timed, _fine_uploads, uploads, tuple(grids), *grid_size)
+        if options.compaction.split_textured and layout is not None:
+            job = side.submit(_timed, _fine_uploads, uploads, *layout)
         if options.adaptive_range.enabled:  # off by default: then straight to the encoder
             rec = reconstruct_adaptive(encoder, erp_a, erp_b, c2w_a, c2w_b, options=options.adaptive_range,
                                        near=options.near, far=options.far, sh_degree=options.sh_degree,
@@ -146,20 +145,20 @@ def build_scene(encoder, erp_a, erp_b, c2w_a, c2w_b, options: PipelineOptions, *
         else:
             rec = encoder.reconstruct(erp_a, erp_b, c2w_a, c2w_b, near=options.near, far=options.far,
                                       sh_degree=options.sh_degree, rig_cap_deg=options.rig_cap_deg)
-        if prepared is not None:
-            detail, detail_seconds = prepared.result()
-            prepared = (tuple(grids), *grid_size, detail)
+        detail, detail_seconds = job.result() if job is not None else (None, 0.0)
     timings = {str(k): float(v) for k, v in (rec.timings or {}).items()}
-    if prepared is not None:
+    if job is not None:
         timings["split_detail"] = detail_seconds  # beside the encoder, not after it
     info = dict(rec.info or {})
     t0 = time.perf_counter()
     provenance = Provenance.from_reconstruction(rec, c2w_a, c2w_b)
+    if layout != (provenance.grids, provenance.height, provenance.width):
+        detail = None  # made for other grids than the reconstruction's (or not made): made for its own
     res = compact_result(rec.gaussians, provenance, options.compaction, confidence=rec.confidence)
     timings["compaction"] = time.perf_counter() - t0
     if options.compaction.split_textured:
         t0 = time.perf_counter()
-        res = _split_textured(res, provenance, uploads, options.compaction, info.get("rig_cap_deg"), prepared)
+        res = _split_textured(res, provenance, uploads, options.compaction, info.get("rig_cap_deg"), detail)
         timings["split_textured"] = time.perf_counter() - t0
     gaussians, stats = res.gaussians, res.stats
     info["compaction"] = stats
