@@ -33,6 +33,7 @@ def test_split_prepared_beside_the_encoder_gives_the_same_scene(model_path):
     rec = enc.reconstruct(erp_a, erp_b, np.eye(4), c2w_b)
     assert tuple(rec.range_maps.shape[2:]) == enc.grid_size  # the geometry the split is prepared for
     assert beside.info["compaction"]["split_textured"]["split"] > 0
+    assert "split_detail" in beside.timings and "split_detail" not in after.timings  # the two paths were taken
     for key in ("split", "added"):
         assert beside.info["compaction"]["split_textured"][key] == after.info["compaction"]["split_textured"][key]
     for name in ("means", "scales", "quats", "opacities", "sh"):
