@@ -32,7 +32,7 @@ import zlib
 
 import numpy as np
 
-from .gaussians import Gaussians, GaussiansError, quat_to_rotmat
+from .gaussians import MAX_STEP_PER_SIZE, Gaussians, GaussiansError, quat_to_rotmat, typical_size
 from .ply import finite_rows
 
 #: "NGSP" read as a little-endian uint32.
@@ -76,36 +76,15 @@ def fractional_bits(means: np.ndarray) -> int:
     return int(min(MAX_FRACTIONAL_BITS, np.floor(np.log2(_POSITION_LIMIT / largest))))
 
 
-#: SPZ's position step may be at most this fraction of the scene's typical Gaussian size, the median over its
-#: Gaussians of their middle scale (sigma of the narrower axis of a flat splat's face; the thinnest axis shows
-#: only edge on): readers then place every splat within 1/16 of that size of where it is, per axis. Measured on
-#: the m3d and ZInD dev scenes moved from the origin (1024-wide ERP renders from a reference, SPZ against the
-#: unrounded Gaussians), the PSNR lost to the position step, against SPZ at the origin (57.2 and 56.9 dB):
-#:
-#: ==================  ==========  ===========
-#: step / median size  m3d         ZInD
-#: ==================  ==========  ===========
-#: 0.06-0.08           0.6 dB      1.4 dB
-#: 0.12-0.16           1.4 dB      2.1 dB
-#: 0.23-0.31           3.7 dB      4.4 dB
-#: 0.47-0.63           8.0 dB      8.7 dB
-#: 1.9-2.5             20.6 dB     18.9 dB
-#: ==================  ==========  ===========
-#:
-#: 1/8 keeps the loss within about 2 dB of SPZ at the origin on both (no visible change); beyond 1/4 the error
-#: more than doubles, and from about one size on, splats visibly move.
-MAX_STEP_PER_SIZE = 1 / 8
 
 
 def check_position_step(bits: int, means: np.ndarray, scales: np.ndarray) -> None:
     """Raise :class:`SpzError` when the position step of ``bits`` fractional bits, 2^-bits scene units, exceeds
-    :data:`MAX_STEP_PER_SIZE` of the median middle scale of (N, 3) ``scales``; (N, 3) ``means`` are the scene's,
-    for the message."""
+    :data:`~rasterizer.gaussians.MAX_STEP_PER_SIZE` of the :func:`~rasterizer.gaussians.typical_size` of (N, 3)
+    ``scales``; (N, 3) ``means`` are the scene's, for the message."""
     if not len(scales):
         return
-    a, b, c = scales[:, 0], scales[:, 1], scales[:, 2]
-    middle = np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))  # column-wise: 10x faster than axis=1
-    size = float(np.partition(middle, len(middle) // 2)[len(middle) // 2])  # the (upper) median, without a sort
+    size = typical_size(scales)
     step = 2.0 ** -bits
     if step > MAX_STEP_PER_SIZE * size:
         largest = float(np.abs(means).max())

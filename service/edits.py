@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, ValidationInfo, field_validator, model_validator
 
+from rasterizer.gaussians import MAX_STEP_PER_SIZE, typical_size
 from rasterizer.lru import LRUCache
 from rasterizer.sweep import MAX_SCENE_EXTENT
 
@@ -97,8 +98,10 @@ class EditRequest(BaseModel):
     op: Literal["remove", "keep", "recolor", "translate"]
     color: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(None, description="recolor: RGB in [0, 1]",
                                                                         validate_default=True)
-    offset: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(None, description="translate: world units",
-                                                                         validate_default=True)
+    offset: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(
+        None, validate_default=True,
+        description="translate: world units; a move to where float32 positions step by more than 1/8 of the moved "
+                    "Gaussians' median size is refused (invalid_edit)")
 
     # field validators (``op`` is checked first): an error names the key it is about, so the CLI can name its flag
     @field_validator("color")
@@ -332,6 +335,26 @@ def _uncovered(gaussians, masks: np.ndarray, c2ws) -> dict[str, float]:
     return out
 
 
+def check_translated(before, after, moved: np.ndarray) -> None:
+    """422 ``invalid_edit`` when a translate edit moves the ``moved`` Gaussians (bool (N,)) beyond
+    :data:`MAX_SCENE_EXTENT` from the origin, or to where float32 positions step by more than
+    :data:`~rasterizer.gaussians.MAX_STEP_PER_SIZE` of their :func:`~rasterizer.gaussians.typical_size` (and by more
+    than where they were): the stored scene, its renders and its PLY would show the moved object scrambled."""
+    reach = float(np.abs(after.means[moved]).max(initial=0.0))
+    if not reach <= MAX_SCENE_EXTENT:
+        raise BadInput(f"the translate edit would move Gaussians beyond {MAX_SCENE_EXTENT:g} from the origin, where "
+                       "no camera may render them (earlier translations add up); translate by less",
+                       code="invalid_edit")
+    if not moved.any():
+        return
+    step = float(np.spacing(np.float32(reach)))
+    size = typical_size(before.scales[moved])
+    if step > max(MAX_STEP_PER_SIZE * size, float(np.spacing(np.float32(np.abs(before.means[moved]).max())))):
+        raise BadInput(f"the translate edit would move the selection {reach:.4g} from the origin, where float32 positions "
+                       f"step by {step:.3g}, {step / size:.2g} of its Gaussians' median size {size:.3g} (at most "
+                       f"{MAX_STEP_PER_SIZE:g} keeps them in place): translate by less", code="invalid_edit")
+
+
 def create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict, bool]:
     """Apply ``request`` ({"selection", "op", "color", "offset"}) and store the result as a new scene.
 
@@ -366,10 +389,8 @@ def _create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict,
         advice = "select less" if op == "remove" else "select an object (the environment shell is not kept)"
         raise BadInput(f"the {op} edit would leave a scene without any Gaussian (the selection holds "
                        f"{int(selected.sum())} of {len(g)}); {advice}", code="empty_scene")
-    if op == "translate" and not np.abs(edited.means[selected]).max(initial=0.0) <= MAX_SCENE_EXTENT:
-        raise BadInput(f"the translate edit would move Gaussians beyond {MAX_SCENE_EXTENT:g} from the origin, where "
-                       "no camera may render them (earlier translations add up); translate by less",
-                       code="invalid_edit")
+    if op == "translate":
+        check_translated(g, edited, selected)
     timings = {"edit": time.perf_counter() - t0}
     info = {"op": op, "selection": request["selection"], "num_selected": int(selected.sum())}
     data = _edit_data(store, scene_id)

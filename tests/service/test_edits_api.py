@@ -143,28 +143,56 @@ def test_translations_stay_within_the_scenes_extent(client, scene):
     msg = _error(client.post(f"{url}/edits", json={"selection": sel, "op": "translate", "offset": [1e7, 0, 0]}),
                  422, "invalid_request")
     assert msg.startswith("offset: the translate op needs dx, dy, dz, each within +-1e+06"), msg
-    r = client.post(f"{url}/edits", json={"selection": sel, "op": "translate", "offset": [6e5, 0, 0]})
-    assert r.status_code == 201, r.text
-    moved = r.json()["id"]
-    sel2 = client.post(f"/v1/scenes/{moved}/selections", json={"view": "a", "points": [[0.5, 0.7]]})
-    assert sel2.status_code == 201, sel2.text
-    msg = _error(client.post(f"/v1/scenes/{moved}/edits", json={"selection": sel2.json()["id"], "op": "translate",
-                                                                "offset": [6e5, 0, 0]}), 422, "invalid_edit")
-    assert "beyond 1e+06" in msg
 
 
-def test_spz_of_a_scene_moved_far_from_the_origin_is_a_422_that_names_the_ply(client, scene):
-    """Moved 6e5 units out (a georeferenced scene's distance), SPZ's 24-bit positions step by 0.125 units, far
-    beyond the splats' size: the SPZ download is refused with what to do, the PLY still served."""
+def _splats(n: int, centre: float, size: float):
+    """n Gaussians around (centre, centre, centre), one unit apart, of middle scale ``size``."""
+    from rasterizer.gaussians import Gaussians
+
+    rng = np.random.default_rng(11)
+    return Gaussians(means=(centre + rng.normal(size=(n, 3))).astype(np.float32),
+                     scales=np.tile(np.float32([size / 10, size, 2 * size]), (n, 1)),
+                     quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)), opacities=np.full(n, 0.5, np.float32),
+                     sh=np.zeros((n, 1, 3), np.float32))
+
+
+def test_translated_gaussians_stay_within_the_extent_and_float32s_resolution():
+    """The translate edit's check: moves that add up beyond the scenes' extent are refused (for metre-wide splats,
+    which float32 still places there), as are moves to where float32 steps exceed an eighth of the moved splats'
+    size, unless they already lay where it steps as coarsely (a scene far out may be nudged)."""
+    from service.edits import check_translated
+    from service.errors import BadInput
+
+    def moved(g, by):
+        return g.with_(means=g.means + np.float32(by))
+
+    every = np.ones(50, bool)
+    giant = _splats(50, 6e5, 50.0)
+    check_translated(giant, moved(giant, 3e5), every)
+    with pytest.raises(BadInput, match="beyond 1e\\+06 from the origin"):
+        check_translated(giant, moved(giant, 6e5), every)
+    cm = _splats(50, 0.0, 0.016)  # an eighth of their size is 2 mm: float32 steps by 1.95 mm up to 32768 out
+    check_translated(cm, moved(cm, 2e4), every)
+    with pytest.raises(BadInput, match="float32 positions step by 0.0039"):  # 3.9 mm from 32768 out
+        check_translated(cm, moved(cm, 5e4), every)
+    far = moved(cm, 5e4)  # a scene that already lies there (sent with such poses) may be nudged, not moved farther
+    check_translated(far, moved(far, 1.0), every)
+    with pytest.raises(BadInput, match="float32 positions step by 0.0078"):
+        check_translated(far, moved(far, 3e4), every)
+    check_translated(cm, cm, np.zeros(50, bool))  # nothing moved
+
+
+def test_a_translation_to_where_float32_scrambles_the_selection_is_a_422(client, scene):
+    """Moved 6e5 units out (a georeferenced scene's distance), float32 positions step by 0.0625 units, far beyond the
+    splats' size: the stored scene, its renders and its PLY would show the object scrambled, so the edit is refused
+    with what to do; a move that keeps the step within an eighth of their size is made."""
     url = f"/v1/scenes/{scene}"
-    assert client.get(f"{url}/gaussians.spz").status_code == 200
     sel = client.post(f"{url}/selections", json={"view": "a", "points": [[0.5, 0.7]]}).json()["id"]
     r = client.post(f"{url}/edits", json={"selection": sel, "op": "translate", "offset": [6e5, 0, 0]})
-    assert r.status_code == 201, r.text
-    moved = f"/v1/scenes/{r.json()['id']}"
-    msg = _error(client.get(f"{moved}/gaussians.spz"), 422, "spz_unsupported")
-    assert "steps of 0.125" in msg and msg.endswith("use the PLY, or send poses nearer the origin"), msg
-    assert client.get(f"{moved}/gaussians.ply").status_code == 200
+    msg = _error(r, 422, "invalid_edit")
+    assert "float32 positions step by 0.0625" in msg and msg.endswith("translate by less"), msg
+    near = client.post(f"{url}/edits", json={"selection": sel, "op": "translate", "offset": [0.5, 0, 0]})
+    assert near.status_code == 201, near.text
 
 
 def test_empty_selection_is_a_clear_422(scene, live, monkeypatch):

@@ -380,6 +380,29 @@ def test_refine_malformed_json_is_422_naming_the_body(guarded, scene):
         assert r.status_code == 422
 
 
+def test_spz_of_a_scene_far_from_the_origin_is_a_422_that_names_the_ply(model_path, tmp_path):
+    """A stored scene 5e3 units out whose splats are 1 mm wide: SPZ's 24-bit step there (2^-10) is 0.98 of their
+    size, so the SPZ download is refused with what to do and the PLY is served."""
+    from fastapi.testclient import TestClient
+
+    from rasterizer.gaussians import Gaussians
+    from service.app import create_app
+
+    rng = np.random.default_rng(5)
+    n = 500
+    g = Gaussians(means=(5e3 + rng.normal(size=(n, 3))).astype(np.float32),
+                  scales=np.tile(np.float32([1e-4, 1e-3, 2e-3]), (n, 1)), quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                  opacities=np.full(n, 0.5, np.float32), sh=np.zeros((n, 4, 3), np.float32))
+    app = create_app(make_settings(model_path, tmp_path / "store", warmup=False))
+    with TestClient(app, base_url="http://127.0.0.1") as c:
+        scene_id = "ab" * 16
+        app.state.store.put(scene_id, g, {"shell": 0})
+        r = c.get(f"/v1/scenes/{scene_id}/gaussians.spz")
+        assert r.status_code == 422 and r.json()["error"]["code"] == "spz_unsupported", r.text
+        assert r.json()["error"]["message"].endswith("use the PLY, or send poses nearer the origin")
+        assert c.get(f"/v1/scenes/{scene_id}/gaussians.ply").status_code == 200
+
+
 def test_lifespan_owns_the_state_and_cancels_jobs(model_path, tmp_path):
     from fastapi.testclient import TestClient
 
