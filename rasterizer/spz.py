@@ -76,8 +76,6 @@ def fractional_bits(means: np.ndarray) -> int:
     return int(min(MAX_FRACTIONAL_BITS, np.floor(np.log2(_POSITION_LIMIT / largest))))
 
 
-
-
 def check_position_step(bits: int, means: np.ndarray, scales: np.ndarray) -> None:
     """Raise :class:`SpzError` when the position step of ``bits`` fractional bits, 2^-bits scene units, exceeds
     :data:`~rasterizer.gaussians.MAX_STEP_PER_SIZE` of the :func:`~rasterizer.gaussians.typical_size` of (N, 3)
