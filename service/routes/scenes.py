@@ -10,7 +10,7 @@ import anyio.to_thread
 from fastapi import APIRouter, File, Form, Query, Request, Response, UploadFile
 from fastapi.responses import StreamingResponse
 
-from rasterizer.spz import MAX_STEP_PER_SIZE
+from rasterizer.gaussians import MAX_STEP_PER_SIZE
 
 from .. import scenes as work
 from ..deps import (
