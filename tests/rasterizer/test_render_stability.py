@@ -155,3 +155,20 @@ def test_colour_max_saturates_the_faintest_contribution():
     assert COLOUR_MAX * ALPHA_MIN * T_MIN * 255.0 + 0.5 >= 255.0
     colours = sh_to_rgb(np.full((2, 16, 3), 3e38, np.float32), np.array([[0.0, 0, 2], [0.0, 0, -2]]), np.zeros(3))
     assert colours.dtype == np.float32 and np.allclose(colours, [[COLOUR_MAX] * 3, [0.0] * 3])
+
+
+@pytest.mark.parametrize("axis", [(0, -1, 0), (0, 1, 0), (1, 0, 0), (-1, 0, 0)])
+def test_a_wide_gaussian_on_a_grids_pole_axis_renders_as_one_beside_it(axis):
+    """A centre exactly on the Yin grid's pole axis (straight up or down) or the Yang grid's (camera +-x) had a
+    Jacobian of zero (its offsets from the axis were 0 and the floor applied to their squares only): the grid
+    drew it as a sub-pixel dot outside its domain, dropping the wide footprint's part in it (about 30% of this
+    one's coverage), while a centre 1e-6 m beside the axis drew it whole."""
+    def alpha(mean):
+        g = Gaussians(np.array([mean]), np.full((1, 3), 3.0), np.array([[1.0, 0, 0, 0]]), np.array([0.5]),
+                      np.zeros((1, 1, 3)))
+        return render(g, np.eye(4), projection="erp", width=64, threads=1).alpha
+
+    on = alpha(3.0 * np.asarray(axis, float))
+    beside = alpha(3.0 * np.asarray(axis, float) + [0.0, 0.0, 1e-6])
+    assert np.isfinite(on).all() and on.sum() > 0
+    assert np.abs(on - beside).max() < 1e-3
