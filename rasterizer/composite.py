@@ -32,6 +32,11 @@ from .splat import ALPHA_MIN, Footprints
 
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
+#: Largest colour a Gaussian composites with (:func:`rasterizer.sh.sh_to_rgb` clamps there): every
+#: contribution a pixel takes weighs at least ALPHA_MIN * T_MIN, so at this colour it alone saturates an
+#: 8-bit pixel, while sums, the Yin-Yang merge, resizes and the V/A division of such colours stay far from
+#: float32's overflow (3.4e38), which SH coefficients near float32's limit reach.
+COLOUR_MAX = float(1.0 / (ALPHA_MIN * T_MIN))
 
 
 @dataclass(frozen=True)

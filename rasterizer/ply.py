@@ -135,23 +135,29 @@ def write_ply(path: str | os.PathLike, g: Gaussians, *, drop_invalid: bool = Tru
 
 
 def _parse_header(data: bytes) -> tuple[int, np.dtype, int]:
-    """(vertex count, structured dtype of a vertex, byte offset of the body)."""
+    """(vertex count, structured dtype of a vertex, byte offset of the body).
+
+    Every malformed header (a line without its fields, a count that is no non-negative integer, a property
+    named twice, an unsupported format or type) is a :class:`PlyError` naming the line."""
     end = data.find(b"end_header")
     if not data.startswith(b"ply") or end < 0:
         raise PlyError("not a PLY file (missing 'ply' magic or 'end_header')")
-    body = data.index(b"\n", end) + 1
+    newline = data.find(b"\n", end)
+    body = len(data) if newline < 0 else newline + 1  # a header that ends the file holds no vertex
     lines = data[:end].decode("ascii", errors="replace").replace("\r", "").split("\n")
     count, fields, element, fmt = None, [], None, None
     for line in lines[1:]:
         parts = line.split()
         if not parts or parts[0] in ("comment", "obj_info"):
             continue
+        if parts[0] in _HEADER_LINES and len(parts) < len(_HEADER_LINES[parts[0]].split()):
+            raise PlyError(f"malformed PLY header line {line.strip()!r}: expected {_HEADER_LINES[parts[0]]!r}")
         if parts[0] == "format":
             fmt = parts[1]
         elif parts[0] == "element":
             element = parts[1]
             if element == "vertex":
-                count = int(parts[2])
+                count = _vertex_count(parts[2])
             elif count is not None:
                 break  # elements after vertex do not change the vertex layout
             else:
@@ -161,12 +167,26 @@ def _parse_header(data: bytes) -> tuple[int, np.dtype, int]:
                 raise PlyError("list properties in 'vertex' are not supported")
             if parts[1] not in _PLY_TYPES:
                 raise PlyError(f"unknown property type {parts[1]!r}")
+            if any(name == parts[2] for name, _ in fields):
+                raise PlyError(f"PLY vertex property {parts[2]!r} is declared twice")
             fields.append((parts[2], "<" + _PLY_TYPES[parts[1]]))
     if fmt != "binary_little_endian":
         raise PlyError(f"only binary_little_endian PLY is supported, got {fmt!r}")
     if count is None:
         raise PlyError("PLY has no 'vertex' element")
     return count, np.dtype(fields), body
+
+
+#: The form of each header line with fields: how many a line needs, and what a malformed one is told.
+_HEADER_LINES = {"format": "format binary_little_endian 1.0", "element": "element NAME COUNT",
+                 "property": "property TYPE NAME"}
+
+
+def _vertex_count(text: str) -> int:
+    """The vertex count of an ``element vertex`` line: a non-negative integer, else :class:`PlyError`."""
+    if not (text.isascii() and text.isdigit()):  # ASCII digits only: no sign, no decimal point
+        raise PlyError(f"PLY vertex count must be a non-negative integer, got {text!r}")
+    return int(text)
 
 
 def read_ply(source: str | os.PathLike | bytes | bytearray | memoryview) -> Gaussians:
@@ -195,6 +215,9 @@ def read_ply(source: str | os.PathLike | bytes | bytearray | memoryview) -> Gaus
     k = 1 + n_rest // 3
     if n_rest % 3 or k not in (1, 4, 9, 16):
         raise PlyError(f"PLY has {n_rest} f_rest properties; expected 0, 9, 24 or 45")
+    gaps = [f"f_rest_{i}" for i in range(n_rest) if f"f_rest_{i}" not in names]
+    if gaps:
+        raise PlyError(f"PLY's {n_rest} f_rest properties are not f_rest_0..{n_rest - 1}: it lacks {gaps[:5]}")
     sh = np.empty((count, k, 3), dtype=np.float32)
     sh[:, 0, :] = cols(["f_dc_0", "f_dc_1", "f_dc_2"])
     if k > 1:

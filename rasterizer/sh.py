@@ -2,12 +2,15 @@
 
 ``rgb = max(0, 0.5 + sum_k C_k Y_k(d) sh_k)`` with ``d`` the unit direction
 from the camera centre to the Gaussian (world frame), degree 0..3, the
-constants and sign pattern of the INRIA 3DGS code.
+constants and sign pattern of the INRIA 3DGS code; clamped above at
+:data:`rasterizer.composite.COLOUR_MAX`.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from .composite import COLOUR_MAX
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -45,7 +48,11 @@ def sh_basis(dirs: np.ndarray, k: int) -> np.ndarray:
 
 
 def sh_to_rgb(sh: np.ndarray, means: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """Colours (N, 3) float32 of SH coefficients (N, K, 3) seen from ``centre`` (3,)."""
+    """Colours (N, 3) float32 in [0, COLOUR_MAX] of SH coefficients (N, K, 3) seen from ``centre`` (3,).
+
+    Evaluated in float32; the rows whose sum overflows it (coefficients near float32's limit, finite each)
+    again in float64, so that a colour is never Inf or NaN (which the compositing's zero weights would
+    turn into NaN pixels), then clamped to COLOUR_MAX."""
     sh = np.asarray(sh, dtype=np.float32)
     k = sh.shape[1]
     if k == 1:
@@ -54,5 +61,11 @@ def sh_to_rgb(sh: np.ndarray, means: np.ndarray, centre: np.ndarray) -> np.ndarr
         d = np.asarray(means, dtype=np.float64) - np.asarray(centre, dtype=np.float64)
         n = np.linalg.norm(d, axis=1, keepdims=True)
         d = np.where(n > 0, d / np.maximum(n, 1e-30), 0.0)
-        rgb = np.einsum("nk,nkc->nc", sh_basis(d, k), sh) + np.float32(0.5)
-    return np.maximum(rgb, 0.0).astype(np.float32, copy=False)
+        basis = sh_basis(d, k)
+        with np.errstate(over="ignore", invalid="ignore"):
+            rgb = np.einsum("nk,nkc->nc", basis, sh) + np.float32(0.5)
+        bad = np.flatnonzero(~np.isfinite(rgb).all(axis=1))
+        if bad.size:
+            exact = np.einsum("nk,nkc->nc", basis[bad].astype(np.float64), sh[bad].astype(np.float64)) + 0.5
+            rgb[bad] = np.clip(exact, 0.0, COLOUR_MAX)
+    return np.clip(rgb, 0.0, COLOUR_MAX).astype(np.float32, copy=False)

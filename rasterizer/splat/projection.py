@@ -336,6 +336,10 @@ def _project_grid(pose: SharedPose, camera: Camera) -> Columns:
         lon = np.arctan2(gx, gz)
         col[s] = (lon + geo.YIN_LON_MAX) / (2 * geo.YIN_LON_MAX) * w - 0.5
         row[s] = (geo.YIN_LAT_MAX - lat) / (2 * geo.YIN_LAT_MAX) * h - 0.5
+        pole = rho2 < geo.EPS
+        if pole.any():  # on the grid's pole axis: linearised at the floor's distance from it, toward ``lon``
+            gx = np.where(pole, np.sqrt(geo.EPS) * np.sin(lon), gx)
+            gz = np.where(pole, np.sqrt(geo.EPS) * np.cos(lon), gz)
         np.maximum(rho2, geo.EPS, out=rho2)
         rho = np.sqrt(rho2)
         r2 = np.maximum(rho2 + gy * gy, geo.EPS)

@@ -198,10 +198,8 @@ def read_gaussians(path: str | Path):
         data = Path(path).read_bytes()
         spz = data[:2] == GZIP_MAGIC
         g = read_spz(data) if spz else read_ply(data)
-    except (OSError, ValueError, IndexError) as exc:
+    except (OSError, ValueError) as exc:  # PlyError and SpzError name the problem (a malformed header line...)
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
-        if isinstance(exc, IndexError):
-            reason = "malformed PLY header (a format, element or property line lacks its fields)"
         raise CliError(f"cannot read {path}: {reason}") from None
     n = len(g)
     ok = finite_rows(g)

@@ -1,6 +1,7 @@
 """Gaussian PLY: INRIA layout, read back with plyfile, round trip, invalid rows."""
 
 import io
+import re
 
 import numpy as np
 import pytest
@@ -106,3 +107,35 @@ def test_a_failed_write_leaves_no_temp_file(tmp_path):
     with pytest.raises(OSError):
         write_ply(tmp_path / "out.ply", scene(np.random.default_rng(0), n=10))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.ply"]
+
+
+def _edited(data: bytes, old: bytes, new: bytes) -> bytes:
+    """``data`` with its header's first ``old`` replaced by ``new`` (the body untouched)."""
+    end = data.index(b"end_header")
+    return data[:end].replace(old, new, 1) + data[end:]
+
+
+@pytest.mark.parametrize("old, new, says", [
+    (b"element vertex 3", b"element vertex -1", "non-negative integer, got '-1'"),
+    (b"element vertex 3", b"element vertex 3.0", "non-negative integer, got '3.0'"),
+    (b"element vertex 3", b"element vertex three", "non-negative integer, got 'three'"),
+    (b"element vertex 3", b"element vertex", "expected 'element NAME COUNT'"),
+    (b"format binary_little_endian 1.0", b"format", "expected 'format binary_little_endian 1.0'"),
+    (b"property float y\n", b"property float\n", "expected 'property TYPE NAME'"),
+    (b"property float y\n", b"property float x\n", "'x' is declared twice"),
+    (b"f_rest_8\n", b"f_rest_80\n", "lacks ['f_rest_8']"),
+])
+def test_a_malformed_header_is_a_ply_error_naming_its_line(old, new, says):
+    """A header line without its fields was an IndexError, a negative count a numpy 'negative dimensions' error,
+    a property named twice or a gap in the f_rest numbering a bare numpy error: each is a PlyError that says
+    what is wrong."""
+    data = _edited(ply_bytes(scene(np.random.default_rng(5), 3, 4)), old, new)
+    with pytest.raises(PlyError, match=re.escape(says)):
+        read_ply(data)
+
+
+def test_a_header_that_ends_the_file_is_a_ply_without_vertices():
+    data = ply_bytes(Gaussians.empty())
+    assert data.endswith(b"end_header\n") and len(read_ply(data[:-1])) == 0
+    with pytest.raises(PlyError, match="too short"):
+        read_ply(ply_bytes(scene(np.random.default_rng(5), 1, 1)).split(b"end_header")[0] + b"end_header")

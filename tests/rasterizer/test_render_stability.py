@@ -6,8 +6,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from rasterizer import geometry as geo
+from rasterizer.composite import COLOUR_MAX, T_MIN
 from rasterizer.gaussians import Gaussians, GaussiansError, rgb_to_sh_dc
-from rasterizer.render import render
+from rasterizer.render import render, to_uint8
+from rasterizer.sh import sh_to_rgb
+from rasterizer.splat import ALPHA_MIN
 
 CAMERAS = [dict(projection="erp", width=48, method="direct"), dict(projection="erp", width=48),
            dict(projection="yin", width=48), dict(projection="yang", width=48),
@@ -128,3 +131,44 @@ def test_camera_one_centimetre_from_a_wall_renders(cam):
     out = render(_disc(means, 0.004), np.eye(4), threads=1, **cam)
     check(out)
     assert out.alpha.max() > 0.9
+
+
+@settings(max_examples=12, deadline=None)
+@given(k=st.sampled_from([4, 9, 16]), value=st.sampled_from([3e38, -3e38, 1e38, 2e37]),
+       cam=st.sampled_from(CAMERAS + [dict(projection="perspective", width=32, height=24, resolution="scene")]))
+def test_sh_coefficients_near_float32s_limit_give_finite_clamped_colours(k, value, cam):
+    """Finite SH coefficients whose sum overflows float32 (3.4e38) made Inf colours, and NaN pixels (Inf times a
+    zero weight) in the Yin-Yang merge, shown black: each colour is now clamped to COLOUR_MAX, which saturates.
+    Seen along +z (x = y = 0) every basis function of the coefficients' sign adds, so the sum is +-(0.28 + 0.49
+    + 0.63 + 0.75) x value."""
+    means = np.array([[0.0, 0.0, 2.0], [0.0, -0.3, 2.0]])
+    g = Gaussians(means, np.full((2, 3), 0.3), np.tile([1.0, 0, 0, 0], (2, 1)), np.full(2, 0.9),
+                  np.full((2, k, 3), value))
+    out = render(g, geo.yang_pose(np.eye(4)) if cam["projection"] == "yang" else np.eye(4), threads=1, **cam)
+    check(out)
+    covered = out.alpha > 0.5
+    assert covered.any()
+    assert np.all(to_uint8(out.colour)[covered] == (255 if value > 0 else 0))
+
+
+def test_colour_max_saturates_the_faintest_contribution():
+    assert COLOUR_MAX * ALPHA_MIN * T_MIN * 255.0 + 0.5 >= 255.0
+    colours = sh_to_rgb(np.full((2, 16, 3), 3e38, np.float32), np.array([[0.0, 0, 2], [0.0, 0, -2]]), np.zeros(3))
+    assert colours.dtype == np.float32 and np.allclose(colours, [[COLOUR_MAX] * 3, [0.0] * 3])
+
+
+@pytest.mark.parametrize("axis", [(0, -1, 0), (0, 1, 0), (1, 0, 0), (-1, 0, 0)])
+def test_a_wide_gaussian_on_a_grids_pole_axis_renders_as_one_beside_it(axis):
+    """A centre exactly on the Yin grid's pole axis (straight up or down) or the Yang grid's (camera +-x) had a
+    Jacobian of zero (its offsets from the axis were 0 and the floor applied to their squares only): the grid
+    drew it as a sub-pixel dot outside its domain, dropping the wide footprint's part in it (about 30% of this
+    one's coverage), while a centre 1e-6 m beside the axis drew it whole."""
+    def alpha(mean):
+        g = Gaussians(np.array([mean]), np.full((1, 3), 3.0), np.array([[1.0, 0, 0, 0]]), np.array([0.5]),
+                      np.zeros((1, 1, 3)))
+        return render(g, np.eye(4), projection="erp", width=64, threads=1).alpha
+
+    on = alpha(3.0 * np.asarray(axis, float))
+    beside = alpha(3.0 * np.asarray(axis, float) + [0.0, 0.0, 1e-6])
+    assert np.isfinite(on).all() and on.sum() > 0
+    assert np.abs(on - beside).max() < 1e-3

@@ -194,3 +194,11 @@ def test_a_scene_far_from_the_origin_is_refused_when_its_step_exceeds_an_eighth_
         assert "use the PLY, or send poses nearer the origin" in str(info.value)
         held = (offset + 5) * unit < 2**23  # else beyond SPZ's 24 bits altogether
         assert ("median size" if held else "24-bit positions hold at most") in str(info.value)
+
+
+def test_gaussians_of_median_size_zero_are_refused_with_an_spz_error():
+    """Points (all scales 0, which Gaussians allow) have a median size of 0, which every position step exceeds:
+    the refusal's message divided by it, a ZeroDivisionError instead of the SpzError."""
+    points = scene(np.random.default_rng(4), 20).with_(scales=np.zeros((20, 3)))
+    with pytest.raises(SpzError, match="more than their median size 0 "):
+        spz_bytes(points)
