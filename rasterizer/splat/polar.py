@@ -13,6 +13,12 @@ low-pass is isotropic on the sphere (0.3 row pitches^2: near a pole a pixel
 row is an annulus one pitch wide); away from the centre it follows the
 sphere, so a pole Gaussian becomes a proper cap over all columns. Its cost
 is bounded by its band of rows x W.
+
+The gnomonic projection reaches only the hemisphere around the Gaussian's
+direction: a footprint wider than that (a camera inside or beside a Gaussian
+of its own size) is drawn within it alone, and "direct" ERP renders of such a
+scene miss the rest. The Yin-Yang ERP, which the service renders, splats on
+two pinhole-like grids and draws all of it.
 """
 
 from __future__ import annotations
