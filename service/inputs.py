@@ -157,7 +157,7 @@ def parse_poses(text: str | bytes | None) -> Poses | None:
         return None
     convention = obj.get("convention", "opencv")
     if convention not in ("opencv", "opengl"):
-        raise BadInput(f"poses.convention: expected 'opencv' or 'opengl', got {str(convention)[:40]!r}",
+        raise BadInput(f"poses.convention: expected \"opencv\" or \"opengl\", got {json.dumps(convention)[:40]}",
                        code="invalid_poses")
     mats = obj.get("c2w")
     if not isinstance(mats, list) or len(mats) != 2:

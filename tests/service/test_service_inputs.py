@@ -128,6 +128,14 @@ def test_bad_poses(text, code):
     assert info.value.code == code, info.value.message
 
 
+@pytest.mark.parametrize("convention, shown", [(None, "null"), (True, "true"), ("OpenGL", '"OpenGL"'), (1, "1")])
+def test_a_bad_convention_is_quoted_as_sent(convention, shown):
+    """The message shows the convention in the JSON the client wrote (null, not Python's None)."""
+    with pytest.raises(BadInput) as info:
+        parse_poses(json.dumps({"convention": convention, "c2w": [I4, _moved()]}))
+    assert info.value.message == f'poses.convention: expected "opencv" or "opengl", got {shown}'
+
+
 @pytest.mark.parametrize("key", ["convension", "C2W", "c2w_b", "scale"])
 def test_unknown_pose_keys_are_422_naming_them(key):
     obj = {"convention": "opengl", "c2w": [I4, _moved()], key: "opengl"}
