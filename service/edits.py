@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import math
 import time
 from collections.abc import Iterator
@@ -237,24 +238,48 @@ def create_selection(store: SceneStore, scene_id: str, request: dict) -> dict:
         raise BadInput("the selection is empty: no Gaussian comes from the selected pixels; "
                        "place the points on an object", code="empty_selection")
     t_select = time.perf_counter() - t0
+    cov = sel.coverage()
+    described = {"num_gaussians": count, "coverage": {"a": cov[0], "b": cov[1]}, "consistency": sel.consistency,
+                 "level": sel.level, "request": request}
     buf = io.BytesIO()
     np.savez_compressed(buf, masks=np.packbits(sel.masks, axis=-1), shape=np.array(sel.masks.shape),
-                        gaussians=np.packbits(sel.gaussians), count=np.array(len(sel.gaussians)))
+                        gaussians=np.packbits(sel.gaussians), count=np.array(len(sel.gaussians)),
+                        description=np.array(json.dumps(described)))
     store.put_artifact(scene_id, _selection_artifact(sel_id), buf.getvalue())
-    cov = sel.coverage()
-    return {"id": sel_id, "num_gaussians": count, "coverage": {"a": cov[0], "b": cov[1]},
-            "consistency": sel.consistency, "level": sel.level, "request": request,
-            "timings": {"index": t_index, "select": t_select},
+    return {"id": sel_id, **described, "timings": {"index": t_index, "select": t_select},
             "links": selection_links(scene_id, sel_id)}
+
+
+def selection_info(store: SceneStore, scene_id: str, sel_id: str) -> dict:
+    """The body of ``GET .../selections/{sel_id}``, where a selection's 201 ``Location`` and ``links.self`` point:
+    what its 201 said, less the timings; 404 when the scene or the selection is unknown. A selection stored without
+    that description is described by what its masks and Gaussians say (count and coverage)."""
+    from rasterizer.edit.scene import Selection
+
+    if not store.exists(scene_id):
+        raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
+    with scene_reads(store, scene_id), np.load(_selection_path(store, scene_id, sel_id), allow_pickle=False) as z:
+        described = json.loads(str(z["description"])) if "description" in z.files else None
+    if described is None:
+        masks, gaussians = load_selection(store, scene_id, sel_id)
+        cov = Selection(masks, gaussians, float("nan"), None).coverage()
+        described = {"num_gaussians": int(gaussians.sum()), "coverage": {"a": cov[0], "b": cov[1]}}
+    return {"id": sel_id, **described, "links": selection_links(scene_id, sel_id)}
+
+
+def _selection_path(store: SceneStore, scene_id: str, sel_id: str):
+    """The file of a stored selection; 404 when the id is not one or no such selection is stored."""
+    path = store.artifact(scene_id, _selection_artifact(sel_id)) if len(sel_id) == 32 and sel_id.isalnum() else None
+    if path is None:
+        raise NotFound(f"no selection {sel_id!r} on scene {scene_id}", code="selection_not_found")
+    return path
 
 
 def load_selection(store: SceneStore, scene_id: str, sel_id: str) -> tuple[np.ndarray, np.ndarray]:
     """(masks (2, He, We) bool, gaussians (N,) bool) of a stored selection; 404 when unknown."""
     if not store.exists(scene_id):
         raise NotFound(f"no scene with id {scene_id!r}", code="scene_not_found")
-    path = store.artifact(scene_id, _selection_artifact(sel_id)) if len(sel_id) == 32 and sel_id.isalnum() else None
-    if path is None:
-        raise NotFound(f"no selection {sel_id!r} on scene {scene_id}", code="selection_not_found")
+    path = _selection_path(store, scene_id, sel_id)
     with scene_reads(store, scene_id), np.load(path, allow_pickle=False) as z:
         shape = tuple(int(s) for s in z["shape"])
         masks = np.unpackbits(z["masks"], axis=-1, count=shape[-1]).astype(bool)

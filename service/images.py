@@ -3,8 +3,8 @@
 Checks, in order, so that nothing expensive happens before the cheap checks pass:
 the header (format, size, 2:1 aspect as shown after the EXIF orientation, one frame, minimum
 height, pixel cap against decompression bombs), then the full decode (corrupt or truncated data), then
-what the pixels show (a camera's raw dual-fisheye frame is no panorama: :mod:`service.fisheye`; two uploads
-of one picture carry no depth: :func:`same_picture`).
+what the pixels show (a camera's raw dual-fisheye frame is no panorama: :mod:`service.fisheye`; one flat colour
+shows no scene: :func:`check_not_blank`; two uploads of one picture carry no depth: :func:`same_picture`).
 
 A PNG's chunk list is walked first (:func:`scan_png`, a loop over chunk headers that stops at
 the first limit passed, no decoding): Pillow keeps every ancillary chunk before the image data
@@ -493,6 +493,26 @@ def encode(rgb: np.ndarray, fmt: str) -> bytes:
     else:  # pragma: no cover - guarded by the query model
         raise BadInput(f"unknown image format {fmt!r}")
     return buf.getvalue()
+
+
+#: A panorama whose every channel spans at most this many levels (of 255) over the whole image shows one flat colour
+#: (a capped lens, a blank export, or 8-bit values stored in a 16-bit file, which read as black): it shows no scene.
+BLANK_LEVELS = 2
+
+
+def check_not_blank(erp: np.ndarray, field: str) -> None:
+    """422 ``blank_image`` when an ERP (uint8, or float in [0, 1]) shows one flat colour (:data:`BLANK_LEVELS`): the
+    reconstruction would be a scene of that colour, with nothing matched or triangulated."""
+    erp = np.asarray(erp)
+    channels = [erp] if erp.ndim == 2 else [erp[..., c] for c in range(erp.shape[-1])]
+    scale = 1.0 if erp.dtype == np.uint8 else 255.0
+    # a coarse look settles any real panorama; the whole image is read only when that look is flat
+    for step in (8, 1):
+        if max(float(ch[::step, ::step].max()) - float(ch[::step, ::step].min()) for ch in channels) * scale > BLANK_LEVELS:
+            return
+    raise BadInput(f"{field}: every pixel shows the same colour (within {BLANK_LEVELS} levels of 255): a panorama "
+                   "of a scene shows its detail; check the file (a covered lens, a blank export, or 8-bit values "
+                   "stored in a 16-bit image, which read as black)", code="blank_image")
 
 
 #: Two panoramas whose grey thumbnails correlate this well are one picture: a JPEG re-encoding (quality 30), a

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -156,7 +157,7 @@ def parse_poses(text: str | bytes | None) -> Poses | None:
         return None
     convention = obj.get("convention", "opencv")
     if convention not in ("opencv", "opengl"):
-        raise BadInput(f"poses.convention: expected 'opencv' or 'opengl', got {str(convention)[:40]!r}",
+        raise BadInput(f"poses.convention: expected \"opencv\" or \"opengl\", got {json.dumps(convention)[:40]}",
                        code="invalid_poses")
     mats = obj.get("c2w")
     if not isinstance(mats, list) or len(mats) != 2:
@@ -276,16 +277,29 @@ def parse_options(text: str | bytes | None, accepted: set[str] | None = None,
                        code="invalid_options") from None
 
 
+#: a number of the ``c2w`` query: plain ASCII decimal, as JSON and JavaScript write it (an optional sign and exponent)
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_NON_FINITE = frozenset({"nan", "+nan", "-nan", "inf", "+inf", "-inf", "infinity", "+infinity", "-infinity"})
+
+
 def parse_c2w_query(text: str) -> np.ndarray:
-    """``c2w`` query: 16 or 12 comma-separated numbers, row-major, OpenCV camera-to-world."""
+    """``c2w`` query: 16 or 12 comma-separated numbers, row-major, OpenCV camera-to-world.
+
+    Each number is a plain decimal (:data:`_DECIMAL`): Python's ``float`` also reads digit groups (``0_5`` as 5)
+    and non-ASCII digits, which the viewer page's script (and most clients) read as no number at all, so the
+    camera the service renders would not be the one the request names.
+    """
     parts = [p.strip() for p in str(text).split(",")]
     if len(parts) not in (12, 16):
         raise BadInput(f"c2w: expected 16 (4x4) or 12 (3x4) comma-separated numbers, got {len(parts)}",
                        code="invalid_pose")
-    try:
-        values = [float(p) for p in parts]
-    except ValueError:
-        raise BadInput("c2w: every entry must be a number", code="invalid_pose") from None
+    if any(p.lower() in _NON_FINITE for p in parts):
+        raise BadInput("c2w: contains NaN or Inf", code="invalid_pose")
+    bad = next((k for k, p in enumerate(parts) if not _DECIMAL.fullmatch(p)), None)
+    if bad is not None:
+        raise BadInput(f"c2w: entry {bad + 1} ({parts[bad][:40]!r}) is not a number; write plain decimal numbers "
+                       "such as 0.5, -2 or 1e-3", code="invalid_pose")
+    values = [float(p) for p in parts]
     if not all(math.isfinite(v) for v in values):
         raise BadInput("c2w: contains NaN or Inf", code="invalid_pose")
     try:

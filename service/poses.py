@@ -56,7 +56,7 @@ from rasterizer.threads import map_threads
 
 from .errors import BadInput
 from .gravity import MAX_TILT_DEG, crop_rotations, crop_size, panorama_gravity, perspective_crops
-from .images import same_picture
+from .images import check_not_blank, same_picture
 from .matching import Distances, guided_matches, mutual_matches, putative_matches
 from .photometric import gray_erp, photometric_scores, small_gray
 from .pose_flips import FLIP_CHECK_SHARE, flipped
@@ -510,7 +510,10 @@ def poses_for_scene(erp_a: np.ndarray, erp_b: np.ndarray, poses, opts: PoseOptio
     """(c2w_a, c2w_b, metadata ``poses`` JSON) for given (:class:`service.inputs.Poses`) or missing (None) poses;
     ``data``: the two files' bytes when known (their XMP may hold the cameras' tilt). One picture sent twice (also
     re-encoded, resized or with noise: :func:`service.images.same_picture`) is refused whatever the poses say: it
-    carries no depth (the estimator would refuse it by its matches, after the features' seconds)."""
+    carries no depth (the estimator would refuse it by its matches, after the features' seconds); so is a panorama
+    of one flat colour (:func:`service.images.check_not_blank`), whatever the poses say."""
+    check_not_blank(erp_a, "image_a")
+    check_not_blank(erp_b, "image_b")
     if same_picture(erp_a, erp_b):
         raise PoseEstimationFailed("image_a and image_b are the same picture: two captures from different places "
                                    "differ, and one picture twice carries no depth", code="no_parallax")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
+import anyio.to_thread
 from fastapi import APIRouter, Body, Path, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -74,6 +75,14 @@ async def create_selection(scene_id: SceneId, store: StoreDep, gate: RenderGateD
     out = await gate.run(storing, work.create_selection, store, scene_id, body.canonical())
     response.headers["Location"] = out["links"]["self"]
     return SelectionCreated(**out)
+
+
+@router.get("/{scene_id}/selections/{sel_id}", response_model=SelectionCreated, summary="A stored selection",
+            description="What the selection's 201 answered (its `Location` and `links.self` point here), less the "
+                        "timings.", responses=error_responses(400, 404, 422))
+async def selection(scene_id: SceneId, sel_id: Annotated[str, Path(pattern=SCENE_ID_PATTERN)],
+                    store: StoreDep) -> SelectionCreated:
+    return SelectionCreated(**await anyio.to_thread.run_sync(work.selection_info, store, scene_id, sel_id))
 
 
 @router.get("/{scene_id}/selections/{sel_id}/mask", response_class=Response, summary="Selection mask (PNG)",

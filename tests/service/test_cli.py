@@ -15,7 +15,7 @@ from service import cli
 from service.cli import export as cli_export
 from service.cli.reconstruct import pipeline_options
 from service.model_files import default_model_name
-from tests.service._support import ply_with_nan, render_argv
+from tests.service._support import panorama, ply_with_nan, render_argv
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -110,10 +110,8 @@ def test_reconstruct_argument_errors(tmp_path, capsys):
                                          '[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]]}')
     assert cli.main(["reconstruct", "a.png", "b.png", "--poses", str(tmp_path / "poses.json")]) == 2
     assert "identical" in capsys.readouterr().err
-    from PIL import Image
-
-    for name, grey in (("a.png", 0), ("b.png", 10)):  # two pictures: one sent twice is refused first
-        Image.new("RGB", (64, 32), (grey, grey, grey)).save(tmp_path / name)
+    for name, seed in (("a.png", 0), ("b.png", 1)):  # two pictures of detail: one sent twice, or a flat one, is refused
+        (tmp_path / name).write_bytes(panorama(32, seed=seed))  # first
     (tmp_path / "poses.json").write_text('{"c2w": [[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], '
                                          '[[1,0,0,1],[0,1,0,0],[0,0,1,0],[0,0,0,1]]]}')
     argv = ["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--poses", str(tmp_path / "poses.json"),

@@ -100,6 +100,29 @@ def test_select_mask_segments_and_edits(client, scene, live):
     assert r.status_code == 201, r.text
 
 
+def test_a_selections_location_answers_what_its_201_said(client, scene, live):
+    """The 201 of a selection points at it (``Location``, ``links.self``): that URL answers the 201's body less its
+    timings, and 404 for a selection the scene does not hold; a selection stored without that description is
+    described by its masks and Gaussians."""
+    r = client.post(f"/v1/scenes/{scene}/selections", json={"view": "a", "points": [[0.3, 0.6]]})
+    assert r.status_code == 201, r.text
+    created = r.json()
+    assert r.headers["location"] == created["links"]["self"]
+    got = client.get(r.headers["location"])
+    assert got.status_code == 200, got.text
+    assert got.json() == {k: v for k, v in created.items() if k != "timings"}
+    unknown = "0" * 32
+    _error(client.get(f"/v1/scenes/{scene}/selections/{unknown}"), 404, "selection_not_found")
+    _error(client.get(f"/v1/scenes/{unknown}/selections/{created['id']}"), 404, "scene_not_found")
+    path = live.store / "scenes" / scene / f"selection-{created['id']}.npz"
+    with np.load(path) as z:
+        kept = {k: z[k] for k in z.files if k != "description"}
+    np.savez_compressed(path, **kept)
+    bare = client.get(created["links"]["self"]).json()
+    assert bare["num_gaussians"] == created["num_gaussians"]
+    assert bare["coverage"] == pytest.approx(created["coverage"])
+
+
 def test_bad_selection_and_edit_inputs(client, scene, live):
     url = f"/v1/scenes/{scene}"
     msg = _error(client.post(f"{url}/selections", json={"view": "a", "points": [[1.2, 0.5]]}), 422, "invalid_selection")

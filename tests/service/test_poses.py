@@ -393,6 +393,41 @@ def test_post_without_poses_bad_cases_are_422(api, room_a, options, code):
     assert r.json()["error"]["code"] == code and r.json()["error"]["message"]
 
 
+def test_a_panorama_of_one_flat_colour_is_refused_whatever_the_given_poses_say(room_a):
+    """One flat colour (a capped lens, a blank export) shows no scene: 422 blank_image naming the upload, before the
+    poses are used or estimated; detail the coarse look skips is still seen."""
+    from service.errors import BadInput
+    from service.inputs import Poses
+    from service.poses import poses_for_scene
+
+    given = Poses("opencv", np.eye(4), _pose(0.0, [1.0, 0.0, 0.0]))
+    flat = np.full_like(room_a, 40)
+    flat[::7, ::5] = 42  # within two levels: still one colour
+    with pytest.raises(BadInput, match="^image_a: every pixel shows the same colour") as exc:
+        poses_for_scene(flat, room_a, given, PoseOptions())
+    assert exc.value.status == 422 and exc.value.code == "blank_image"
+    with pytest.raises(BadInput, match="^image_b: every pixel"):  # float [0, 1] images, as the CLI reads them
+        poses_for_scene(room_a / 255.0, np.full(room_a.shape, 0.3), None, PoseOptions())
+    dotted = np.full_like(room_a, 90)
+    dotted[3::8, 5::8] = 200  # only between the coarse look's samples
+    assert np.array_equal(poses_for_scene(room_a, dotted, given, PoseOptions())[1], given.c2w_b)
+
+
+def test_a_16bit_png_of_8bit_values_is_a_422_not_a_black_scene(api, room_a):
+    """8-bit values stored in a 16-bit greyscale PNG read as black (at most 255 of 65535) in every viewer: the POST
+    says so instead of building a black scene."""
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(room_a[..., 1].astype(np.uint16)).save(buf, format="PNG")
+    poses = json.dumps({"c2w": [np.eye(4).tolist(), _pose(0.0, [1.0, 0.0, 0.0]).tolist()]})
+    r = _post(api, buf.getvalue(), _png(room_erp(_pose(0.0, [1.0, 0.0, 0.0]))), {"poses": poses})
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["code"] == "blank_image" and r.json()["error"]["message"].startswith("image_a: ")
+
+
 def test_photometric_score_prefers_the_true_pose_over_a_flip_and_a_turn(room_a):
     from service.photometric import photometric_scores
     from service.poses import PHOTOMETRIC_MARGIN

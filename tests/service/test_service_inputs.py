@@ -128,6 +128,14 @@ def test_bad_poses(text, code):
     assert info.value.code == code, info.value.message
 
 
+@pytest.mark.parametrize("convention, shown", [(None, "null"), (True, "true"), ("OpenGL", '"OpenGL"'), (1, "1")])
+def test_a_bad_convention_is_quoted_as_sent(convention, shown):
+    """The message shows the convention in the JSON the client wrote (null, not Python's None)."""
+    with pytest.raises(BadInput) as info:
+        parse_poses(json.dumps({"convention": convention, "c2w": [I4, _moved()]}))
+    assert info.value.message == f'poses.convention: expected "opencv" or "opengl", got {shown}'
+
+
 @pytest.mark.parametrize("key", ["convension", "C2W", "c2w_b", "scale"])
 def test_unknown_pose_keys_are_422_naming_them(key):
     obj = {"convention": "opengl", "c2w": [I4, _moved()], key: "opengl"}
@@ -186,6 +194,22 @@ def test_c2w_query():
     for bad in ["1,2,3", "nan," * 15 + "nan", ",".join(["x"] * 16), ",".join(["2"] * 16), "inf" + ",0" * 15]:
         with pytest.raises(BadInput):
             parse_c2w_query(bad)
+
+
+ROW_MAJOR_TAIL = ",0,1,0,0,0,0,1,0,0,0,0,1"
+
+
+@pytest.mark.parametrize("first", ["1_0", "１", "٣", "1.0_0", "0x1", "", "1e", "--1"])
+def test_c2w_numbers_are_plain_decimals(first):
+    """A c2w entry Python's float reads but a decimal number is not (digit groups read as 10, non-ASCII digits) is a
+    422 naming the entry: the viewer page, and most clients, read no number there."""
+    with pytest.raises(BadInput, match="entry 4 .* is not a number"):
+        parse_c2w_query("1,0,0," + first + ROW_MAJOR_TAIL)
+
+
+def test_c2w_numbers_take_every_plain_decimal_spelling():
+    for x, value in [("+0.5", 0.5), (".5", 0.5), ("5.", 5.0), ("-2.5E-1", -0.25), (" 3 ", 3.0), ("1e2", 100.0)]:
+        assert parse_c2w_query("1,0,0," + x + ROW_MAJOR_TAIL)[0, 3] == value
 
 
 IDENT = ",".join(str(v) for v in np.eye(4).ravel())
