@@ -51,6 +51,12 @@ class GaussiansError(ValueError):
 MAX_STEP_PER_SIZE = 1 / 8
 
 
+def step_share(step: float, size: float) -> str:
+    """A position step against a :func:`typical_size` in words, for a refusal's message: "0.12 of", or "more than"
+    where the size is 0 (a point cloud of zero scales, against which every step is too coarse)."""
+    return f"{step / size:.2g} of" if size > 0 else "more than"
+
+
 def typical_size(scales: np.ndarray) -> float:
     """The median over (N, 3) ``scales`` (N >= 1) of each Gaussian's middle scale, in scene units: the sigma of a flat
     splat's narrower visible axis (its thinnest shows only edge on), what a position error is seen against."""

@@ -32,7 +32,7 @@ import zlib
 
 import numpy as np
 
-from .gaussians import MAX_STEP_PER_SIZE, Gaussians, GaussiansError, quat_to_rotmat, typical_size
+from .gaussians import MAX_STEP_PER_SIZE, Gaussians, GaussiansError, quat_to_rotmat, step_share, typical_size
 from .ply import finite_rows
 
 #: "NGSP" read as a little-endian uint32.
@@ -86,9 +86,8 @@ def check_position_step(bits: int, means: np.ndarray, scales: np.ndarray) -> Non
     step = 2.0 ** -bits
     if step > MAX_STEP_PER_SIZE * size:
         largest = float(np.abs(means).max())
-        ratio = f"{step / size:.2g} of" if size > 0 else "more than"  # a median size 0: every step is too coarse
         raise SpzError(f"SPZ's 24-bit positions would round this scene's Gaussians (reaching {largest:.4g} scene "
-                       f"units from the origin) to steps of {step:.3g}, {ratio} their median size "
+                       f"units from the origin) to steps of {step:.3g}, {step_share(step, size)} their median size "
                        f"{size:.3g} (at most {MAX_STEP_PER_SIZE:g} keeps the splats in place): use the PLY, or send "
                        "poses nearer the origin")
 

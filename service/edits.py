@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, ValidationInfo, field_validator, model_validator
 
-from rasterizer.gaussians import MAX_STEP_PER_SIZE, typical_size
+from rasterizer.gaussians import MAX_STEP_PER_SIZE, step_share, typical_size
 from rasterizer.lru import LRUCache
 from rasterizer.sweep import MAX_SCENE_EXTENT
 
@@ -376,7 +376,7 @@ def check_translated(before, after, moved: np.ndarray) -> None:
     size = typical_size(before.scales[moved])
     if step > max(MAX_STEP_PER_SIZE * size, float(np.spacing(np.float32(np.abs(before.means[moved]).max())))):
         raise BadInput(f"the translate edit would move the selection {reach:.4g} from the origin, where float32 positions "
-                       f"step by {step:.3g}, {step / size:.2g} of its Gaussians' median size {size:.3g} (at most "
+                       f"step by {step:.3g}, {step_share(step, size)} its Gaussians' median size {size:.3g} (at most "
                        f"{MAX_STEP_PER_SIZE:g} keeps them in place): translate by less", code="invalid_edit")
 
 

@@ -205,6 +205,17 @@ def test_translated_gaussians_stay_within_the_extent_and_float32s_resolution():
     check_translated(cm, cm, np.zeros(50, bool))  # nothing moved
 
 
+def test_a_translation_of_zero_size_splats_is_a_422_not_a_division_by_zero():
+    """Splats of scale 0 (a point cloud a PLY may hold) have no size to hold a step against: moved any distance
+    where float32 steps more coarsely than where they were, the edit is refused with words, not a ZeroDivisionError."""
+    from service.edits import check_translated
+    from service.errors import BadInput
+
+    points = _splats(4, 0.0, 0.0)
+    with pytest.raises(BadInput, match="more than its Gaussians' median size 0"):
+        check_translated(points, points.with_(means=points.means + np.float32(1000.0)), np.ones(4, bool))
+
+
 def test_a_translation_to_where_float32_scrambles_the_selection_is_a_422(client, scene):
     """Moved 6e5 units out (a georeferenced scene's distance), float32 positions step by 0.0625 units, far beyond the
     splats' size: the stored scene, its renders and its PLY would show the object scrambled, so the edit is refused
