@@ -10,10 +10,10 @@ import json
 import math
 import re
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import ValidationError
+from pydantic import BeforeValidator, ValidationError
 
 from rasterizer.geometry import PoseError, as_c2w
 from rasterizer.sweep import (
@@ -280,6 +280,22 @@ def parse_options(text: str | bytes | None, accepted: set[str] | None = None,
 #: a number of the ``c2w`` query: plain ASCII decimal, as JSON and JavaScript write it (an optional sign and exponent)
 _DECIMAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 _NON_FINITE = frozenset({"nan", "+nan", "-nan", "inf", "+inf", "-inf", "infinity", "+infinity", "-infinity"})
+_INTEGER = re.compile(r"[+-]?[0-9]+")
+
+
+def _plain(pattern: re.Pattern, kind: str):
+    """A query value's check before its type's own parsing: a text must be a plain ASCII decimal ``kind``, as
+    :data:`_DECIMAL` (pydantic, as Python, also reads digit groups such as ``6_4`` as 64 and non-ASCII digits)."""
+    def check(value):
+        if isinstance(value, str) and not pattern.fullmatch(value.strip()):
+            raise ValueError(f"expected a plain decimal {kind}, got {value[:40]!r}")
+        return value
+    return check
+
+
+#: Integer and number query parameters of the routes: plain ASCII decimals only, as the ``c2w`` query's numbers.
+QueryInt = Annotated[int, BeforeValidator(_plain(_INTEGER, "integer such as 1024"))]
+QueryFloat = Annotated[float, BeforeValidator(_plain(_DECIMAL, "number such as 90 or 62.5"))]
 
 
 def parse_c2w_query(text: str) -> np.ndarray:

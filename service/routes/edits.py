@@ -22,7 +22,7 @@ from ..deps import (
 )
 from ..edits import EditRequest, SelectionRequest
 from ..errors import BadInput, NotFound
-from ..inputs import DEFAULT_RENDER_WIDTH, Projection, check_render_query
+from ..inputs import DEFAULT_RENDER_WIDTH, Projection, QueryFloat, QueryInt, check_render_query
 from ..scenes import links, storing
 from ..schemas import SceneCreated, error_responses
 from ..store import SCENE_ID_PATTERN
@@ -90,9 +90,9 @@ async def selection(scene_id: SceneId, sel_id: Annotated[str, Path(pattern=SCENE
 async def selection_mask(request: Request, scene_id: SceneId, sel_id: Annotated[str, Path(pattern=SCENE_ID_PATTERN)],
                          store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
                          view: Literal["a", "b"] | None = None, c2w: str | None = None,
-                         width: Annotated[int, Query()] = DEFAULT_RENDER_WIDTH,
+                         width: Annotated[QueryInt, Query()] = DEFAULT_RENDER_WIDTH,
                          projection: Annotated[Projection, Query()] = "erp",
-                         height: int | None = None, fov_deg: float | None = None) -> Response:
+                         height: QueryInt | None = None, fov_deg: QueryFloat | None = None) -> Response:
     query = _view_or_query(request, settings, view, c2w, width, projection, height, fov_deg)
     _require(store, scene_id)
     data = await gate.run(storing, work.mask_png, store, scene_id, sel_id, view, width, query)
@@ -103,9 +103,9 @@ async def selection_mask(request: Request, scene_id: SceneId, sel_id: Annotated[
             responses={200: {"content": {"image/png": {}}}, **error_responses(400, 404, 409, 422, 507)})
 async def segments(request: Request, scene_id: SceneId, store: StoreDep, settings: SettingsDep, gate: RenderGateDep,
                    view: Literal["a", "b"] | None = None, c2w: str | None = None,
-                   width: Annotated[int, Query()] = DEFAULT_RENDER_WIDTH,
+                   width: Annotated[QueryInt, Query()] = DEFAULT_RENDER_WIDTH,
                    projection: Annotated[Projection, Query()] = "erp",
-                   height: int | None = None, fov_deg: float | None = None) -> Response:
+                   height: QueryInt | None = None, fov_deg: QueryFloat | None = None) -> Response:
     query = _view_or_query(request, settings, view, c2w, width, projection, height, fov_deg)
     _require(store, scene_id)
     data = await gate.run(storing, work.segments_png, store, scene_id, view, width, query)

@@ -35,6 +35,8 @@ from ..inputs import (
     Compositing,
     ImageFormat,
     Projection,
+    QueryFloat,
+    QueryInt,
     RenderQuery,
     check_render_query,
     check_scale_options,
@@ -144,11 +146,11 @@ async def render_scene(
     c2w: Annotated[str, Query(description="camera-to-world, 16 (4x4) or 12 (3x4) comma-separated numbers, "
                                           "row-major, OpenCV (x right, y down, z forward)",
                               examples=[_IDENTITY])],
-    width: Annotated[int, Query(description="image width in pixels (ERP: height = width/2; yin/yang: width/3)")
+    width: Annotated[QueryInt, Query(description="image width in pixels (ERP: height = width/2; yin/yang: width/3)")
                      ] = DEFAULT_RENDER_WIDTH,
     projection: Annotated[Projection, Query()] = "erp",
-    height: Annotated[int | None, Query(description="perspective only; default = width")] = None,
-    fov_deg: Annotated[float | None, Query(description="perspective only: horizontal field of view, degrees; "
+    height: Annotated[QueryInt | None, Query(description="perspective only; default = width")] = None,
+    fov_deg: Annotated[QueryFloat | None, Query(description="perspective only: horizontal field of view, degrees; "
                                                        f"default {DEFAULT_FOV_DEG:g}")] = None,
     format: Annotated[ImageFormat, Query()] = "png",
     compositing: Annotated[Compositing, Query(description=_COMPOSITING_DOC)] = "plain",

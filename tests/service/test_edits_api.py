@@ -285,3 +285,16 @@ def test_a_scene_with_split_pixels_selects_and_removes_them_whole(client, m3d_di
     r = client.post(f"/v1/scenes/{scene}/edits", json={"selection": sel.json()["id"], "op": "remove"})
     assert r.status_code == 201, r.text
     assert r.json()["num_gaussians"] == meta["num_gaussians"] - sel.json()["num_gaussians"]
+
+
+@pytest.mark.parametrize("route", ["render", "segments"])
+@pytest.mark.parametrize("query", ["width=6_4", "width=%EF%BC%96%EF%BC%94", "projection=perspective&width=64&height=4_8",
+                                   "projection=perspective&width=64&fov_deg=9_0"])
+def test_query_numbers_are_plain_decimals(client, scene, route, query):
+    """Width, height and fov_deg as the c2w query's numbers: digit groups (6_4, which Python reads as 64) and
+    non-ASCII digits are a 422 naming the parameter, not a view of another size than most clients would read."""
+    message = _error(client.get(f"/v1/scenes/{scene}/{route}?c2w={IDENTITY}&{query}"), 422, "invalid_request")
+    assert "plain decimal" in message and query.rsplit("&", 1)[-1].split("=")[0] in message, message
+    plain = query.replace("6_4", "64").replace("4_8", "48").replace("9_0", "90").replace("%EF%BC%96%EF%BC%94", "64")
+    r = client.get(f"/v1/scenes/{scene}/{route}?c2w={IDENTITY}&{plain}")
+    assert r.status_code == 200, r.text
