@@ -29,6 +29,12 @@ RETENTION_S = 7 * 24 * 3600.0
 #: at most this many records are kept (the oldest finished ones go first)
 MAX_RECORDS = 10_000
 ACTIVE = ("queued", "running")
+#: every status a record may hold
+STATUSES = (*ACTIVE, "done", "failed")
+#: a record's fields that hold a unix time or a fraction (a number, or null)
+_NUMBERS = ("progress", "created_at", "started_at", "finished_at", "heartbeat")
+#: a record's fields that hold an object (or null)
+_OBJECTS = ("params", "error", "owner")
 
 
 def identity(replica: str | None = None) -> dict:
@@ -42,6 +48,20 @@ def _mtime(path: Path) -> float:
         return path.stat().st_mtime
     except OSError:
         return float("inf")
+
+
+def well_formed(record, job_id: str) -> bool:
+    """Whether ``record`` is a job record of ``job_id`` that readers can rely on: its id, a known status, a
+    parent id, numbers where times and progress go and objects where params, error and owner go. Records are
+    written atomically, so anything else is a damaged file (disk damage, an outside edit), which is reported
+    as no record rather than failing every reader, start-up included."""
+    if not isinstance(record, dict) or record.get("id") != job_id or record.get("status") not in STATUSES:
+        return False
+    if not isinstance(record.get("parent_id"), str):
+        return False
+    numbers = all(v is None or (isinstance(v, (int, float)) and not isinstance(v, bool))
+                  for v in map(record.get, _NUMBERS))
+    return numbers and all(v is None or isinstance(v, dict) for v in map(record.get, _OBJECTS))
 
 
 def _process_gone(pid: int) -> bool:
@@ -125,12 +145,12 @@ class JobFiles:
             tmp.unlink(missing_ok=True)
 
     def read(self, job_id: str) -> dict | None:
-        """The stored record, or None when there is none (or it cannot be parsed)."""
+        """The stored record, or None when there is none (or it cannot be parsed, or is not :func:`well_formed`)."""
         try:
             record = json.loads(self.path(job_id).read_text())
         except (FileNotFoundError, ValueError):
             return None
-        return record if isinstance(record, dict) and record.get("id") == job_id else None
+        return record if well_formed(record, job_id) else None
 
     def lost(self, record: dict, now: float | None = None) -> str | None:
         """Why an unfinished record's owner is gone (None while it is alive or the job finished)."""
