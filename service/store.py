@@ -440,7 +440,13 @@ class SceneStore:
                         if (final / "meta.json").is_file():  # a concurrent writer of the same id won
                             shutil.rmtree(staging, ignore_errors=True)
                             return self.meta(scene_id)
-                        raise
+                        if not final.is_dir():
+                            raise
+                        # a folder without meta.json is no scene (its metadata lost to damage): it would refuse
+                        # every rename into its place, so it goes to the trash and the whole scene takes its place
+                        log.warning("store: %s has no meta.json; replacing it with the scene being written", scene_id)
+                        self._bury(final)
+                        os.replace(staging, final)
                     self._touch(scene_id)
                 _fsync_dir(self.scenes_dir)
                 break
@@ -494,7 +500,11 @@ class SceneStore:
         self.cache.drop(scene_id)
         self._meta_cache.drop(scene_id)
         self._used.pop(scene_id, None)
-        grave = self.trash_dir / f"{scene_id}-{uuid.uuid4().hex}"
+        return self._bury(folder)
+
+    def _bury(self, folder: Path) -> bool:
+        """Rename ``folder`` (a scene's) into ``trash/`` and remove it there; False when it is not there."""
+        grave = self.trash_dir / f"{folder.name}-{uuid.uuid4().hex}"
         try:
             os.replace(folder, grave)
         except FileNotFoundError:

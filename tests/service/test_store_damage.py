@@ -1,0 +1,36 @@
+"""Scene store against damage on disk and races: what a damaged scene folder reads as, and what a write over it does."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rasterizer.gaussians import Gaussians
+from service.store import SceneStore, content_id, stored_form
+
+
+def _gaussians(n: int, seed: int = 0) -> Gaussians:
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    return Gaussians(rng.normal(size=(n, 3)), rng.uniform(0.01, 0.1, (n, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
+                     rng.uniform(0, 1, n), rng.normal(size=(n, 1, 3)))
+
+
+def _same(a: Gaussians, b: Gaussians) -> bool:
+    return all(np.array_equal(getattr(a, f), getattr(b, f)) for f in ("means", "scales", "quats", "opacities", "sh"))
+
+
+def test_a_scene_folder_without_its_metadata_is_replaced_by_the_next_write_of_that_scene(tmp_path):
+    """A folder whose meta.json was lost is no scene (404); writing the scene again stores it whole in its place
+    instead of failing on the folder in the way."""
+    store = SceneStore(tmp_path, min_free_bytes=0)
+    sid, g = content_id("meta lost"), _gaussians(20)
+    store.put(sid, g, {}, artifacts={"extra.bin": b"x"})
+    (tmp_path / "scenes" / sid / "meta.json").unlink()
+    restarted = SceneStore(tmp_path, min_free_bytes=0, cache_scenes=0)
+    assert not restarted.exists(sid)
+    meta = restarted.put(sid, g, {"note": "again"}, artifacts={"references.npz": b"r"})
+    assert meta["id"] == sid and restarted.meta(sid)["note"] == "again"
+    assert _same(restarted.gaussians(sid), stored_form(g))
+    assert sorted(p.name for p in (tmp_path / "scenes" / sid).iterdir()) == ["gaussians.npz", "meta.json",
+                                                                            "references.npz"]
+    assert list((tmp_path / "tmp").iterdir()) == [] and list((tmp_path / "trash").iterdir()) == []
