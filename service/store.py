@@ -525,11 +525,17 @@ class SceneStore:
             raise SceneNotFound(scene_id) from None
         except ValueError as exc:
             raise StoreCorrupt(f"scene {scene_id}: meta.json unreadable ({exc})") from None
+        count = meta.get("num_gaussians") if isinstance(meta, dict) else None
+        if not isinstance(meta, dict) or meta.get("id") != scene_id or not isinstance(count, int) or count < 0:
+            # readable JSON, but not what put() wrote for this id: another scene's file, or damage
+            found = f"the id {str(meta.get('id'))[:40]!r}" if isinstance(meta, dict) else f"a JSON {type(meta).__name__}"
+            raise StoreCorrupt(f"scene {scene_id}: meta.json holds {found}, not this scene's metadata")
         self._meta_cache.put(scene_id, meta)
         return meta
 
     def gaussians(self, scene_id: str) -> Gaussians:
-        """The scene's Gaussians as float32 arrays (from the cache, else read and cached)."""
+        """The scene's Gaussians as stored (from the cache, else read and cached); :class:`StoreCorrupt` when the
+        file cannot be read or holds another count than the scene's metadata (another scene's file)."""
         g = self.cache.get(check_scene_id(scene_id))
         if g is not None:
             self._touch(scene_id)
@@ -542,6 +548,9 @@ class SceneStore:
             raise SceneNotFound(scene_id) from None
         except Exception as exc:  # noqa: BLE001 - zip/shape errors all mean a damaged file
             raise StoreCorrupt(f"scene {scene_id}: gaussians.npz unreadable ({exc})") from None
+        if len(g) != self.meta(scene_id)["num_gaussians"]:
+            raise StoreCorrupt(f"scene {scene_id}: gaussians.npz holds {len(g)} Gaussians, its metadata "
+                               f"{self.meta(scene_id)['num_gaussians']}: not this scene's file")
         self._touch(scene_id)
         self.cache.put(scene_id, g)
         return g

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import json
+import shutil
+
 import numpy as np
+import pytest
 
 from rasterizer.gaussians import Gaussians
-from service.store import SceneStore, content_id, stored_form
+from service.store import SceneStore, StoreCorrupt, content_id, stored_form
 
 
 def _gaussians(n: int, seed: int = 0) -> Gaussians:
@@ -34,3 +38,21 @@ def test_a_scene_folder_without_its_metadata_is_replaced_by_the_next_write_of_th
     assert sorted(p.name for p in (tmp_path / "scenes" / sid).iterdir()) == ["gaussians.npz", "meta.json",
                                                                             "references.npz"]
     assert list((tmp_path / "tmp").iterdir()) == [] and list((tmp_path / "trash").iterdir()) == []
+
+
+def test_files_of_another_scene_swapped_in_are_reported_not_served(tmp_path):
+    """A meta.json or gaussians.npz copied over from another scene (or JSON that is no metadata) reads as a damaged
+    scene (StoreCorrupt), never as that other scene's content under this id."""
+    store = SceneStore(tmp_path, min_free_bytes=0)
+    one, other = content_id("one"), content_id("other")
+    store.put(one, _gaussians(30), {})
+    store.put(other, _gaussians(40, 1), {})
+    folder, source = tmp_path / "scenes" / one, tmp_path / "scenes" / other
+    shutil.copy(source / "gaussians.npz", folder / "gaussians.npz")
+    with pytest.raises(StoreCorrupt, match="40 Gaussians"):
+        SceneStore(tmp_path, min_free_bytes=0).gaussians(one)
+    for text in ((source / "meta.json").read_text(), "[1, 2]", '"text"',
+                 json.dumps({"id": one, "num_gaussians": "30"})):
+        (folder / "meta.json").write_text(text)
+        with pytest.raises(StoreCorrupt, match="not this scene's metadata"):
+            SceneStore(tmp_path, min_free_bytes=0).meta(one)
