@@ -433,6 +433,9 @@ class SceneStore:
                     _write_file(staging / name, writer)
                 _fsync_dir(staging)
                 with self._room:
+                    if (final / "meta.json").is_file():  # a concurrent writer of the same id won: evict nothing
+                        shutil.rmtree(staging, ignore_errors=True)
+                        return self.meta(scene_id)
                     self._make_room(_tree_bytes(staging))
                     try:
                         os.replace(staging, final)

@@ -56,3 +56,26 @@ def test_files_of_another_scene_swapped_in_are_reported_not_served(tmp_path):
         (folder / "meta.json").write_text(text)
         with pytest.raises(StoreCorrupt, match="not this scene's metadata"):
             SceneStore(tmp_path, min_free_bytes=0).meta(one)
+
+
+def test_a_second_writer_of_one_scene_evicts_nothing(tmp_path, monkeypatch):
+    """Two writers of one id at once (the same content POSTed twice): the one that finds the scene stored once its
+    own copy is staged drops its copy without evicting a scene to make room for it."""
+    import service.store as store_module
+
+    store = SceneStore(tmp_path, min_free_bytes=0, max_scenes=2)
+    old, sid, g = content_id("old"), content_id("twice"), _gaussians(10)
+    store.put(old, _gaussians(10, 1), {})
+    write = store_module._write_file
+    other_writer: list[dict] = []
+
+    def write_racing(path, writer):  # the other writer renames its copy in while this one stages
+        if not other_writer:
+            other_writer.append({})
+            other_writer[0] = store.put(sid, g, {})
+        write(path, writer)
+
+    monkeypatch.setattr(store_module, "_write_file", write_racing)
+    assert store.put(sid, g, {})["id"] == sid and other_writer[0]["id"] == sid
+    assert store.ids() == sorted([old, sid]) and store.evictions == 0
+    assert list((tmp_path / "tmp").iterdir()) == []
