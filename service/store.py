@@ -511,7 +511,10 @@ class SceneStore:
         try:
             os.replace(folder, grave)
         except FileNotFoundError:
-            return False
+            if not folder.is_dir():
+                return False
+            self.trash_dir.mkdir(parents=True, exist_ok=True)  # trash/ itself removed (by hand) since start-up
+            os.replace(folder, grave)
         _fsync_dir(self.scenes_dir)
         shutil.rmtree(grave, ignore_errors=True)
         return True

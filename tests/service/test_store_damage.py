@@ -79,3 +79,14 @@ def test_a_second_writer_of_one_scene_evicts_nothing(tmp_path, monkeypatch):
     assert store.put(sid, g, {})["id"] == sid and other_writer[0]["id"] == sid
     assert store.ids() == sorted([old, sid]) and store.evictions == 0
     assert list((tmp_path / "tmp").iterdir()) == []
+
+
+def test_delete_works_when_the_trash_folder_was_removed(tmp_path):
+    """trash/ removed while the server runs (a clean-up by hand): a DELETE still removes the scene, never answers
+    'not found' for a scene that stays."""
+    store = SceneStore(tmp_path, min_free_bytes=0)
+    sid = content_id("deleted")
+    store.put(sid, _gaussians(5), {})
+    shutil.rmtree(tmp_path / "trash")
+    assert store.delete(sid) and not store.exists(sid) and not (tmp_path / "scenes" / sid).exists()
+    assert not store.delete(sid)
