@@ -64,6 +64,12 @@ def well_formed(record, job_id: str) -> bool:
     return numbers and all(v is None or isinstance(v, dict) for v in map(record.get, _OBJECTS))
 
 
+def _same_owner(record: dict, owner: dict) -> bool:
+    """Whether ``record`` names ``owner`` (host, pid and replica) as its owner."""
+    named = record.get("owner") or {}
+    return all(named.get(k) == owner.get(k) for k in ("host", "pid", "replica"))
+
+
 def _process_gone(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -85,12 +91,16 @@ class JobFiles:
         self.stale_s = stale_s
         self.retention_s = retention_s
         self.max_records = max_records
-        self.sweep()
+        self.sweep(start_up=True)
 
-    def sweep(self, now: float | None = None) -> dict[str, int]:
+    def sweep(self, now: float | None = None, *, start_up: bool = False) -> dict[str, int]:
         """Start-up housekeeping: a record whose owner is gone (killed while queued or running) is rewritten
         as ``failed`` (``replica_lost``); finished records older than ``retention_s``, records beyond
-        ``max_records`` (oldest finished first) and interrupted writes are removed. Returns the counts."""
+        ``max_records`` (oldest finished first) and interrupted writes are removed. Returns the counts.
+
+        ``start_up``: this owner has no job yet, so an unfinished record that names this very owner (host, pid
+        and replica) is a previous process's that had the same identity: a restarted container's server,
+        whose pid and host name come back the same."""
         now = time.time() if now is None else now
         out = {"failed": 0, "removed": 0}
         for leftover in self.dir.glob(".*.tmp"):
@@ -102,6 +112,9 @@ class JobFiles:
             if record is None:
                 continue
             reason = self.lost(record, now)
+            if reason is None and start_up and record.get("status") in ACTIVE and _same_owner(record, self.owner):
+                reason = (f"the process before this one with the same identity (replica {self.owner['replica']}) "
+                          f"exited while the job was {record['status']}; submit it again")
             if reason is not None:
                 owner = record.get("owner") or {}
                 record.update(status="failed", finished_at=now, error={"code": "replica_lost", "message": reason})

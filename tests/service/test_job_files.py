@@ -82,3 +82,20 @@ def test_a_damaged_record_is_no_record_for_start_up_and_readers(tmp_path):
         assert files.read(job_id) is None and registry.get(job_id) is None
     job, created = registry.submit("4" * 32, "b" * 32, {})
     assert created and files.read("4" * 32)["status"] == "queued"
+
+
+def test_start_up_fails_the_jobs_of_a_previous_process_with_the_same_identity(tmp_path):
+    """A restarted container's server comes back with the same host name and pid (and so the same default replica
+    name): an unfinished record naming that identity is the previous process's, failed at start-up, not answered
+    'running' until its heartbeat goes stale. Another replica of this process (another name) keeps its jobs."""
+    me = identity()
+    now = time.time()
+    (tmp_path / f"{'1' * 32}.json").write_text(json.dumps(_record("1" * 32, "running", me, now)))
+    (tmp_path / f"{'2' * 32}.json").write_text(json.dumps(_record("2" * 32, "queued", {**me, "replica": "other"}, now)))
+    files = JobFiles(tmp_path, me)
+    previous = files.read("1" * 32)
+    assert previous["status"] == "failed" and previous["error"]["code"] == "replica_lost"
+    assert "same identity" in previous["error"]["message"]
+    assert files.read("2" * 32)["status"] == "queued"
+    files.write(_record("3" * 32, "running", me, now))  # this process's own job: a later sweep keeps it
+    assert files.sweep() == {"failed": 0, "removed": 0} and files.read("3" * 32)["status"] == "running"
