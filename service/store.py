@@ -279,7 +279,10 @@ class SceneStore:
         return (self._dir(scene_id) / "meta.json").is_file()
 
     def ids(self) -> list[str]:
-        return sorted(p.name for p in self.scenes_dir.iterdir() if (p / "meta.json").is_file())
+        """The stored scenes' ids. Folders not named by an id (a copy made by hand, ``lost+found``) are no scenes:
+        neither counted against the budget nor ever chosen for eviction, which could not delete them."""
+        return sorted(p.name for p in self.scenes_dir.iterdir()
+                      if _SCENE_ID_RE.match(p.name) and (p / "meta.json").is_file())
 
     def count(self) -> int:
         return len(self.ids())

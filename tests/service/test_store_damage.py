@@ -90,3 +90,18 @@ def test_delete_works_when_the_trash_folder_was_removed(tmp_path):
     shutil.rmtree(tmp_path / "trash")
     assert store.delete(sid) and not store.exists(sid) and not (tmp_path / "scenes" / sid).exists()
     assert not store.delete(sid)
+
+
+def test_a_folder_not_named_by_an_id_is_no_scene_for_the_budget(tmp_path):
+    """A copy of a scene folder made by hand under scenes/ (``<id>.bak``) is not counted as a scene, so it neither
+    displaces real scenes nor, chosen for eviction, fails every later write with 'malformed scene id'."""
+    store = SceneStore(tmp_path, min_free_bytes=0, max_scenes=2)
+    first = content_id("first")
+    store.put(first, _gaussians(10), {})
+    shutil.copytree(tmp_path / "scenes" / first, tmp_path / "scenes" / f"{first}.bak")
+    store = SceneStore(tmp_path, min_free_bytes=0, max_scenes=2)
+    assert store.ids() == [first]
+    later = [content_id(f"later {k}") for k in range(2)]
+    for k, sid in enumerate(later):
+        store.put(sid, _gaussians(10, k + 1), {})
+    assert store.ids() == sorted(later) and (tmp_path / "scenes" / f"{first}.bak" / "meta.json").is_file()
