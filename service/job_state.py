@@ -29,6 +29,12 @@ RETENTION_S = 7 * 24 * 3600.0
 #: at most this many records are kept (the oldest finished ones go first)
 MAX_RECORDS = 10_000
 ACTIVE = ("queued", "running")
+#: every status a record may hold
+STATUSES = (*ACTIVE, "done", "failed")
+#: a record's fields that hold a unix time or a fraction (a number, or null)
+_NUMBERS = ("progress", "created_at", "started_at", "finished_at", "heartbeat")
+#: a record's fields that hold an object (or null)
+_OBJECTS = ("params", "error", "owner")
 
 
 def identity(replica: str | None = None) -> dict:
@@ -42,6 +48,26 @@ def _mtime(path: Path) -> float:
         return path.stat().st_mtime
     except OSError:
         return float("inf")
+
+
+def well_formed(record, job_id: str) -> bool:
+    """Whether ``record`` is a job record of ``job_id`` that readers can rely on: its id, a known status, a
+    parent id, numbers where times and progress go and objects where params, error and owner go. Records are
+    written atomically, so anything else is a damaged file (disk damage, an outside edit), which is reported
+    as no record rather than failing every reader, start-up included."""
+    if not isinstance(record, dict) or record.get("id") != job_id or record.get("status") not in STATUSES:
+        return False
+    if not isinstance(record.get("parent_id"), str):
+        return False
+    numbers = all(v is None or (isinstance(v, (int, float)) and not isinstance(v, bool))
+                  for v in map(record.get, _NUMBERS))
+    return numbers and all(v is None or isinstance(v, dict) for v in map(record.get, _OBJECTS))
+
+
+def _same_owner(record: dict, owner: dict) -> bool:
+    """Whether ``record`` names ``owner`` (host, pid and replica) as its owner."""
+    named = record.get("owner") or {}
+    return all(named.get(k) == owner.get(k) for k in ("host", "pid", "replica"))
 
 
 def _process_gone(pid: int) -> bool:
@@ -65,12 +91,16 @@ class JobFiles:
         self.stale_s = stale_s
         self.retention_s = retention_s
         self.max_records = max_records
-        self.sweep()
+        self.sweep(start_up=True)
 
-    def sweep(self, now: float | None = None) -> dict[str, int]:
+    def sweep(self, now: float | None = None, *, start_up: bool = False) -> dict[str, int]:
         """Start-up housekeeping: a record whose owner is gone (killed while queued or running) is rewritten
         as ``failed`` (``replica_lost``); finished records older than ``retention_s``, records beyond
-        ``max_records`` (oldest finished first) and interrupted writes are removed. Returns the counts."""
+        ``max_records`` (oldest finished first) and interrupted writes are removed. Returns the counts.
+
+        ``start_up``: this owner has no job yet, so an unfinished record that names this very owner (host, pid
+        and replica) is a previous process's that had the same identity: a restarted container's server,
+        whose pid and host name come back the same."""
         now = time.time() if now is None else now
         out = {"failed": 0, "removed": 0}
         for leftover in self.dir.glob(".*.tmp"):
@@ -82,6 +112,9 @@ class JobFiles:
             if record is None:
                 continue
             reason = self.lost(record, now)
+            if reason is None and start_up and record.get("status") in ACTIVE and _same_owner(record, self.owner):
+                reason = (f"the process before this one with the same identity (replica {self.owner['replica']}) "
+                          f"exited while the job was {record['status']}; submit it again")
             if reason is not None:
                 owner = record.get("owner") or {}
                 record.update(status="failed", finished_at=now, error={"code": "replica_lost", "message": reason})
@@ -125,12 +158,12 @@ class JobFiles:
             tmp.unlink(missing_ok=True)
 
     def read(self, job_id: str) -> dict | None:
-        """The stored record, or None when there is none (or it cannot be parsed)."""
+        """The stored record, or None when there is none (or it cannot be parsed, or is not :func:`well_formed`)."""
         try:
             record = json.loads(self.path(job_id).read_text())
         except (FileNotFoundError, ValueError):
             return None
-        return record if isinstance(record, dict) and record.get("id") == job_id else None
+        return record if well_formed(record, job_id) else None
 
     def lost(self, record: dict, now: float | None = None) -> str | None:
         """Why an unfinished record's owner is gone (None while it is alive or the job finished)."""

@@ -33,7 +33,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from rasterizer.splat import RenderLimitError
 
 from .edits import EDIT_ARTIFACT
-from .errors import PayloadTooLarge
+from .errors import PayloadTooLarge, translate
 from .job_state import ACTIVE, HEARTBEAT_S, JobFiles
 from .memory import release_memory
 from .references import REFERENCES_ARTIFACT, load_references, references_artifact
@@ -287,6 +287,11 @@ class JobRegistry:
         self._save(job)
 
     def mark_failed(self, job: Job, exc: BaseException) -> None:
+        """Record ``exc`` on the job: a store or domain error with the code and message the API answers it with
+        (:func:`service.errors.translate`: ``scene_not_found``, ``store_unavailable``...), anything else by its
+        class name and text."""
+        if isinstance(exc, Exception):
+            exc = translate(exc)
         code = getattr(exc, "code", None) or type(exc).__name__
         message = getattr(exc, "message", None) or str(exc) or type(exc).__name__
         job.status, job.error, job.finished_at = "failed", {"code": code, "message": message}, time.time()

@@ -279,7 +279,10 @@ class SceneStore:
         return (self._dir(scene_id) / "meta.json").is_file()
 
     def ids(self) -> list[str]:
-        return sorted(p.name for p in self.scenes_dir.iterdir() if (p / "meta.json").is_file())
+        """The stored scenes' ids. Folders not named by an id (a copy made by hand, ``lost+found``) are no scenes:
+        neither counted against the budget nor ever chosen for eviction, which could not delete them."""
+        return sorted(p.name for p in self.scenes_dir.iterdir()
+                      if _SCENE_ID_RE.match(p.name) and (p / "meta.json").is_file())
 
     def count(self) -> int:
         return len(self.ids())
@@ -433,6 +436,9 @@ class SceneStore:
                     _write_file(staging / name, writer)
                 _fsync_dir(staging)
                 with self._room:
+                    if (final / "meta.json").is_file():  # a concurrent writer of the same id won: evict nothing
+                        shutil.rmtree(staging, ignore_errors=True)
+                        return self.meta(scene_id)
                     self._make_room(_tree_bytes(staging))
                     try:
                         os.replace(staging, final)
@@ -440,7 +446,13 @@ class SceneStore:
                         if (final / "meta.json").is_file():  # a concurrent writer of the same id won
                             shutil.rmtree(staging, ignore_errors=True)
                             return self.meta(scene_id)
-                        raise
+                        if not final.is_dir():
+                            raise
+                        # a folder without meta.json is no scene (its metadata lost to damage): it would refuse
+                        # every rename into its place, so it goes to the trash and the whole scene takes its place
+                        log.warning("store: %s has no meta.json; replacing it with the scene being written", scene_id)
+                        self._bury(final)
+                        os.replace(staging, final)
                     self._touch(scene_id)
                 _fsync_dir(self.scenes_dir)
                 break
@@ -494,11 +506,18 @@ class SceneStore:
         self.cache.drop(scene_id)
         self._meta_cache.drop(scene_id)
         self._used.pop(scene_id, None)
-        grave = self.trash_dir / f"{scene_id}-{uuid.uuid4().hex}"
+        return self._bury(folder)
+
+    def _bury(self, folder: Path) -> bool:
+        """Rename ``folder`` (a scene's) into ``trash/`` and remove it there; False when it is not there."""
+        grave = self.trash_dir / f"{folder.name}-{uuid.uuid4().hex}"
         try:
             os.replace(folder, grave)
         except FileNotFoundError:
-            return False
+            if not folder.is_dir():
+                return False
+            self.trash_dir.mkdir(parents=True, exist_ok=True)  # trash/ itself removed (by hand) since start-up
+            os.replace(folder, grave)
         _fsync_dir(self.scenes_dir)
         shutil.rmtree(grave, ignore_errors=True)
         return True
@@ -515,11 +534,17 @@ class SceneStore:
             raise SceneNotFound(scene_id) from None
         except ValueError as exc:
             raise StoreCorrupt(f"scene {scene_id}: meta.json unreadable ({exc})") from None
+        count = meta.get("num_gaussians") if isinstance(meta, dict) else None
+        if not isinstance(meta, dict) or meta.get("id") != scene_id or not isinstance(count, int) or count < 0:
+            # readable JSON, but not what put() wrote for this id: another scene's file, or damage
+            found = f"the id {str(meta.get('id'))[:40]!r}" if isinstance(meta, dict) else f"a JSON {type(meta).__name__}"
+            raise StoreCorrupt(f"scene {scene_id}: meta.json holds {found}, not this scene's metadata")
         self._meta_cache.put(scene_id, meta)
         return meta
 
     def gaussians(self, scene_id: str) -> Gaussians:
-        """The scene's Gaussians as float32 arrays (from the cache, else read and cached)."""
+        """The scene's Gaussians as stored (from the cache, else read and cached); :class:`StoreCorrupt` when the
+        file cannot be read or holds another count than the scene's metadata (another scene's file)."""
         g = self.cache.get(check_scene_id(scene_id))
         if g is not None:
             self._touch(scene_id)
@@ -532,6 +557,9 @@ class SceneStore:
             raise SceneNotFound(scene_id) from None
         except Exception as exc:  # noqa: BLE001 - zip/shape errors all mean a damaged file
             raise StoreCorrupt(f"scene {scene_id}: gaussians.npz unreadable ({exc})") from None
+        if len(g) != self.meta(scene_id)["num_gaussians"]:
+            raise StoreCorrupt(f"scene {scene_id}: gaussians.npz holds {len(g)} Gaussians, its metadata "
+                               f"{self.meta(scene_id)['num_gaussians']}: not this scene's file")
         self._touch(scene_id)
         self.cache.put(scene_id, g)
         return g

@@ -325,3 +325,20 @@ def test_check_room_refuses_a_result_that_could_not_be_stored_beside_the_held_sc
     one, other = _tiny_scene(roomy, "one"), _tiny_scene(roomy, "other")
     roomy.check_room(one, "the refined scene")  # the other scene may be evicted for it: room
     assert sorted(roomy.ids()) == sorted([one, other])  # a check evicts nothing
+
+
+def test_a_failed_job_names_store_errors_as_the_api_does():
+    """A job that fails on the store (its parent deleted before it ran, a full disk) records the code and message the
+    API answers that error with, not the Python class and errno text."""
+    import errno
+
+    from service.store import SceneNotFound, StoreFull
+
+    reg = JobRegistry()
+    job, _ = reg.submit("a" * 32, "b" * 32, {})
+    reg.mark_failed(job, SceneNotFound("b" * 32))
+    assert job.error == {"code": "scene_not_found", "message": f"no scene with id {'b' * 32!r}"}
+    reg.mark_failed(job, OSError(errno.ENOSPC, "No space left on device"))
+    assert job.error["code"] == "store_unavailable" and "disk is full" in job.error["message"]
+    reg.mark_failed(job, StoreFull("the budget cannot take it"))
+    assert job.error == {"code": "store_full", "message": "the budget cannot take it"}
