@@ -105,7 +105,8 @@ def _domain_error(exc: Exception) -> ServiceError | None:
         return NotFound(str(exc), code="scene_not_found")
     if isinstance(exc, StoreCorrupt):
         log.error("%s", exc)
-        return ServiceError(str(exc), code="store_corrupt", status=500)
+        return ServiceError(f"{exc}; the scene's stored files are damaged: POST its images again to build it anew, or "
+                            "DELETE it", code="store_corrupt", status=500)
     if isinstance(exc, EncoderInputError):
         return BadInput(str(exc), code="invalid_input")
     if isinstance(exc, RenderLimitError):

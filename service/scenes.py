@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import shutil
 import time
 from collections.abc import Iterator
@@ -35,9 +36,10 @@ from .pose_check import check_given_poses
 from .poses import PoseOptions, poses_for_scene
 from .references import REFERENCES_ARTIFACT, load_references, references_bytes
 from .runtime import ModelRuntime
-from .store import SceneStore, content_id
+from .store import SceneStore, StoreCorrupt, content_id
 
 T = TypeVar("T")
+log = logging.getLogger("omnisplat.service")
 
 #: render near cull as a fraction of the scene's sweep near (scenes smaller than a room)
 NEAR_CULL_PER_SWEEP_NEAR = 0.1
@@ -80,6 +82,22 @@ class UploadLimits:
     max_pixels: int
     min_height: int
     min_width: int | None = None  # JPEGs wider than twice this decode at a reduced scale (service.images.jpeg_reduction)
+
+
+def stored_whole(store: SceneStore, scene_id: str) -> dict | None:
+    """The metadata of the stored scene a POST names when its metadata and Gaussians read whole, else None: not
+    stored, or stored but damaged (:class:`~service.store.StoreCorrupt`: a truncated or foreign file), which is then
+    removed so that the POST builds it again instead of answering "cached" for a scene no render can read."""
+    if not store.exists(scene_id):
+        return None
+    try:
+        meta = store.meta(scene_id)
+        store.gaussians(scene_id)
+        return meta
+    except StoreCorrupt as exc:
+        log.warning("store: %s; removed, the POST builds it again", exc)
+        store.delete(scene_id)
+        return None
 
 
 def precheck_uploads(image_a: bytes, image_b: bytes, limits: UploadLimits) -> None:

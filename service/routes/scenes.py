@@ -114,8 +114,7 @@ async def create_scene(
     scene_id = await anyio.to_thread.run_sync(
         work.scene_id_for, runtime.sha256, data_a, data_b, parsed_poses, parsed_options)
     response.headers["Location"] = f"/v1/scenes/{scene_id}"
-    if store.exists(scene_id):
-        meta = store.meta(scene_id)
+    if (meta := await anyio.to_thread.run_sync(work.stored_whole, store, scene_id)) is not None:
         return SceneCreated(id=scene_id, num_gaussians=meta["num_gaussians"], timings=meta.get("timings", {}),
                             links=work.links(store, scene_id, meta), cached=True)
     await anyio.to_thread.run_sync(work.check_free_space, store, settings.min_free_store_bytes)

@@ -105,3 +105,29 @@ def test_a_folder_not_named_by_an_id_is_no_scene_for_the_budget(tmp_path):
     for k, sid in enumerate(later):
         store.put(sid, _gaussians(10, k + 1), {})
     assert store.ids() == sorted(later) and (tmp_path / "scenes" / f"{first}.bak" / "meta.json").is_file()
+
+
+@pytest.mark.parametrize("damage", ["truncated", "foreign meta"])
+def test_a_post_of_a_damaged_scene_builds_it_again_instead_of_answering_cached(tmp_path, damage):
+    """POST's check for a stored scene (service.scenes.stored_whole) reads its metadata and Gaussians: a damaged scene
+    (a truncated array file, another scene's metadata) is removed and reported as not stored, so the POST builds it
+    again; a whole one is answered from the store."""
+    from service.scenes import stored_whole
+
+    store = SceneStore(tmp_path, min_free_bytes=0)
+    sid, other = content_id("damaged"), content_id("other")
+    store.put(sid, _gaussians(30), {})
+    store.put(other, _gaussians(40, 1), {})
+    restarted = SceneStore(tmp_path, min_free_bytes=0, cache_scenes=0)
+    assert stored_whole(restarted, sid)["num_gaussians"] == 30 and stored_whole(restarted, content_id("none")) is None
+    folder = tmp_path / "scenes" / sid
+    if damage == "truncated":
+        data = (folder / "gaussians.npz").read_bytes()
+        (folder / "gaussians.npz").write_bytes(data[: len(data) // 2])
+    else:
+        shutil.copy(tmp_path / "scenes" / other / "meta.json", folder / "meta.json")
+    restarted = SceneStore(tmp_path, min_free_bytes=0, cache_scenes=0)
+    assert stored_whole(restarted, sid) is None
+    assert not restarted.exists(sid) and restarted.exists(other)
+    restarted.put(sid, _gaussians(30), {})
+    assert stored_whole(restarted, sid)["num_gaussians"] == 30
