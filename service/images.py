@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import io
 import math
-import re
 import struct
 import warnings
 import zlib
@@ -38,7 +37,7 @@ from rasterizer.threads import map_threads
 
 from .errors import BadInput, InvalidImage, PayloadTooLarge
 from .fisheye import check_not_dual_fisheye
-from .jpeg_data import check_jpeg_data
+from .jpeg_data import check_jpeg_data, jpeg_segments
 
 ACCEPTED_FORMATS = ("PNG", "JPEG", "WEBP", "TIFF", "BMP")
 #: the first bytes of each accepted format's files (a WebP also has "WEBP" at byte 8)
@@ -255,54 +254,21 @@ def check_png_data(data: bytes, layout: PngLayout, field: str) -> None:
                            f"the {layout.height} rows its header declares")
 
 
-#: segments a JPEG may hold (before its image data; :mod:`service.jpeg_data` counts its scans' too), and bytes of
-#: padding or junk between them
-MAX_JPEG_SEGMENTS = 4096
-MAX_JPEG_GAP_BYTES = 1024 * 1024
-_NOT_FF = re.compile(rb"[^\xff]")
-
-
 def scan_jpeg(data: bytes, field: str) -> None:
-    """Walk a JPEG's marker segments up to the start of scan (headers only); 413 past the limits.
+    """Walk a JPEG's marker segments up to the start of scan (headers only, :func:`service.jpeg_data.jpeg_segments`,
+    which refuses millions of segments or of fill bytes); 413 past the limits.
 
-    Pillow keeps every APPn/COM segment in memory and steps through padding byte by byte, so a
-    file of millions of empty APP segments costs as much as the PNG chunk bomb. The APPn/COM
-    segments count against the PNG's ancillary limits; at most :data:`MAX_JPEG_SEGMENTS`
-    segments and :data:`MAX_JPEG_GAP_BYTES` of fill or junk bytes between them are accepted."""
-    if not data.startswith(b"\xff\xd8"):
-        return
-    pos, segments, meta, meta_bytes, gap = 2, 0, 0, 0, 0
-    while pos + 4 <= len(data):
-        horizon = min(len(data), pos + MAX_JPEG_GAP_BYTES - gap + 2)  # no search past the limit
-        if data[pos] != 0xFF:  # junk up to the next marker
-            nxt = data.find(b"\xff", pos, horizon)
-            nxt = horizon if nxt < 0 else nxt
-            gap, pos = gap + nxt - pos, nxt
-        else:
-            found = _NOT_FF.search(data, pos + 1, horizon)  # fill bytes: 0xFF repeated before a marker
-            end = found.start() if found else horizon
-            gap, pos = gap + end - pos - 1, end - 1
-        if gap > MAX_JPEG_GAP_BYTES:
-            raise PayloadTooLarge(f"{field}: the JPEG holds more than {MAX_JPEG_GAP_BYTES} bytes of padding between "
-                                  "its segments", code="image_too_many_chunks")
-        if pos + 4 > len(data):
-            return
-        marker = data[pos + 1]
-        if marker in (0xDA, 0xD9):  # start of scan (or end): the headers are done
-            return
-        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
-            pos += 2
-            continue
-        length = (data[pos + 2] << 8) | data[pos + 3]
-        segments += 1
+    Pillow keeps every APPn/COM segment in memory and steps through padding byte by byte, so a file of millions of
+    empty APP segments costs as much as the PNG chunk bomb: the APPn/COM segments count against the PNG's
+    ancillary limits."""
+    meta, meta_bytes = 0, 0
+    for marker, length, _ in jpeg_segments(data, field, scans=False):
         if 0xE0 <= marker <= 0xEF or marker == 0xFE:
             meta += 1
             meta_bytes += length
-        if segments > MAX_JPEG_SEGMENTS or meta > MAX_PNG_ANCILLARY_CHUNKS or meta_bytes > MAX_PNG_ANCILLARY_BYTES:
-            raise PayloadTooLarge(f"{field}: the JPEG holds more than {MAX_PNG_ANCILLARY_CHUNKS} metadata segments or "
-                                  f"{MAX_PNG_ANCILLARY_BYTES} bytes of them, or more than {MAX_JPEG_SEGMENTS} segments",
-                                  code="image_too_many_chunks")
-        pos += 2 + length
+            if meta > MAX_PNG_ANCILLARY_CHUNKS or meta_bytes > MAX_PNG_ANCILLARY_BYTES:
+                raise PayloadTooLarge(f"{field}: the JPEG holds more than {MAX_PNG_ANCILLARY_CHUNKS} metadata segments "
+                                      f"or {MAX_PNG_ANCILLARY_BYTES} bytes of them", code="image_too_many_chunks")
 
 
 def _open(data: bytes, field: str, max_pixels: int) -> Image.Image:
@@ -390,7 +356,7 @@ def decode_rgb(data: bytes, field: str, *, max_pixels: int, min_height: int,
     if layout is not None:
         check_png_data(data, layout, field)
     if header.format in ("JPEG", "MPO"):
-        check_jpeg_data(data, field, MAX_JPEG_SEGMENTS)
+        check_jpeg_data(data, field)
     im = _open(data, field, max_pixels)
     shown = header.decoded_size
     try:

@@ -13,7 +13,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from PIL import Image
 
-from service import images
+from service import images, jpeg_data
 from service.errors import BadInput, InvalidImage, PayloadTooLarge
 from service.images import check_header, decode_rgb
 
@@ -358,7 +358,7 @@ def test_the_jpeg_walk_is_bounded_by_the_segment_limit():
     """Segments after the first scan are walked in Python: past MAX_JPEG_SEGMENTS of them the file is a 413."""
     data = _noise_jpeg(False, height=64)
     eoi = len(data) - 2
-    padded = data[:eoi] + b"\xff\xfe\x00\x02" * (images.MAX_JPEG_SEGMENTS + 1) + data[eoi:]
+    padded = data[:eoi] + b"\xff\xfe\x00\x02" * (jpeg_data.MAX_JPEG_SEGMENTS + 1) + data[eoi:]
     with pytest.raises(PayloadTooLarge) as info:
         decode_rgb(padded, "image_a", **LIMITS)
     assert info.value.code == "image_too_many_chunks"
