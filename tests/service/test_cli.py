@@ -588,6 +588,30 @@ def test_serve_with_a_model_file_that_is_no_model_is_a_one_line_error(tmp_path, 
     assert "--model" in err and "not a loadable ONNX model" in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("source", ["default", "variable"])
+def test_serve_with_a_damaged_model_not_named_by_flag_is_a_one_line_error_naming_its_source(tmp_path, capsys,
+                                                                                           monkeypatch, source):
+    """A damaged default model (in OMNISPLAT_MODELS_DIR) was not loaded before serving: the server started and its
+    /readyz answered 503 for good, since an existing file is never built again; one named by OMNISPLAT_MODEL_PATH
+    was reported as --model, a flag the user never gave."""
+    if source == "default":
+        path = tmp_path / "models" / default_model_name()
+        monkeypatch.setenv("OMNISPLAT_MODELS_DIR", str(tmp_path / "models"))
+    else:
+        path = tmp_path / "m.onnx"
+        monkeypatch.setenv("OMNISPLAT_MODEL_PATH", str(path))
+    path.parent.mkdir(exist_ok=True)
+    path.write_bytes(b"\x89PNG not a model")
+    import uvicorn
+
+    monkeypatch.setattr(uvicorn, "Server", lambda config: pytest.fail("served a model that cannot load"))
+    assert cli.main(["serve", "--store", str(tmp_path / "s"), "--no-build"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not a loadable ONNX model" in err and "--model" not in err and "Traceback" not in err
+    says = f"the default model {path}" if source == "default" else f"OMNISPLAT_MODEL_PATH {path}:"
+    assert says in err and ("delete it" in err) == (source == "default"), err
+
+
 def test_serve_with_a_model_loads_it_once(tmp_path, monkeypatch):
     """`serve --model FILE` loaded the file to check it, dropped that session and loaded the file again as the app
     started: the checked encoder is the one the app serves, with the served thread count."""
