@@ -569,6 +569,21 @@ def test_bad_environment_settings_are_one_line_errors(tmp_path, capsys, monkeypa
     assert err.count("\n") == 1 and "OMNISPLAT_" in err and "Traceback" not in err, err
 
 
+@pytest.mark.parametrize("name, value, says", [
+    ("OMNISPLAT_API_KEY", "s3cret\n", "must not be blank nor begin or end with white space"),  # every /v1 request 401
+    ("OMNISPLAT_API_KEY", "   ", "must not be blank"),
+    ("OMNISPLAT_ALLOWED_HOSTS", "[]", "OMNISPLAT_ALLOWED_HOSTS) is empty"),  # every request 400, /healthz included
+    ("OMNISPLAT_MIN_IMAGE_HEIGHT", "5000", "over max_image_pixels 33554432: every upload would be refused"),
+    ("OMNISPLAT_MAX_IMAGE_PIXELS", "1024", "min_image_height 32 needs panoramas of at least 2048 pixels"),
+])
+def test_settings_that_refuse_every_request_are_one_line_errors(tmp_path, capsys, monkeypatch, name, value, says):
+    """These settings started a server that refused every request (or every upload) it was sent."""
+    monkeypatch.setenv(name, value)
+    assert cli.main(["serve", "--no-build", "--model", str(tmp_path / "m.onnx")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and says in err and "does not exist" not in err and "Traceback" not in err, err
+
+
 def test_commands_that_do_not_serve_ignore_the_servers_host_rule(tmp_path, capsys, monkeypatch):
     """A shell set up for `serve --host 0.0.0.0` (no key) made select refuse and render print a traceback."""
     monkeypatch.setenv("OMNISPLAT_HOST", "0.0.0.0")
