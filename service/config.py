@@ -156,6 +156,31 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+#: OMNISPLAT_* variables read elsewhere than Settings: the viewer's npm packages, and developer scripts
+OTHER_VARIABLES = ("OMNISPLAT_NODE_MODULES", "OMNISPLAT_SCALE_DATA", "OMNISPLAT_WHEEL_DIR", "OMNISPLAT_BENCH_MODELS")
+
+
+def unknown_variables(environ) -> tuple[list[str], list[str]]:
+    """(typos, others) among ``environ``'s ``OMNISPLAT_*`` names that are neither a setting nor in
+    :data:`OTHER_VARIABLES`: pydantic-settings ignores them, so a misspelt setting would keep its default without a
+    word. ``typos`` say which setting each is close to (``OMNISPLAT_ORT_THREAD``: ``OMNISPLAT_ORT_THREADS``);
+    ``others`` are the names close to none (a platform's own variables may share the prefix)."""
+    import difflib
+
+    prefix = Settings.model_config["env_prefix"]
+    known = [prefix + name.upper() for name in Settings.model_fields]
+    typos, others = [], []
+    for name in sorted(environ):
+        if not name.upper().startswith(prefix) or name.upper() in known or name.upper() in OTHER_VARIABLES:
+            continue
+        close = difflib.get_close_matches(name.upper(), known, n=1, cutoff=0.8)
+        if close:
+            typos.append(f"{name} is no setting; did you mean {close[0]}?")
+        else:
+            others.append(name)
+    return typos, others
+
+
 @lru_cache
 def get_settings() -> Settings:
     return Settings()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from .common import CliError, cannot_write_in, cli_settings, load_encoder, model_file, say
@@ -18,11 +19,17 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from ..app import create_app
+    from ..config import unknown_variables
     from ..server import server_config
 
     if args.ray:  # a missing extra is said before anything is checked or loaded
         _ray_serving()
     settings = cli_settings(args, SETTING_FLAGS, serving=True)
+    typos, others = unknown_variables(os.environ)
+    if typos:  # the setting meant would silently keep its default
+        raise CliError("; ".join(typos))
+    if others:
+        say(f"ignoring {', '.join(others)}: no omnisplat setting (see service/config.py)")
     try:  # the store must be a folder this user can write in, or one it can make
         settings.store_dir.mkdir(parents=True, exist_ok=True)
         problem = cannot_write_in(settings.store_dir)

@@ -584,6 +584,22 @@ def test_settings_that_refuse_every_request_are_one_line_errors(tmp_path, capsys
     assert err.count("\n") == 1 and says in err and "does not exist" not in err and "Traceback" not in err, err
 
 
+def test_serve_refuses_a_misspelt_setting_variable_and_says_which_others_it_ignores(tmp_path, capsys, monkeypatch):
+    """OMNISPLAT_ORT_THREAD=8 left ort_threads at 2 without a word (pydantic-settings ignores unknown names)."""
+    argv = ["serve", "--no-build", "--model", str(tmp_path / "m.onnx")]
+    monkeypatch.setenv("OMNISPLAT_ORT_THREAD", "8")
+    monkeypatch.setenv("OMNISPLAT_NODE_MODULES", str(tmp_path))  # read by the viewer, not a setting: fine
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "OMNISPLAT_ORT_THREAD is no setting; did you mean OMNISPLAT_ORT_THREADS?" in err
+    monkeypatch.delenv("OMNISPLAT_ORT_THREAD")
+    monkeypatch.setenv("OMNISPLAT_SERVICE_HOST", "10.0.0.1")  # close to no setting: said, then the start goes on
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "ignoring OMNISPLAT_SERVICE_HOST: no omnisplat setting" in err and "m.onnx does not exist" in err, err
+    assert "NODE_MODULES" not in err
+
+
 def test_commands_that_do_not_serve_ignore_the_servers_host_rule(tmp_path, capsys, monkeypatch):
     """A shell set up for `serve --host 0.0.0.0` (no key) made select refuse and render print a traceback."""
     monkeypatch.setenv("OMNISPLAT_HOST", "0.0.0.0")
