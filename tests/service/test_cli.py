@@ -600,6 +600,15 @@ def test_serve_refuses_a_misspelt_setting_variable_and_says_which_others_it_igno
     assert "NODE_MODULES" not in err
 
 
+def test_serve_with_a_models_dir_that_is_a_file_is_a_one_line_error(tmp_path, capsys, monkeypatch):
+    """Building the missing default model under a file printed a FileExistsError traceback."""
+    (tmp_path / "models").write_text("not a folder")
+    monkeypatch.setenv("OMNISPLAT_MODELS_DIR", str(tmp_path / "models"))
+    assert cli.main(["serve", "--store", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot be built there" in err and "Traceback" not in err, err
+
+
 def test_commands_that_do_not_serve_ignore_the_servers_host_rule(tmp_path, capsys, monkeypatch):
     """A shell set up for `serve --host 0.0.0.0` (no key) made select refuse and render print a traceback."""
     monkeypatch.setenv("OMNISPLAT_HOST", "0.0.0.0")
