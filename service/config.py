@@ -106,6 +106,17 @@ class Settings(BaseSettings):
     def _check(self) -> "Settings":
         if self.max_render_width * 1 > self.max_render_pixels:
             raise ValueError("max_render_width must not exceed max_render_pixels")
+        if self.api_key is not None and (not self.api_key.strip() or self.api_key != self.api_key.strip()):
+            # HTTP drops a header value's leading and trailing blanks: no request could send this key
+            raise ValueError("api_key (OMNISPLAT_API_KEY) must not be blank nor begin or end with white space "
+                             "(a secret file's trailing newline?): no request could send it")
+        if self.allowed_hosts is not None and not self.allowed_hosts:
+            raise ValueError("allowed_hosts (OMNISPLAT_ALLOWED_HOSTS) is empty: every request, health checks "
+                             "included, would be refused; leave it unset for the loopback names, or '[\"*\"]' for any")
+        if 2 * self.min_image_height ** 2 > self.max_image_pixels:
+            raise ValueError(f"min_image_height {self.min_image_height} needs panoramas of at least "
+                             f"{2 * self.min_image_height ** 2} pixels, over max_image_pixels {self.max_image_pixels}: "
+                             "every upload would be refused")
         if not self.api_key and not self.allow_no_auth and not is_loopback(self.host):
             raise ValueError(f"host {self.host!r} is not a loopback address: set api_key (OMNISPLAT_API_KEY) "
                              "or allow_no_auth=true to serve without authentication")
@@ -143,6 +154,31 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host.strip("[]")).is_loopback
     except ValueError:
         return False
+
+
+#: OMNISPLAT_* variables read elsewhere than Settings: the viewer's npm packages, and developer scripts
+OTHER_VARIABLES = ("OMNISPLAT_NODE_MODULES", "OMNISPLAT_SCALE_DATA", "OMNISPLAT_WHEEL_DIR", "OMNISPLAT_BENCH_MODELS")
+
+
+def unknown_variables(environ) -> tuple[list[str], list[str]]:
+    """(typos, others) among ``environ``'s ``OMNISPLAT_*`` names that are neither a setting nor in
+    :data:`OTHER_VARIABLES`: pydantic-settings ignores them, so a misspelt setting would keep its default without a
+    word. ``typos`` say which setting each is close to (``OMNISPLAT_ORT_THREAD``: ``OMNISPLAT_ORT_THREADS``);
+    ``others`` are the names close to none (a platform's own variables may share the prefix)."""
+    import difflib
+
+    prefix = Settings.model_config["env_prefix"]
+    known = [prefix + name.upper() for name in Settings.model_fields]
+    typos, others = [], []
+    for name in sorted(environ):
+        if not name.upper().startswith(prefix) or name.upper() in known or name.upper() in OTHER_VARIABLES:
+            continue
+        close = difflib.get_close_matches(name.upper(), known, n=1, cutoff=0.8)
+        if close:
+            typos.append(f"{name} is no setting; did you mean {close[0]}?")
+        else:
+            others.append(name)
+    return typos, others
 
 
 @lru_cache

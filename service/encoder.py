@@ -32,6 +32,7 @@ from rasterizer.sweep import (
     baseline,
     check_scene_scale,
     default_near_far,
+    grids_for_mode,
     sweep_inputs,
 )
 from rasterizer.view_colour import DEFAULT_SH_DEGREE, check_sh_degree, fit_view_colour
@@ -40,6 +41,37 @@ from rasterizer.yin_yang import resize_erp
 from .model_files import sha256_file
 
 KNOWN_OPTIONS = ("min_opacity", "sh_degree", "rig_cap_deg", "colour_fit")
+#: metadata of every exported encoder that sizes its inputs and outputs (positive integers), in this order
+LAYOUT_METADATA = ("input_height", "input_width", "num_planes", "feature_height", "feature_width",
+                   "gaussian_grid_height", "gaussian_grid_width")
+#: metadata holding JSON text (decoded by :attr:`OnnxEncoder.metadata`)
+JSON_METADATA = ("settings", "inputs")
+
+
+def _positive_int(props: dict, key: str) -> int:
+    """``props[key]`` as a positive int; a ValueError naming the key when it is absent or another value."""
+    if key not in props:
+        raise ValueError(f"it has no {key!r} (every omnisplat export records {', '.join(LAYOUT_METADATA)})")
+    text = props[key].strip()
+    if not text.isdecimal() or int(text) < 1:
+        raise ValueError(f"its {key} is {props[key][:40]!r}, not a positive integer")
+    return int(text)
+
+
+def _json(props: dict, key: str) -> None:
+    """A ValueError naming ``key`` when ``props[key]`` is present but not JSON text."""
+    try:
+        json.loads(props.get(key, "null"))
+    except ValueError as exc:
+        raise ValueError(f"its {key} is not JSON ({exc})") from None
+
+
+def _choice(props: dict, key: str, allowed: tuple[str, ...], default: str) -> str:
+    """``props[key]`` (``default`` when absent), one of ``allowed``; else a ValueError naming the key."""
+    value = props.get(key, default)
+    if value not in allowed:
+        raise ValueError(f"its {key} is {value[:40]!r}; this runtime reads {' or '.join(map(repr, allowed))}")
+    return value
 
 
 class EncoderInputError(ValueError):
@@ -164,18 +196,54 @@ class OnnxEncoder:
             raise ValueError(f"{self.path} expects depth candidates spaced by {spacing!r}; this runtime feeds them "
                              "uniform in inverse range: rebuild it with `omnisplat export`")
         self._meta = {**props, "sha256": sha256_file(self.path), "path": str(self.path), "threads": int(threads)}
-        self.height = int(props["input_height"])
-        self.width = int(props["input_width"])
-        self.num_planes = int(props["num_planes"])
-        self.feature_size = (int(props["feature_height"]), int(props["feature_width"]))
-        self.erp_encoder = props.get("erp_encoder", "false") == "true"
-        self.grids = tuple(props.get("grids", "erp" if self.erp_encoder else "yin,yang").split(","))
+        try:
+            for key in JSON_METADATA:  # decoded by ``metadata`` on every read: a broken one would fail each
+                _json(props, key)
+            self.height, self.width, self.num_planes, *feature, grid_h, grid_w = (
+                _positive_int(props, key) for key in LAYOUT_METADATA)
+            self.erp_encoder = _choice(props, "erp_encoder", ("false", "true"), "false") == "true"
+            self.grids = tuple(_choice(props, "grids", (",".join(grids_for_mode(self.erp_encoder)),),
+                                       ",".join(grids_for_mode(self.erp_encoder))).split(","))
+            # default sweep range per unit baseline (models before 0.2 stored the same numbers as
+            # near_default / far_default in metres for the 1 m design baseline)
+            self.near_per_baseline = float(props.get("near_per_baseline", props.get("near_default", NEAR_PER_BASELINE)))
+            self.far_per_baseline = float(props.get("far_per_baseline", props.get("far_default", FAR_PER_BASELINE)))
+            if not 0 < self.near_per_baseline < self.far_per_baseline < np.inf:
+                raise ValueError(f"its sweep range per baseline must satisfy 0 < near < far < inf, got "
+                                 f"near {self.near_per_baseline:g}, far {self.far_per_baseline:g}")
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{self.path}: unusable omnisplat metadata: {exc}: rebuild it with `omnisplat export`"
+                             ) from None
+        self.feature_size = (feature[0], feature[1])
         #: (rows, columns) of one Gaussian grid (Yin, Yang or ERP): one Gaussian per pixel
-        self.grid_size = (int(props["gaussian_grid_height"]), int(props["gaussian_grid_width"]))
-        # default sweep range per unit baseline (models before 0.2 stored the same numbers as
-        # near_default / far_default in metres for the 1 m design baseline)
-        self.near_per_baseline = float(props.get("near_per_baseline", props.get("near_default", NEAR_PER_BASELINE)))
-        self.far_per_baseline = float(props.get("far_per_baseline", props.get("far_default", FAR_PER_BASELINE)))
+        self.grid_size = (grid_h, grid_w)
+        self._check_graph()
+
+    def _check_graph(self) -> None:
+        """A ValueError unless the graph takes exactly the arrays this runtime feeds it for the metadata's sizes
+        (the inputs :func:`rasterizer.sweep.sweep_inputs` builds, the panoramas at ``input_height`` x
+        ``input_width``) and gives every output :meth:`reconstruct` reads. A model whose metadata disagrees with its
+        graph would otherwise load, then fail each reconstruction (and the warm-up) inside onnxruntime."""
+        missing = [n for n in OUTPUT_NAMES if n not in self.output_names and n != "matches"]
+        if missing:
+            raise ValueError(f"{self.path} is not an omnisplat encoder (it has no output {', '.join(missing)})")
+        c2w_b = np.eye(4)
+        c2w_b[0, 3] = 1.0
+        feeds = sweep_inputs(np.eye(4), c2w_b, near=1.0, far=10.0, num_planes=self.num_planes,
+                             feature_size=self.feature_size, erp_encoder=self.erp_encoder)
+        expected = {"erp_a": (1, 3, self.height, self.width), "erp_b": (1, 3, self.height, self.width),
+                    **{name: array.shape for name, array in feeds.items()}}
+        expected_out = {"range_maps": (2, len(self.grids), *self.grid_size)}
+        ports = [*self.session.get_inputs(), *(o for o in self.session.get_outputs() if o.name in expected_out)]
+        for port in ports:
+            want = expected.get(port.name, expected_out.get(port.name))
+            got = tuple(port.shape)
+            if len(got) != len(want) or any(isinstance(g, int) and g != w for g, w in zip(got, want)):
+                raise ValueError(f"{self.path}: its {port.name} has shape {list(got)}, but its metadata "
+                                 f"(input {self.height}x{self.width}, {self.num_planes} planes, features "
+                                 f"{self.feature_size[0]}x{self.feature_size[1]}, grids {','.join(self.grids)} of "
+                                 f"{self.grid_size[0]}x{self.grid_size[1]}) make it {list(want)}: "
+                                 "rebuild it with `omnisplat export`")
 
     def _to_chw(self, img: np.ndarray) -> np.ndarray:
         """(H, W, 3) uint8 or float in [0, 1] (:func:`_as_image`) -> (1, 3, height, width) float32 in [0, 1]

@@ -88,7 +88,11 @@ def ensure_model(path: str | Path, *, build_if_missing: bool = True,
             f"model file {path} does not exist and cannot be built here ({exc}). "
             "Install the export extra (pip install -e '.[export]') or pass --model PATH to a prebuilt .onnx"
         ) from None
-    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # models_dir under a file, or a folder this user cannot make
+        raise ModelUnavailable(f"model file {path} does not exist and cannot be built there: cannot make "
+                               f"{path.parent} ({exc.strerror or exc})") from None
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.building.onnx")
     progress(f"building the ONNX model -> {path} (one-off, needs torch; this can take a minute)")
     start = time.perf_counter()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from .common import CliError, cannot_write_in, cli_settings, load_encoder, model_file, say
@@ -18,11 +19,17 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from ..app import create_app
+    from ..config import unknown_variables
     from ..server import server_config
 
     if args.ray:  # a missing extra is said before anything is checked or loaded
         _ray_serving()
     settings = cli_settings(args, SETTING_FLAGS, serving=True)
+    typos, others = unknown_variables(os.environ)
+    if typos:  # the setting meant would silently keep its default
+        raise CliError("; ".join(typos))
+    if others:
+        say(f"ignoring {', '.join(others)}: no omnisplat setting (see service/config.py)")
     try:  # the store must be a folder this user can write in, or one it can make
         settings.store_dir.mkdir(parents=True, exist_ok=True)
         problem = cannot_write_in(settings.store_dir)
@@ -33,9 +40,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if not args.ray:  # Ray Serve binds its own proxy
         _check_port_free(settings.host, settings.port)
     model_file(settings, args.no_build)
-    encoder = None
-    if settings.model_path is not None:  # a model of the user's: one that cannot load fails here, in one line
-        encoder = load_encoder(settings.resolved_model_path, settings.ort_threads)
+    encoder = _checked_encoder(settings, named_by_flag=args.model is not None)
     say(f"model {settings.resolved_model_path}; scenes in {settings.store_dir}")
     if args.ray:  # the replicas load their own: this one is not held while they serve
         encoder = None
@@ -44,6 +49,24 @@ def cmd_serve(args: argparse.Namespace) -> int:
     app = create_app(settings, encoder=encoder)  # the checked model is the served one: loaded once
     uvicorn.Server(server_config(app, settings, log_level=args.log_level)).run()
     return 0
+
+
+def _checked_encoder(settings, *, named_by_flag: bool):
+    """The loaded encoder of the model ``settings`` name. A file that cannot load (not ONNX, another graph, an
+    older exporter's, damaged) fails here in one line naming where it came from: ``--model``,
+    ``OMNISPLAT_MODEL_PATH``, or the default model in ``models_dir``, which a start would otherwise serve as a
+    /readyz 503 that never ends (it exists, so it is not built again)."""
+    path = settings.resolved_model_path
+    try:
+        return load_encoder(path, settings.ort_threads)
+    except CliError as exc:
+        if named_by_flag:
+            raise
+        source = (f"OMNISPLAT_MODEL_PATH {path}" if settings.model_path is not None
+                  else f"the default model {path} (OMNISPLAT_MODELS_DIR)")
+        reason = str(exc).removeprefix(f"--model {path}: ")
+        hint = "" if settings.model_path is not None else "; delete it and `omnisplat serve` builds it again"
+        raise CliError(f"{source}: {reason}{hint}") from None
 
 
 def _check_port_free(host: str, port: int) -> None:

@@ -569,6 +569,46 @@ def test_bad_environment_settings_are_one_line_errors(tmp_path, capsys, monkeypa
     assert err.count("\n") == 1 and "OMNISPLAT_" in err and "Traceback" not in err, err
 
 
+@pytest.mark.parametrize("name, value, says", [
+    ("OMNISPLAT_API_KEY", "s3cret\n", "must not be blank nor begin or end with white space"),  # every /v1 request 401
+    ("OMNISPLAT_API_KEY", "   ", "must not be blank"),
+    ("OMNISPLAT_ALLOWED_HOSTS", "[]", "OMNISPLAT_ALLOWED_HOSTS) is empty"),  # every request 400, /healthz included
+    ("OMNISPLAT_MIN_IMAGE_HEIGHT", "5000", "over max_image_pixels 33554432: every upload would be refused"),
+    ("OMNISPLAT_MAX_IMAGE_PIXELS", "1024", "min_image_height 32 needs panoramas of at least 2048 pixels"),
+])
+def test_settings_that_refuse_every_request_are_one_line_errors(tmp_path, capsys, monkeypatch, name, value, says):
+    """These settings started a server that refused every request (or every upload) it was sent."""
+    monkeypatch.setenv(name, value)
+    assert cli.main(["serve", "--no-build", "--model", str(tmp_path / "m.onnx")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and says in err and "does not exist" not in err and "Traceback" not in err, err
+
+
+def test_serve_refuses_a_misspelt_setting_variable_and_says_which_others_it_ignores(tmp_path, capsys, monkeypatch):
+    """OMNISPLAT_ORT_THREAD=8 left ort_threads at 2 without a word (pydantic-settings ignores unknown names)."""
+    argv = ["serve", "--no-build", "--model", str(tmp_path / "m.onnx")]
+    monkeypatch.setenv("OMNISPLAT_ORT_THREAD", "8")
+    monkeypatch.setenv("OMNISPLAT_NODE_MODULES", str(tmp_path))  # read by the viewer, not a setting: fine
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "OMNISPLAT_ORT_THREAD is no setting; did you mean OMNISPLAT_ORT_THREADS?" in err
+    monkeypatch.delenv("OMNISPLAT_ORT_THREAD")
+    monkeypatch.setenv("OMNISPLAT_SERVICE_HOST", "10.0.0.1")  # close to no setting: said, then the start goes on
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "ignoring OMNISPLAT_SERVICE_HOST: no omnisplat setting" in err and "m.onnx does not exist" in err, err
+    assert "NODE_MODULES" not in err
+
+
+def test_serve_with_a_models_dir_that_is_a_file_is_a_one_line_error(tmp_path, capsys, monkeypatch):
+    """Building the missing default model under a file printed a FileExistsError traceback."""
+    (tmp_path / "models").write_text("not a folder")
+    monkeypatch.setenv("OMNISPLAT_MODELS_DIR", str(tmp_path / "models"))
+    assert cli.main(["serve", "--store", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot be built there" in err and "Traceback" not in err, err
+
+
 def test_commands_that_do_not_serve_ignore_the_servers_host_rule(tmp_path, capsys, monkeypatch):
     """A shell set up for `serve --host 0.0.0.0` (no key) made select refuse and render print a traceback."""
     monkeypatch.setenv("OMNISPLAT_HOST", "0.0.0.0")
@@ -586,6 +626,30 @@ def test_serve_with_a_model_file_that_is_no_model_is_a_one_line_error(tmp_path, 
     assert cli.main(["serve", "--model", str(tmp_path / "m.onnx"), "--store", str(tmp_path / "s")]) == 2
     err = capsys.readouterr().err
     assert "--model" in err and "not a loadable ONNX model" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("source", ["default", "variable"])
+def test_serve_with_a_damaged_model_not_named_by_flag_is_a_one_line_error_naming_its_source(tmp_path, capsys,
+                                                                                           monkeypatch, source):
+    """A damaged default model (in OMNISPLAT_MODELS_DIR) was not loaded before serving: the server started and its
+    /readyz answered 503 for good, since an existing file is never built again; one named by OMNISPLAT_MODEL_PATH
+    was reported as --model, a flag the user never gave."""
+    if source == "default":
+        path = tmp_path / "models" / default_model_name()
+        monkeypatch.setenv("OMNISPLAT_MODELS_DIR", str(tmp_path / "models"))
+    else:
+        path = tmp_path / "m.onnx"
+        monkeypatch.setenv("OMNISPLAT_MODEL_PATH", str(path))
+    path.parent.mkdir(exist_ok=True)
+    path.write_bytes(b"\x89PNG not a model")
+    import uvicorn
+
+    monkeypatch.setattr(uvicorn, "Server", lambda config: pytest.fail("served a model that cannot load"))
+    assert cli.main(["serve", "--store", str(tmp_path / "s"), "--no-build"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not a loadable ONNX model" in err and "--model" not in err and "Traceback" not in err
+    says = f"the default model {path}" if source == "default" else f"OMNISPLAT_MODEL_PATH {path}:"
+    assert says in err and ("delete it" in err) == (source == "default"), err
 
 
 def test_serve_with_a_model_loads_it_once(tmp_path, monkeypatch):
