@@ -63,7 +63,7 @@ def load_encoder(model: Path, threads: int):
     try:
         return OnnxEncoder(model, threads=threads)
     except ValueError as exc:  # an ONNX file that is not an omnisplat encoder, or from an older exporter
-        raise CliError(f"--model {model}: {exc}") from None
+        raise CliError(f"--model {model}: {str(exc).removeprefix(f'{model}: ')}") from None  # the path said once
     except Exception as exc:  # onnxruntime's own errors: a file that is no ONNX model
         if not type(exc).__module__.startswith("onnxruntime"):
             raise

@@ -31,7 +31,8 @@ async def readyz(request: Request, runtime: RuntimeDep, settings: SettingsDep, s
         problem = request.app.state.admission.problem()
         if problem is None:
             problem = await anyio.to_thread.run_sync(store.write_problem, settings.min_free_store_bytes)
-    body = Ready(ready=runtime.ready and problem is None, error=runtime.error or problem)
+    loading = None if runtime.ready or runtime.error else "the model is loading and warming up"
+    body = Ready(ready=runtime.ready and problem is None, error=runtime.error or problem or loading)
     if body.ready:
         return JSONResponse(body.model_dump())
     return JSONResponse(body.model_dump(), status_code=503, headers={"Retry-After": str(settings.retry_after_s)})

@@ -90,3 +90,4 @@ def test_serve_with_a_model_lacking_metadata_is_a_one_line_error(model_path, tmp
     assert cli.main(["serve", "--model", str(path), "--store", str(tmp_path / "s"), "--port", "0"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--model" in err and "has no 'input_height'" in err and "Traceback" not in err, err
+    assert err.count(str(path)) == 1, err  # the file named once

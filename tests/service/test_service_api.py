@@ -393,6 +393,7 @@ def test_not_ready_answers_503(model_path, tmp_path):
             assert "retry-after" in r.headers
             r = await c.get("/readyz")
             assert r.status_code == 503 and r.json()["ready"] is False
+            assert r.json()["error"] == "the model is loading and warming up", r.text
 
     anyio.run(main)
 
