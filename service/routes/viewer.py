@@ -23,7 +23,7 @@ import logging
 import os
 from pathlib import Path
 from typing import Annotated, Literal
-from urllib.parse import urlencode
+from urllib.parse import quote, urlencode
 
 import anyio.to_thread
 from fastapi import APIRouter, Query, Request, Response
@@ -161,8 +161,8 @@ async def viewer_page(request: Request, scene_id: SceneId, store: StoreDep, sett
         target = request.url.path + (f"?{urlencode(rest)}" if rest else "")
         moved = RedirectResponse(target, status_code=303, headers={"Referrer-Policy": "no-referrer",
                                                                    "Cache-Control": "no-store"})
-        if settings.api_key:
-            moved.set_cookie(KEY_COOKIE, key, httponly=True, samesite="strict", path="/")
+        if settings.api_key:  # percent-encoded: a key's "/", "=" or ";" would be quoted, and then not match
+            moved.set_cookie(KEY_COOKIE, quote(key, safe=""), httponly=True, samesite="strict", path="/")
         return moved
     if missing_assets():
         raise _viewer_unavailable()
