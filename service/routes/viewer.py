@@ -20,6 +20,7 @@ from __future__ import annotations
 import html
 import json
 import logging
+import math
 import os
 from pathlib import Path
 from typing import Annotated, Literal
@@ -32,7 +33,7 @@ from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 from ..access import KEY_COOKIE, DuplicateKey, query_key
 from ..deps import KnownQueryParameters, SceneId, SettingsDep, SingleQueryValues, StoreDep
 from ..errors import BadInput, NotFound, ServiceError
-from ..inputs import DEFAULT_FOV_DEG, check_fov, parse_c2w_query
+from ..inputs import _DECIMAL, DEFAULT_FOV_DEG, check_fov, parse_c2w_query
 from ..schemas import error_responses
 
 router = APIRouter(tags=["viewer"], dependencies=[KnownQueryParameters, SingleQueryValues])
@@ -100,18 +101,29 @@ def _page(scene_id: str, meta: dict) -> str:
             .replace("{{COUNT}}", html.escape(str(config["num_gaussians"]))))
 
 
-def _check_camera(c2w: str | None, fov_deg: str | None) -> None:
+def _number(name: str, text: str, what: str) -> float:
+    """``text`` as a finite number when it is a plain ASCII decimal (as the ``c2w`` query's numbers): the page's
+    script reads ``9_0`` or non-ASCII digits as no number, where Python's ``float`` reads 90; else a 422 naming
+    ``name``."""
+    value = float(text) if _DECIMAL.fullmatch(text.strip()) else math.nan
+    if not math.isfinite(value):
+        raise BadInput(f"{name}: must be {what}, got {text[:40]!r}", code="invalid_render_query")
+    return value
+
+
+def _check_camera(c2w: str | None, fov_deg: str | None, width: str | None, height: str | None) -> None:
     """422 naming the parameter when the page's camera is one the render API refuses: the page would show a
-    sheared, mirrored or inside-out view (a field of view past 180 deg turns it over) without a word."""
+    sheared, mirrored or inside-out view (a field of view past 180 deg turns it over) without a word; or when a
+    canvas size is one the page's script cannot read (its error would show on a black page, or not at all
+    with ``bare=1``)."""
     if c2w is not None:
         parse_c2w_query(c2w)
     if fov_deg is not None:
-        try:
-            value = float(fov_deg)
-        except ValueError:
-            raise BadInput(f"fov_deg: must be a number of degrees, got {fov_deg[:40]!r}",
-                           code="invalid_render_query") from None
-        check_fov(value)
+        check_fov(_number("fov_deg", fov_deg, "a number of degrees"))
+    for name, text in (("width", width), ("height", height)):
+        if text is not None and not _number(name, text, "a positive number of pixels") > 0:
+            raise BadInput(f"{name}: must be a positive number of pixels, got {text[:40]!r}",
+                           code="invalid_render_query")
 
 
 @router.get(
@@ -121,7 +133,7 @@ def _check_camera(c2w: str | None, fov_deg: str | None) -> None:
                 "background (the same as the render API's default plain compositing). Orbit with the mouse, "
                 "fly with W/A/S/D/Q/E. The query may place the camera: `c2w` (16 or 12 numbers, row-major, "
                 "OpenCV), `fov_deg` (horizontal; both checked as the render API checks them: 422 for a non-rigid `c2w` or "
-                "a field of view outside 1-170 deg), `width`, `height` (canvas pixels), `bare=1` (no info panel); "
+                "a field of view outside 1-170 deg), `width`, `height` (canvas pixels, positive), `bare=1` (no info panel); "
                 "`format=spz` loads `gaussians.spz` instead (a fifth of the bytes, for slow links; the browser "
                 "takes longer to parse it); any other parameter is a 422. 503 `viewer_unavailable` when the "
                 "npm packages are not installed (`npm ci`).",
@@ -148,7 +160,7 @@ async def viewer_page(request: Request, scene_id: SceneId, store: StoreDep, sett
                           alias="format", description="which file the page loads: the PLY (default) or the SPZ, a "
                                                       "fifth of the bytes (read by the page)")] = "ply",
                       ) -> Response:
-    _check_camera(c2w, fov_deg)
+    _check_camera(c2w, fov_deg, width, height)
     del c2w, fov_deg, width, height, bare, file  # declared so that the query check accepts them; the page's script reads them
     try:
         key = query_key(request.scope).decode("utf-8", "replace") if key is not None else None
