@@ -98,6 +98,16 @@ def test_if_none_match_is_304_without_a_body(client, scene, path, params):
         assert r.status_code == 200 and r.content == full.content, value
 
 
+@pytest.mark.parametrize("path, params", [("render", ERP), ("gaussians.ply", []), ("gaussians.spz", [])])
+def test_scene_files_are_cached_by_the_browser_only(client, scene, path, params):
+    """A shared cache (a proxy, a CDN) may keep a ``public`` answer to a request with a key or the viewer's cookie
+    and give it to anyone without one, and keeps a deleted scene's files for a year: ``private``."""
+    r = client.get(f"/v1/scenes/{scene}/{path}", params=params)
+    assert r.status_code == 200, r.text
+    directives = {d.strip() for d in r.headers["cache-control"].split(",")}
+    assert directives == {"private", "max-age=31536000", "immutable"}, directives
+
+
 def test_render_304_does_not_render(client, live, scene, monkeypatch):
     etag = client.get(f"/v1/scenes/{scene}/render", params=ERP).headers["etag"]
     from service import scenes as work
