@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import socket
 import struct
 import threading
@@ -23,7 +24,7 @@ from starlette.responses import JSONResponse
 from service.config import Settings
 from service.errors import install_error_handlers
 from service.limits import BodySizeLimit
-from service.server import server_config
+from service.server import RedactKeyFilter, server_config
 from tests.service._support import POSES, LiveServer, make_settings, new_scene, panorama, post_scene
 
 
@@ -435,6 +436,16 @@ def test_access_log_redacts_the_viewer_key():
     assert RedactKeyFilter().filter(record)
     message = record.getMessage()
     assert "s3cret" not in message and "key=<redacted>" in message and "fov_deg=70" in message and "x=1" in message
+
+
+
+@pytest.mark.parametrize("query", ["%6Bey=s3cret", "k%65%79=s3cret&x=1", "KEY=s3cret", "fov_deg=70&%6b%45Y=s3cret"])
+def test_access_log_redacts_the_viewer_key_under_an_encoded_name(query):
+    """The guard reads ``%6Bey`` as ``key`` (and opens the page with it); the log showed it as sent."""
+    record = logging.LogRecord("uvicorn.access", logging.INFO, __file__, 1, '%s - "%s %s HTTP/%s" %d',
+                               ("127.0.0.1:5", "GET", f"/v1/scenes/ab/viewer?{query}", "1.1", 303), None)
+    assert RedactKeyFilter().filter(record)
+    assert "s3cret" not in record.getMessage() and "<redacted>" in record.getMessage(), record.getMessage()
 
 
 def test_viewer_unavailable_names_no_server_path(slots, slots_scene, monkeypatch):
