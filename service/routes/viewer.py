@@ -7,7 +7,9 @@ page files in ``service/viewer/`` are served. Without them the page answers 503 
 shape saying how to install them; the rest of the API does not depend on them.
 
 The page and its assets are sent with cross-origin isolation headers (COOP/COEP), which the
-viewer's sort worker needs for SharedArrayBuffer, and ``Referrer-Policy: no-referrer``.
+viewer's sort worker needs for SharedArrayBuffer, ``Referrer-Policy: no-referrer`` and
+``X-Content-Type-Options: nosniff``; the page also with a Content-Security-Policy (:data:`PAGE_CSP`)
+that refuses framing by another site.
 
 A browser cannot send the API key as a header, so the page takes it once as ``?key=``: the
 answer is a 303 to the same URL without it, setting a same-site, HTTP-only cookie that the
@@ -17,11 +19,14 @@ address bar and history at once; the access log shows it redacted (:mod:`service
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import html
 import json
 import logging
 import math
 import os
+import re
 from pathlib import Path
 from typing import Annotated, Literal
 from urllib.parse import quote, urlencode
@@ -56,7 +61,14 @@ ISOLATION_HEADERS = {
     "Cross-Origin-Embedder-Policy": "require-corp",
     "Cross-Origin-Resource-Policy": "same-origin",
     "Referrer-Policy": "no-referrer",
+    "X-Content-Type-Options": "nosniff",
 }
+#: the page's Content-Security-Policy (``{importmap}``: the hash of its inline import map): scripts from this
+#: service only, its sort worker from a blob: URL compiling WebAssembly, requests to this service only, and no
+#: framing by another site (a page framed under a decoy could be clicked through unseen)
+PAGE_CSP = ("default-src 'self'; script-src 'self' {importmap} 'wasm-unsafe-eval'; worker-src 'self' blob:; "
+            "style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; connect-src 'self'; object-src 'none'; "
+            "base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
 _MEDIA = {".js": "text/javascript; charset=utf-8", ".css": "text/css; charset=utf-8"}
 INSTALL_HINT = ("the web viewer's npm packages are not installed: run `npm ci` in the repository root "
                 "(needs Node.js and npm, e.g. `apt-get install nodejs npm`); `bash scripts/serve.sh` does both")
@@ -81,7 +93,16 @@ def _viewer_unavailable() -> ServiceError:
                         code="viewer_unavailable", status=503)
 
 
-def _page(scene_id: str, meta: dict) -> str:
+def page_csp(template: str) -> str:
+    """:data:`PAGE_CSP` for the page ``template``: its inline import map allowed by its SHA-256."""
+    found = re.search(r'<script type="importmap">(.*?)</script>', template, re.S)
+    if found is None:
+        return PAGE_CSP.format(importmap="")
+    digest = base64.b64encode(hashlib.sha256(found.group(1).encode()).digest()).decode()
+    return PAGE_CSP.format(importmap=f"'sha256-{digest}'")
+
+
+def _page(scene_id: str, meta: dict, template: str) -> str:
     c2w_a = meta.get("poses", {}).get("c2w", [None])[0]
     config = {
         "scene_id": scene_id,
@@ -91,7 +112,6 @@ def _page(scene_id: str, meta: dict) -> str:
         "fov_deg": DEFAULT_FOV_DEG,  # horizontal, the render API's perspective default
         "num_gaussians": meta.get("num_gaussians"),
     }
-    template = (PAGE_DIR / "viewer.html").read_text(encoding="utf-8")
     # "</" cannot close the script element from inside the JSON
     blob = json.dumps(config).replace("</", "<\\/")
     return (template.replace("{{CONFIG}}", blob)
@@ -179,7 +199,10 @@ async def viewer_page(request: Request, scene_id: SceneId, store: StoreDep, sett
     if missing_assets():
         raise _viewer_unavailable()
     meta = await anyio.to_thread.run_sync(store.meta, scene_id)
-    return HTMLResponse(_page(scene_id, meta), headers={**ISOLATION_HEADERS, "Cache-Control": "no-cache"})
+    template = (PAGE_DIR / "viewer.html").read_text(encoding="utf-8")
+    return HTMLResponse(_page(scene_id, meta, template),
+                        headers={**ISOLATION_HEADERS, "Content-Security-Policy": page_csp(template),
+                                 "X-Frame-Options": "DENY", "Cache-Control": "private, no-cache"})
 
 
 @router.get("/viewer-assets/{name}", include_in_schema=False)

@@ -6,9 +6,12 @@ Every server here listens on 127.0.0.1 only; slow clients are few and stop by th
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import io
 import json
 import logging
+import re
 import socket
 import struct
 import threading
@@ -473,6 +476,37 @@ def test_docs_page_and_its_files_are_served_locally_without_a_key(model_path, tm
         assert c.get("/docs/oauth2-redirect").status_code == 200
         assert c.get("/v1/info").status_code == 401  # the rest still needs the key
         assert c.get("/redoc").status_code in (401, 404)  # not served (its page loads from CDNs)
+
+
+def _csp(header: str) -> dict[str, list[str]]:
+    return {d.split()[0]: d.split()[1:] for d in header.split(";") if d.strip()}
+
+
+def _inline_script_hashes(page: str) -> set[str]:
+    """``'sha256-...'`` of each inline script a browser runs (an import map is one; JSON data is not)."""
+    scripts = re.findall(r"<script( [^>]*)?>(.*?)</script>", page, re.S)
+    return {f"'sha256-{base64.b64encode(hashlib.sha256(code.encode()).digest()).decode()}'"
+            for attrs, code in scripts if "src=" not in attrs and "application/json" not in attrs}
+
+
+def test_viewer_and_docs_pages_refuse_framing_and_run_only_their_own_scripts(slots, slots_scene):
+    """Neither page said whether it may be framed (another site could lay it under a decoy and have its links,
+    or Swagger UI's *Try it out* with the viewer's cookie, clicked unseen), nor which scripts may run, and no answer
+    said nosniff."""
+    with slots.client() as c:
+        for url in (f"/v1/scenes/{slots_scene}/viewer", "/docs"):
+            r = c.get(url)
+            assert r.status_code == 200, r.text
+            csp = _csp(r.headers["content-security-policy"])
+            assert csp["frame-ancestors"] == ["'none'"] and r.headers["x-frame-options"] == "DENY", url
+            assert csp["object-src"] == ["'none'"] and csp["base-uri"] == ["'none'"], url
+            script_src = set(csp["script-src"])
+            assert "'unsafe-inline'" not in script_src and "'unsafe-eval'" not in script_src, url
+            inline = _inline_script_hashes(r.text)
+            assert inline and inline <= script_src, (url, inline, script_src)  # the page's own inline scripts run
+            assert r.headers["x-content-type-options"] == "nosniff", url
+        for url in ("/viewer-assets/viewer.js", "/viewer-assets/three.module.js", "/docs/assets/swagger-ui.css"):
+            assert c.get(url).headers["x-content-type-options"] == "nosniff", url
 
 
 def test_docs_without_the_npm_package_is_503_json(slots, monkeypatch):
