@@ -38,7 +38,7 @@ from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 from ..access import KEY_COOKIE, DuplicateKey, query_key
 from ..deps import KnownQueryParameters, SceneId, SettingsDep, SingleQueryValues, StoreDep
 from ..errors import BadInput, NotFound, ServiceError
-from ..inputs import _DECIMAL, DEFAULT_FOV_DEG, check_fov, parse_c2w_query
+from ..inputs import _DECIMAL, DEFAULT_FOV_DEG, check_camera_reach, check_fov, parse_c2w_query
 from ..schemas import error_responses
 
 router = APIRouter(tags=["viewer"], dependencies=[KnownQueryParameters, SingleQueryValues])
@@ -137,7 +137,7 @@ def _check_camera(c2w: str | None, fov_deg: str | None, width: str | None, heigh
     canvas size is one the page's script cannot read (its error would show on a black page, or not at all
     with ``bare=1``)."""
     if c2w is not None:
-        parse_c2w_query(c2w)
+        check_camera_reach(parse_c2w_query(c2w))
     if fov_deg is not None:
         check_fov(_number("fov_deg", fov_deg, "a number of degrees"))
     for name, text in (("width", width), ("height", height)):

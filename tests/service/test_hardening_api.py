@@ -396,11 +396,14 @@ def test_a_scene_upload_that_is_no_form_is_415_naming_what_was_sent(client, live
                                           ({"c2w": "1,0,0"}, "c2w"), ({"fov_deg": "9_0"}, "fov_deg"),
                                           ({"fov_deg": "\u0669\u0660"}, "fov_deg"), ({"width": "-5"}, "width"),
                                           ({"width": "abc"}, "width"), ({"height": "0"}, "height"),
-                                          ({"height": "1e400"}, "height"), ({"width": "6_4"}, "width")])
+                                          ({"height": "1e400"}, "height"), ({"width": "6_4"}, "width"),
+                                          ({"c2w": "1,0,0,0,0,1,0,0,0,0,1,1e300"}, "c2w"),
+                                          ({"c2w": "1,0,0,-2e6,0,1,0,0,0,0,1,0"}, "c2w")])
 def test_viewer_camera_the_render_api_refuses_is_422_naming_it(client, scene, params, name):
     """The page would take fov_deg 999 and draw its view turned over, without a word; a fov_deg or canvas size
     its script reads as no number (9_0, Arabic-Indic digits, which Python's float reads as 90) or not positive
-    showed a page that failed in the browser only (unseen with bare=1)."""
+    showed a page that failed in the browser only (unseen with bare=1); a camera 1e300 from the origin, which
+    the render API refuses, a page whose float32 camera cannot be placed."""
     r = client.get(f"/v1/scenes/{scene}/viewer", params=params)
     assert r.status_code == 422, r.text
     assert r.json()["error"]["message"].startswith(name), r.text
