@@ -14,7 +14,9 @@ that refuses framing by another site.
 A browser cannot send the API key as a header, so the page takes it once as ``?key=``: the
 answer is a 303 to the same URL without it, setting a same-site, HTTP-only cookie that the
 page's later requests (the redirect's target, assets, PLY) carry. The key thus leaves the
-address bar and history at once; the access log shows it redacted (:mod:`service.server`).
+address bar at once, and the access log shows it redacted (:mod:`service.server`); but a browser's
+history keeps the URL as it was opened (Chromium records a redirect's first URL as a visit), so a
+shared or synced browser profile holds the key (docs/operations.md).
 """
 
 from __future__ import annotations
