@@ -95,7 +95,7 @@ def is_viewer_page(scope) -> bool:
 
 
 def _given_key(scope, headers: dict[bytes, bytes]) -> bytes:
-    """The API key a request presents: ``Authorization: Bearer``, ``X-API-Key``, the viewer's cookie,
+    """The API key a request presents: ``Authorization: Bearer``, ``X-API-Key``, the viewer's cookie (percent-encoded),
     or (the viewer page only, so a browser can open it) the query parameter ``key``, which wins over
     the cookie there (the page then replaces the cookie with it)."""
     auth = headers.get(b"authorization", b"")
@@ -110,7 +110,7 @@ def _given_key(scope, headers: dict[bytes, bytes]) -> bytes:
     for part in headers.get(b"cookie", b"").split(b";"):
         name, _, value = part.strip().partition(b"=")
         if name == KEY_COOKIE.encode():
-            return value
+            return unquote_to_bytes(value)  # the viewer page sets it percent-encoded
     return b""
 
 

@@ -16,7 +16,9 @@ from pathlib import Path
 
 from fastapi import Request, Response
 
-IMMUTABLE = "public, max-age=31536000, immutable"
+#: ``private``: a shared cache would give an answer to a request with the API key (or the viewer's cookie) to
+#: anyone, and keep a deleted scene's files; the browser that asked keeps them
+IMMUTABLE = "private, max-age=31536000, immutable"
 #: OpenAPI ``responses`` entry of the 304
 NOT_MODIFIED = {"description": "Not Modified: `If-None-Match` names this answer's ETag (no body)"}
 #: scope key :class:`service.app.HeadAsGet` sets on the GET it runs for a HEAD (a route may then skip the body)

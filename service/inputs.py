@@ -377,18 +377,25 @@ def check_fov(fov_deg: float) -> float:
     return fov_deg
 
 
+def check_camera_reach(pose: np.ndarray) -> np.ndarray:
+    """``pose`` (a checked 4x4 c2w) when its camera lies within :data:`MAX_SCENE_EXTENT` of the origin, as the
+    scenes' own cameras (float32 positions beyond cannot resolve a room); else a 422 ``invalid_pose`` naming c2w
+    (renders and the viewer page's camera)."""
+    reach = float(np.abs(pose[:3, 3]).max())
+    if not reach <= MAX_SCENE_EXTENT:
+        shown, limit = distinct_numbers(reach, MAX_SCENE_EXTENT)
+        raise BadInput(f"c2w: the camera lies {shown} from the origin; render cameras, as the scenes' cameras, "
+                       f"must lie within {limit} of it", code="invalid_pose")
+    return pose
+
+
 def check_render_query(c2w: str | np.ndarray, projection: str, width: int, height: int | None, fov_deg: float | None,
                        fmt: str,
                        *, max_width: int, max_pixels: int, compositing: str = "plain", rig: bool = False) -> RenderQuery:
     """The render query of the API (``c2w`` as its query text) or the CLI (a checked 4x4 OpenCV c2w); 422 naming
     the parameter that is out of range. ``height`` and ``fov_deg`` are None where the request names none: only a
     perspective render takes them (default: square, :data:`DEFAULT_FOV_DEG`)."""
-    pose = c2w if isinstance(c2w, np.ndarray) else parse_c2w_query(c2w)
-    reach = float(np.abs(pose[:3, 3]).max())
-    if not reach <= MAX_SCENE_EXTENT:  # as the scenes' own cameras: float32 positions beyond cannot resolve a room
-        shown, limit = distinct_numbers(reach, MAX_SCENE_EXTENT)
-        raise BadInput(f"c2w: the camera lies {shown} from the origin; render cameras, as the scenes' cameras, "
-                       f"must lie within {limit} of it", code="invalid_pose")
+    pose = check_camera_reach(c2w if isinstance(c2w, np.ndarray) else parse_c2w_query(c2w))
     if compositing not in COMPOSITINGS:
         raise BadInput(f"compositing: expected plain or va, got {compositing!r}", code="invalid_render_query")
     if projection not in ("erp", "perspective", "yin", "yang"):

@@ -155,14 +155,16 @@ def _reason(status: int) -> bytes:
         return b""
 
 
-_KEY_PARAM = re.compile(r"(?<=[?&])key=[^&\s\"]*")
+#: a ``key`` query parameter as sent: the name may be percent-encoded (``%6Bey``, which the guard reads as
+#: ``key``) or in capitals (not the key parameter, but a key all the same)
+_KEY_PARAM = re.compile(r"(?<=[?&])(?:k|%[46]b)(?:e|%[46]5)(?:y|%[57]9)=[^&\s\"]*", re.IGNORECASE)
 
 
 class RedactKeyFilter(logging.Filter):
     """Replaces the value of a ``key`` query parameter in access-log records with ``<redacted>``."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if isinstance(record.args, tuple) and any(isinstance(a, str) and "key=" in a for a in record.args):
+        if isinstance(record.args, tuple) and any(isinstance(a, str) and "=" in a for a in record.args):
             record.args = tuple(_KEY_PARAM.sub("key=<redacted>", a) if isinstance(a, str) else a for a in record.args)
         return True
 

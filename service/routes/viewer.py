@@ -7,23 +7,31 @@ page files in ``service/viewer/`` are served. Without them the page answers 503 
 shape saying how to install them; the rest of the API does not depend on them.
 
 The page and its assets are sent with cross-origin isolation headers (COOP/COEP), which the
-viewer's sort worker needs for SharedArrayBuffer, and ``Referrer-Policy: no-referrer``.
+viewer's sort worker needs for SharedArrayBuffer, ``Referrer-Policy: no-referrer`` and
+``X-Content-Type-Options: nosniff``; the page also with a Content-Security-Policy (:data:`PAGE_CSP`)
+that refuses framing by another site.
 
 A browser cannot send the API key as a header, so the page takes it once as ``?key=``: the
 answer is a 303 to the same URL without it, setting a same-site, HTTP-only cookie that the
 page's later requests (the redirect's target, assets, PLY) carry. The key thus leaves the
-address bar and history at once; the access log shows it redacted (:mod:`service.server`).
+address bar at once, and the access log shows it redacted (:mod:`service.server`); but a browser's
+history keeps the URL as it was opened (Chromium records a redirect's first URL as a visit), so a
+shared or synced browser profile holds the key (docs/operations.md).
 """
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import html
 import json
 import logging
+import math
 import os
+import re
 from pathlib import Path
 from typing import Annotated, Literal
-from urllib.parse import urlencode
+from urllib.parse import quote, urlencode
 
 import anyio.to_thread
 from fastapi import APIRouter, Query, Request, Response
@@ -32,7 +40,7 @@ from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 from ..access import KEY_COOKIE, DuplicateKey, query_key
 from ..deps import KnownQueryParameters, SceneId, SettingsDep, SingleQueryValues, StoreDep
 from ..errors import BadInput, NotFound, ServiceError
-from ..inputs import DEFAULT_FOV_DEG, check_fov, parse_c2w_query
+from ..inputs import _DECIMAL, DEFAULT_FOV_DEG, check_camera_reach, check_fov, parse_c2w_query
 from ..schemas import error_responses
 
 router = APIRouter(tags=["viewer"], dependencies=[KnownQueryParameters, SingleQueryValues])
@@ -55,7 +63,14 @@ ISOLATION_HEADERS = {
     "Cross-Origin-Embedder-Policy": "require-corp",
     "Cross-Origin-Resource-Policy": "same-origin",
     "Referrer-Policy": "no-referrer",
+    "X-Content-Type-Options": "nosniff",
 }
+#: the page's Content-Security-Policy (``{importmap}``: the hash of its inline import map): scripts from this
+#: service only, its sort worker from a blob: URL compiling WebAssembly, requests to this service only, and no
+#: framing by another site (a page framed under a decoy could be clicked through unseen)
+PAGE_CSP = ("default-src 'self'; script-src 'self' {importmap} 'wasm-unsafe-eval'; worker-src 'self' blob:; "
+            "style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; connect-src 'self'; object-src 'none'; "
+            "base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
 _MEDIA = {".js": "text/javascript; charset=utf-8", ".css": "text/css; charset=utf-8"}
 INSTALL_HINT = ("the web viewer's npm packages are not installed: run `npm ci` in the repository root "
                 "(needs Node.js and npm, e.g. `apt-get install nodejs npm`); `bash scripts/serve.sh` does both")
@@ -80,7 +95,16 @@ def _viewer_unavailable() -> ServiceError:
                         code="viewer_unavailable", status=503)
 
 
-def _page(scene_id: str, meta: dict) -> str:
+def page_csp(template: str) -> str:
+    """:data:`PAGE_CSP` for the page ``template``: its inline import map allowed by its SHA-256."""
+    found = re.search(r'<script type="importmap">(.*?)</script>', template, re.S)
+    if found is None:
+        return PAGE_CSP.format(importmap="")
+    digest = base64.b64encode(hashlib.sha256(found.group(1).encode()).digest()).decode()
+    return PAGE_CSP.format(importmap=f"'sha256-{digest}'")
+
+
+def _page(scene_id: str, meta: dict, template: str) -> str:
     c2w_a = meta.get("poses", {}).get("c2w", [None])[0]
     config = {
         "scene_id": scene_id,
@@ -90,7 +114,6 @@ def _page(scene_id: str, meta: dict) -> str:
         "fov_deg": DEFAULT_FOV_DEG,  # horizontal, the render API's perspective default
         "num_gaussians": meta.get("num_gaussians"),
     }
-    template = (PAGE_DIR / "viewer.html").read_text(encoding="utf-8")
     # "</" cannot close the script element from inside the JSON
     blob = json.dumps(config).replace("</", "<\\/")
     return (template.replace("{{CONFIG}}", blob)
@@ -100,18 +123,29 @@ def _page(scene_id: str, meta: dict) -> str:
             .replace("{{COUNT}}", html.escape(str(config["num_gaussians"]))))
 
 
-def _check_camera(c2w: str | None, fov_deg: str | None) -> None:
+def _number(name: str, text: str, what: str) -> float:
+    """``text`` as a finite number when it is a plain ASCII decimal (as the ``c2w`` query's numbers): the page's
+    script reads ``9_0`` or non-ASCII digits as no number, where Python's ``float`` reads 90; else a 422 naming
+    ``name``."""
+    value = float(text) if _DECIMAL.fullmatch(text.strip()) else math.nan
+    if not math.isfinite(value):
+        raise BadInput(f"{name}: must be {what}, got {text[:40]!r}", code="invalid_render_query")
+    return value
+
+
+def _check_camera(c2w: str | None, fov_deg: str | None, width: str | None, height: str | None) -> None:
     """422 naming the parameter when the page's camera is one the render API refuses: the page would show a
-    sheared, mirrored or inside-out view (a field of view past 180 deg turns it over) without a word."""
+    sheared, mirrored or inside-out view (a field of view past 180 deg turns it over) without a word; or when a
+    canvas size is one the page's script cannot read (its error would show on a black page, or not at all
+    with ``bare=1``)."""
     if c2w is not None:
-        parse_c2w_query(c2w)
+        check_camera_reach(parse_c2w_query(c2w))
     if fov_deg is not None:
-        try:
-            value = float(fov_deg)
-        except ValueError:
-            raise BadInput(f"fov_deg: must be a number of degrees, got {fov_deg[:40]!r}",
-                           code="invalid_render_query") from None
-        check_fov(value)
+        check_fov(_number("fov_deg", fov_deg, "a number of degrees"))
+    for name, text in (("width", width), ("height", height)):
+        if text is not None and not _number(name, text, "a positive number of pixels") > 0:
+            raise BadInput(f"{name}: must be a positive number of pixels, got {text[:40]!r}",
+                           code="invalid_render_query")
 
 
 @router.get(
@@ -121,7 +155,7 @@ def _check_camera(c2w: str | None, fov_deg: str | None) -> None:
                 "background (the same as the render API's default plain compositing). Orbit with the mouse, "
                 "fly with W/A/S/D/Q/E. The query may place the camera: `c2w` (16 or 12 numbers, row-major, "
                 "OpenCV), `fov_deg` (horizontal; both checked as the render API checks them: 422 for a non-rigid `c2w` or "
-                "a field of view outside 1-170 deg), `width`, `height` (canvas pixels), `bare=1` (no info panel); "
+                "a field of view outside 1-170 deg), `width`, `height` (canvas pixels, positive), `bare=1` (no info panel); "
                 "`format=spz` loads `gaussians.spz` instead (a fifth of the bytes, for slow links; the browser "
                 "takes longer to parse it); any other parameter is a 422. 503 `viewer_unavailable` when the "
                 "npm packages are not installed (`npm ci`).",
@@ -148,7 +182,7 @@ async def viewer_page(request: Request, scene_id: SceneId, store: StoreDep, sett
                           alias="format", description="which file the page loads: the PLY (default) or the SPZ, a "
                                                       "fifth of the bytes (read by the page)")] = "ply",
                       ) -> Response:
-    _check_camera(c2w, fov_deg)
+    _check_camera(c2w, fov_deg, width, height)
     del c2w, fov_deg, width, height, bare, file  # declared so that the query check accepts them; the page's script reads them
     try:
         key = query_key(request.scope).decode("utf-8", "replace") if key is not None else None
@@ -161,13 +195,16 @@ async def viewer_page(request: Request, scene_id: SceneId, store: StoreDep, sett
         target = request.url.path + (f"?{urlencode(rest)}" if rest else "")
         moved = RedirectResponse(target, status_code=303, headers={"Referrer-Policy": "no-referrer",
                                                                    "Cache-Control": "no-store"})
-        if settings.api_key:
-            moved.set_cookie(KEY_COOKIE, key, httponly=True, samesite="strict", path="/")
+        if settings.api_key:  # percent-encoded: a key's "/", "=" or ";" would be quoted, and then not match
+            moved.set_cookie(KEY_COOKIE, quote(key, safe=""), httponly=True, samesite="strict", path="/")
         return moved
     if missing_assets():
         raise _viewer_unavailable()
     meta = await anyio.to_thread.run_sync(store.meta, scene_id)
-    return HTMLResponse(_page(scene_id, meta), headers={**ISOLATION_HEADERS, "Cache-Control": "no-cache"})
+    template = (PAGE_DIR / "viewer.html").read_text(encoding="utf-8")
+    return HTMLResponse(_page(scene_id, meta, template),
+                        headers={**ISOLATION_HEADERS, "Content-Security-Policy": page_csp(template),
+                                 "X-Frame-Options": "DENY", "Cache-Control": "private, no-cache"})
 
 
 @router.get("/viewer-assets/{name}", include_in_schema=False)

@@ -22,6 +22,7 @@ window.viewerInfo = { splatCount: null, error: null, loadSeconds: null, download
 function fail(message) {
   window.viewerInfo.error = String(message);
   status.textContent = 'error: ' + message;
+  document.body.classList.remove('bare'); // bare=1 hides the panel: an error shows it
   console.error('omnisplat viewer: ' + message);
 }
 
@@ -163,7 +164,9 @@ async function main() {
 
   const t0 = performance.now();
   const file = SPZ ? 'gaussians.spz' : 'gaussians.ply';
-  await viewer.addSplatScene(SPZ ? config.spz : config.ply, {
+  // addSplatScene answers an AbortablePromise whose then() takes no rejection handler, so awaiting it directly never
+  // ends when the download fails (the scene deleted, the key's cookie gone); its catch() passes the failure on
+  const loading = viewer.addSplatScene(SPZ ? config.spz : config.ply, {
     format: SPZ ? GaussianSplats3D.SceneFormat.Spz : GaussianSplats3D.SceneFormat.Ply,
     showLoadingUI: false,
     progressiveLoad: false,
@@ -178,6 +181,7 @@ async function main() {
       }
     },
   });
+  await new Promise((resolve, reject) => loading.then(resolve).catch(reject));
   viewer.start();
   window.viewerInfo.loadedSeconds = (performance.now() - t0) / 1000;
   await settled(viewer); // ready = loaded, sorted for this camera, and drawn since

@@ -362,6 +362,24 @@ def test_viewer_page_takes_the_key_once_and_keeps_it_in_a_same_site_cookie(model
             assert twice.status_code == 400 and twice.json()["error"]["code"] == "duplicate_query_parameter"
 
 
+def test_viewer_cookie_carries_a_key_with_characters_a_cookie_quotes(model_path, tmp_path):
+    """A base64 key (``/``, ``+``, ``=``) or one with ``;``, ``,``, quotes or backslashes: a cookie holding it raw
+    is sent back quoted and escaped, so the page's own requests after the 303 were refused with 401."""
+    key = 'Zm9v/YmFy+cXV4=;a,b"c\\d'
+    with LiveServer(make_settings(model_path, tmp_path / "store", api_key=key)) as server, server.client() as c:
+        c.headers["X-API-Key"] = key
+        sid = post_scene(c, panorama(seed=97), panorama(seed=98)).json()["id"]
+        del c.headers["X-API-Key"]
+        moved = c.get(f"/v1/scenes/{sid}/viewer", params={"key": key})
+        assert moved.status_code == 303, moved.text
+        assert key not in moved.headers["set-cookie"]  # percent-encoded, not quoted
+        for path in (moved.headers["location"], f"/v1/scenes/{sid}/gaussians.ply", f"/v1/scenes/{sid}"):
+            assert c.get(path).status_code == 200, path  # the browser's next requests carry the cookie
+        c.cookies.clear()
+        c.cookies.set("omnisplat_key", "Zm9v/YmFy+cXV4=")  # a wrong key stays wrong
+        assert c.get(f"/v1/scenes/{sid}").status_code == 401
+
+
 # -- D10: one error shape ------------------------------------------------------------------------------
 
 def test_405_allow_lists_every_method_of_the_path(guarded, scene):

@@ -98,6 +98,16 @@ def test_if_none_match_is_304_without_a_body(client, scene, path, params):
         assert r.status_code == 200 and r.content == full.content, value
 
 
+@pytest.mark.parametrize("path, params", [("render", ERP), ("gaussians.ply", []), ("gaussians.spz", [])])
+def test_scene_files_are_cached_by_the_browser_only(client, scene, path, params):
+    """A shared cache (a proxy, a CDN) may keep a ``public`` answer to a request with a key or the viewer's cookie
+    and give it to anyone without one, and keeps a deleted scene's files for a year: ``private``."""
+    r = client.get(f"/v1/scenes/{scene}/{path}", params=params)
+    assert r.status_code == 200, r.text
+    directives = {d.strip() for d in r.headers["cache-control"].split(",")}
+    assert directives == {"private", "max-age=31536000", "immutable"}, directives
+
+
 def test_render_304_does_not_render(client, live, scene, monkeypatch):
     etag = client.get(f"/v1/scenes/{scene}/render", params=ERP).headers["etag"]
     from service import scenes as work
@@ -383,9 +393,17 @@ def test_a_scene_upload_that_is_no_form_is_415_naming_what_was_sent(client, live
 @pytest.mark.parametrize("params, name", [({"fov_deg": "999"}, "fov_deg"), ({"fov_deg": "0.001"}, "fov_deg"),
                                           ({"fov_deg": "nan"}, "fov_deg"),
                                           ({"c2w": "2,0,0,0,0,2,0,0,0,0,2,0,0,0,0,1"}, "c2w"),
-                                          ({"c2w": "1,0,0"}, "c2w")])
+                                          ({"c2w": "1,0,0"}, "c2w"), ({"fov_deg": "9_0"}, "fov_deg"),
+                                          ({"fov_deg": "\u0669\u0660"}, "fov_deg"), ({"width": "-5"}, "width"),
+                                          ({"width": "abc"}, "width"), ({"height": "0"}, "height"),
+                                          ({"height": "1e400"}, "height"), ({"width": "6_4"}, "width"),
+                                          ({"c2w": "1,0,0,0,0,1,0,0,0,0,1,1e300"}, "c2w"),
+                                          ({"c2w": "1,0,0,-2e6,0,1,0,0,0,0,1,0"}, "c2w")])
 def test_viewer_camera_the_render_api_refuses_is_422_naming_it(client, scene, params, name):
-    """The page would take fov_deg 999 and draw its view turned over, without a word."""
+    """The page would take fov_deg 999 and draw its view turned over, without a word; a fov_deg or canvas size
+    its script reads as no number (9_0, Arabic-Indic digits, which Python's float reads as 90) or not positive
+    showed a page that failed in the browser only (unseen with bare=1); a camera 1e300 from the origin, which
+    the render API refuses, a page whose float32 camera cannot be placed."""
     r = client.get(f"/v1/scenes/{scene}/viewer", params=params)
     assert r.status_code == 422, r.text
     assert r.json()["error"]["message"].startswith(name), r.text

@@ -6,8 +6,12 @@ Every server here listens on 127.0.0.1 only; slow clients are few and stop by th
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import io
 import json
+import logging
+import re
 import socket
 import struct
 import threading
@@ -23,7 +27,7 @@ from starlette.responses import JSONResponse
 from service.config import Settings
 from service.errors import install_error_handlers
 from service.limits import BodySizeLimit
-from service.server import server_config
+from service.server import RedactKeyFilter, server_config
 from tests.service._support import POSES, LiveServer, make_settings, new_scene, panorama, post_scene
 
 
@@ -437,6 +441,16 @@ def test_access_log_redacts_the_viewer_key():
     assert "s3cret" not in message and "key=<redacted>" in message and "fov_deg=70" in message and "x=1" in message
 
 
+
+@pytest.mark.parametrize("query", ["%6Bey=s3cret", "k%65%79=s3cret&x=1", "KEY=s3cret", "fov_deg=70&%6b%45Y=s3cret"])
+def test_access_log_redacts_the_viewer_key_under_an_encoded_name(query):
+    """The guard reads ``%6Bey`` as ``key`` (and opens the page with it); the log showed it as sent."""
+    record = logging.LogRecord("uvicorn.access", logging.INFO, __file__, 1, '%s - "%s %s HTTP/%s" %d',
+                               ("127.0.0.1:5", "GET", f"/v1/scenes/ab/viewer?{query}", "1.1", 303), None)
+    assert RedactKeyFilter().filter(record)
+    assert "s3cret" not in record.getMessage() and "<redacted>" in record.getMessage(), record.getMessage()
+
+
 def test_viewer_unavailable_names_no_server_path(slots, slots_scene, monkeypatch):
     monkeypatch.setenv("OMNISPLAT_NODE_MODULES", "/nonexistent-omnisplat-test/node_modules")
     with slots.client() as c:
@@ -462,6 +476,37 @@ def test_docs_page_and_its_files_are_served_locally_without_a_key(model_path, tm
         assert c.get("/docs/oauth2-redirect").status_code == 200
         assert c.get("/v1/info").status_code == 401  # the rest still needs the key
         assert c.get("/redoc").status_code in (401, 404)  # not served (its page loads from CDNs)
+
+
+def _csp(header: str) -> dict[str, list[str]]:
+    return {d.split()[0]: d.split()[1:] for d in header.split(";") if d.strip()}
+
+
+def _inline_script_hashes(page: str) -> set[str]:
+    """``'sha256-...'`` of each inline script a browser runs (an import map is one; JSON data is not)."""
+    scripts = re.findall(r"<script( [^>]*)?>(.*?)</script>", page, re.S)
+    return {f"'sha256-{base64.b64encode(hashlib.sha256(code.encode()).digest()).decode()}'"
+            for attrs, code in scripts if "src=" not in attrs and "application/json" not in attrs}
+
+
+def test_viewer_and_docs_pages_refuse_framing_and_run_only_their_own_scripts(slots, slots_scene):
+    """Neither page said whether it may be framed (another site could lay it under a decoy and have its links,
+    or Swagger UI's *Try it out* with the viewer's cookie, clicked unseen), nor which scripts may run, and no answer
+    said nosniff."""
+    with slots.client() as c:
+        for url in (f"/v1/scenes/{slots_scene}/viewer", "/docs"):
+            r = c.get(url)
+            assert r.status_code == 200, r.text
+            csp = _csp(r.headers["content-security-policy"])
+            assert csp["frame-ancestors"] == ["'none'"] and r.headers["x-frame-options"] == "DENY", url
+            assert csp["object-src"] == ["'none'"] and csp["base-uri"] == ["'none'"], url
+            script_src = set(csp["script-src"])
+            assert "'unsafe-inline'" not in script_src and "'unsafe-eval'" not in script_src, url
+            inline = _inline_script_hashes(r.text)
+            assert inline and inline <= script_src, (url, inline, script_src)  # the page's own inline scripts run
+            assert r.headers["x-content-type-options"] == "nosniff", url
+        for url in ("/viewer-assets/viewer.js", "/viewer-assets/three.module.js", "/docs/assets/swagger-ui.css"):
+            assert c.get(url).headers["x-content-type-options"] == "nosniff", url
 
 
 def test_docs_without_the_npm_package_is_503_json(slots, monkeypatch):

@@ -196,6 +196,23 @@ def test_viewer_matches_api_render_at_2048_input(zind2k, tmp_path):
     check_viewer_matches_api(zind2k, tmp_path, yaws=(0, 180))
 
 
+def test_viewer_says_when_its_scene_file_cannot_be_loaded(m3d, tmp_path):
+    """A scene deleted after its page was served (its PLY answers 404): the page says so in its panel, shown even
+    with ``bare=1``, instead of waiting at 'downloading 0%' with the error uncaught."""
+    server, scene_id, scene = m3d
+    args = {"base_url": server.url, "scene_id": scene_id, "width": 320, "height": 240, "fov_deg": FOV_DEG,
+            "poses": [{"name": "gone", "c2w": target_pose(scene).ravel().tolist()}], "out_dir": str(tmp_path),
+            "chromium": find_chromium(), "timeout_s": 60, "scene_gone": True}
+    proc = subprocess.run(["node", str(DRIVER), json.dumps(args)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=240)
+    assert proc.returncode == 0, f"viewer driver failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}"
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    view = report["views"][0]
+    assert view["error"] is not None and "Could not load file" in view["error"], view
+    assert view["panel_visible"] is True, view
+    assert report["page_errors"] == [], report["page_errors"]  # the failure is the page's, not uncaught
+
+
 # -- the page without a browser ------------------------------------------------------------------------
 
 def test_viewer_page_config_headers_and_assets(m3d):

@@ -5,6 +5,8 @@
 //     "poses": [{"name": "yaw0", "c2w": [16 numbers]}], "width": 640, "height": 480, "fov_deg": 90,
 //     "out_dir": "OUT_DIR", "chromium": "/usr/bin/chromium", "timeout_s": 120,
 //     "reload": false, "format": "ply" (or "spz": the page's ?format=),
+//     "scene_gone": false (true: the scene's files answer the service's 404, as for a scene deleted after its
+//     page was served; each view then reports "panel_visible"),
 //     "page_shot": {"path": "page.png", "width": 960, "height": 600, "query": "c2w=..."}}'
 //
 // Prints one JSON object: {"views": [{"name", "screenshot", "splat_count", "load_seconds", "error"}],
@@ -65,6 +67,13 @@ try {
         page = await browser.newPage();
         await page.setViewport({ width, height, deviceScaleFactor: 1 });
         watch(page, () => current);
+        if (args.scene_gone) {
+          await page.setRequestInterception(true);
+          page.on('request', (req) => (/\/gaussians\.(ply|spz)$/.test(new URL(req.url()).pathname)
+            ? req.respond({ status: 404, contentType: 'application/json',
+              body: JSON.stringify({ error: { code: 'scene_not_found', message: 'no scene with that id' } }) })
+            : req.continue()));
+        }
         const q = new URLSearchParams({
           c2w: pose.c2w.join(','), fov_deg: String(args.fov_deg || 90),
           width: String(width), height: String(height), bare: '1',
@@ -85,6 +94,7 @@ try {
       view.load_seconds = info.loadSeconds;
       view.download_percent = info.downloadPercent;
       view.error = info.error;
+      view.panel_visible = await page.evaluate(() => document.getElementById('panel').offsetParent !== null);
       view.screenshot = path.join(args.out_dir, `viewer-${pose.name}.png`);
       await page.screenshot({ path: view.screenshot, clip: { x: 0, y: 0, width, height } });
     } catch (err) {
