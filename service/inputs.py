@@ -277,15 +277,16 @@ def parse_options(text: str | bytes | None, accepted: set[str] | None = None,
                        code="invalid_options") from None
 
 
-#: a number of the ``c2w`` query: plain ASCII decimal, as JSON and JavaScript write it (an optional sign and exponent)
-_DECIMAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+#: a number of a query (c2w's, width, height, fov_deg, the viewer page's): plain ASCII decimal, as JSON and JavaScript
+#: write it (an optional sign and exponent)
+PLAIN_DECIMAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 _NON_FINITE = frozenset({"nan", "+nan", "-nan", "inf", "+inf", "-inf", "infinity", "+infinity", "-infinity"})
 _INTEGER = re.compile(r"[+-]?[0-9]+")
 
 
 def _plain(pattern: re.Pattern, kind: str):
     """A query value's check before its type's own parsing: a text must be a plain ASCII decimal ``kind``, as
-    :data:`_DECIMAL` (pydantic, as Python, also reads digit groups such as ``6_4`` as 64 and non-ASCII digits)."""
+    :data:`PLAIN_DECIMAL` (pydantic, as Python, also reads digit groups such as ``6_4`` as 64 and non-ASCII digits)."""
     def check(value):
         if isinstance(value, str) and not pattern.fullmatch(value.strip()):
             raise ValueError(f"expected a plain decimal {kind}, got {value[:40]!r}")
@@ -295,13 +296,13 @@ def _plain(pattern: re.Pattern, kind: str):
 
 #: Integer and number query parameters of the routes: plain ASCII decimals only, as the ``c2w`` query's numbers.
 QueryInt = Annotated[int, BeforeValidator(_plain(_INTEGER, "integer such as 1024"))]
-QueryFloat = Annotated[float, BeforeValidator(_plain(_DECIMAL, "number such as 90 or 62.5"))]
+QueryFloat = Annotated[float, BeforeValidator(_plain(PLAIN_DECIMAL, "number such as 90 or 62.5"))]
 
 
 def parse_c2w_query(text: str) -> np.ndarray:
     """``c2w`` query: 16 or 12 comma-separated numbers, row-major, OpenCV camera-to-world.
 
-    Each number is a plain decimal (:data:`_DECIMAL`): Python's ``float`` also reads digit groups (``0_5`` as 5)
+    Each number is a plain decimal (:data:`PLAIN_DECIMAL`): Python's ``float`` also reads digit groups (``0_5`` as 5)
     and non-ASCII digits, which the viewer page's script (and most clients) read as no number at all, so the
     camera the service renders would not be the one the request names.
     """
@@ -311,7 +312,7 @@ def parse_c2w_query(text: str) -> np.ndarray:
                        code="invalid_pose")
     if any(p.lower() in _NON_FINITE for p in parts):
         raise BadInput("c2w: contains NaN or Inf", code="invalid_pose")
-    bad = next((k for k, p in enumerate(parts) if not _DECIMAL.fullmatch(p)), None)
+    bad = next((k for k, p in enumerate(parts) if not PLAIN_DECIMAL.fullmatch(p)), None)
     if bad is not None:
         raise BadInput(f"c2w: entry {bad + 1} ({parts[bad][:40]!r}) is not a number; write plain decimal numbers "
                        "such as 0.5, -2 or 1e-3", code="invalid_pose")

@@ -40,7 +40,7 @@ from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 from ..access import KEY_COOKIE, DuplicateKey, query_key
 from ..deps import KnownQueryParameters, SceneId, SettingsDep, SingleQueryValues, StoreDep
 from ..errors import BadInput, NotFound, ServiceError
-from ..inputs import _DECIMAL, DEFAULT_FOV_DEG, check_camera_reach, check_fov, parse_c2w_query
+from ..inputs import DEFAULT_FOV_DEG, PLAIN_DECIMAL, check_camera_reach, check_fov, parse_c2w_query
 from ..schemas import error_responses
 
 router = APIRouter(tags=["viewer"], dependencies=[KnownQueryParameters, SingleQueryValues])
@@ -127,7 +127,7 @@ def _number(name: str, text: str, what: str) -> float:
     """``text`` as a finite number when it is a plain ASCII decimal (as the ``c2w`` query's numbers): the page's
     script reads ``9_0`` or non-ASCII digits as no number, where Python's ``float`` reads 90; else a 422 naming
     ``name``."""
-    value = float(text) if _DECIMAL.fullmatch(text.strip()) else math.nan
+    value = float(text) if PLAIN_DECIMAL.fullmatch(text.strip()) else math.nan
     if not math.isfinite(value):
         raise BadInput(f"{name}: must be {what}, got {text[:40]!r}", code="invalid_render_query")
     return value
