@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -30,8 +31,9 @@ def cli_settings(args=None, flags: dict | None = None, *, serving: bool = False,
     flags = flags or {}
     given = {field: getattr(args, dest) for field, (dest, _) in flags.items() if getattr(args, dest) is not None}
     values = {**given, **extra}
-    if "max_upload_bytes" in values:  # the flag is in MiB
-        values["max_upload_bytes"] = int(values["max_upload_bytes"] * 1024 * 1024)
+    if "max_upload_bytes" in values:  # the flag is in MiB; NaN and Inf are left for the field's own check
+        mib = values["max_upload_bytes"]
+        values["max_upload_bytes"] = int(mib * 1024 * 1024) if math.isfinite(mib) else mib
     if not serving:
         values.setdefault("host", "127.0.0.1")
     try:
@@ -48,8 +50,8 @@ def _setting_error(err: dict, args, flags: dict, given: dict) -> str:
     msg = str(err.get("msg", "invalid")).removeprefix("Value error, ")
     if field in given:
         dest, flag = flags[field]
-        units = (" bytes", " MiB") if field == "max_upload_bytes" else ("", "")  # the limit in bytes, the flag in MiB
-        return f"{flag}: {msg}{units[0]} (got {getattr(args, dest)!r}{units[1]})"
+        mib = field == "max_upload_bytes"  # a limit in the message is in bytes, the flag in MiB
+        return f"{flag}: {msg}{' bytes' * (mib and msg[-1:].isdigit())} (got {getattr(args, dest)!r}{' MiB' * mib})"
     if not field:  # a rule across settings (its message names them)
         return f"OMNISPLAT_* settings: {msg}"
     return f"OMNISPLAT_{field.upper()}: {msg} (got {err.get('input')!r})"

@@ -521,6 +521,15 @@ def test_serve_setting_errors_name_the_flags_and_variables(tmp_path, capsys, mon
     assert "OMNISPLAT_MAX_REQUESTS: " in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("value", ["nan", "inf"])
+def test_serve_max_upload_that_is_no_number_of_mib_is_a_one_line_error(tmp_path, capsys, value):
+    """The MiB flag is turned into bytes before the settings check it: NaN and Inf must reach that check."""
+    argv = ["serve", f"--max-upload-mb={value}", "--store", str(tmp_path / "s"), "--no-build"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"--max-upload-mb: Input should be a finite number (got {value} MiB)" in err and "Traceback" not in err, err
+
+
 def test_select_and_edit_on_a_server_store_keep_its_writes_and_take_its_settings(tmp_path, capsys, monkeypatch):
     """The CLI borrows the server's store: it never clears what the server is writing (tmp/, trash/, artifact
     .tmp files) and keeps the store settings of the environment (budget, max scenes); --store moves the folder."""
