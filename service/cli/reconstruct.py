@@ -130,6 +130,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     check_output(args.output, "-o", (".ply", ".spz"), "a Gaussian PLY or SPZ", inputs)
     if args.json is not None:
         check_output(args.json, "--json", (".json",), "the summary", inputs)
+    # the model and its threads are checked as serve checks them (1-256 threads), before any work
+    settings = cli_settings(args, {"model_path": ("model", "--model"), "ort_threads": ("threads", "--threads")})
     # wide JPEGs at a reduced scale, as the API reads them for a model no wider than the pose features read; bad
     # inputs fail before any model build
     erp_a, erp_b, c2w_a, c2w_b, source = load_pair(args, MAX_ERP_WIDTH)
@@ -164,13 +166,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         check_sweep_range(c2w_a, c2w_b, {"near": args.near, "far": args.far})
     except ServiceError as exc:
         raise CliError(option_message(exc.message)) from None
-    settings = cli_settings(args, {"model_path": ("model", "--model")})
     model = model_file(settings, args.no_build)
     say(f"loading model {model}")
     from ..encoder import EncoderInputError
 
     t0 = time.perf_counter()
-    encoder = load_encoder(model, args.threads)
+    encoder = load_encoder(model, settings.ort_threads)
     load_s = time.perf_counter() - t0
     if read_width(encoder.height) > MAX_ERP_WIDTH:  # a wider model reads more columns
         erp_a, erp_b, *_ = load_pair(args, read_width(encoder.height))
@@ -230,7 +231,7 @@ def add_parser(sub) -> None:
     r.add_argument("--no-build", action="store_true", help="fail instead of building a missing model")
     r.add_argument("--near", type=float, help="nearest depth in metres (default from the baseline)")
     r.add_argument("--far", type=float, help="farthest depth in metres")
-    r.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
+    r.add_argument("--threads", type=int, help="onnxruntime threads, 1-256 (default 2)")
     c = r.add_argument_group("leave out what the scene does not need (default: min opacity and the smooth merge)")
     c.add_argument("--no-compaction", action="store_true", help="keep every pixel-aligned Gaussian")
     c.add_argument("--no-merge-smooth", action="store_true",

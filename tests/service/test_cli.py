@@ -430,6 +430,8 @@ def _no_model(tmp_path: Path) -> list[str]:
     (["--json", "{tmp}/x.ply"], "must end in .json"),
     (["-o", "{room}/scene.json/x.ply"], "is a file, not a folder"),  # refused only after the reconstruction
     (["-o", ""], "-o: give a file name"),
+    (["--threads", "100000"], "--threads: Input should be less than or equal to 256"),  # took 16 GB of thread stacks
+    (["--threads", "-1"], "--threads: Input should be greater than or equal to 1"),  # was taken as it came
 ])
 def test_reconstruct_refuses_bad_outputs_and_splits_before_any_work(tmp_path, capsys, extra, says):
     room = _sample_copy(tmp_path)
