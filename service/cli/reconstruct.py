@@ -30,13 +30,23 @@ def load_pair(args: argparse.Namespace, min_width: int | None = None):
 
     Two images without ``--poses`` give ``c2w_a = c2w_b = None``: the poses are estimated. The description names
     the inputs and, with poses, the ``convention`` they were written in (the poses returned are OpenCV c2w).
+    A flag the inputs do not use is refused, not dropped: ``--poses`` with a scene folder (its poses are in
+    scene.json), ``--refs`` / ``--split`` with two images, and an empty ``--poses`` file (an empty API field
+    means "estimate them"; a file named on the command line that holds nothing is a mistake).
     """
     from rasterizer.geometry import PoseError
     from rasterizer.scene_folder import load_scene
 
-    from ..inputs import parse_poses
+    from ..inputs import parse_poses, without_bom
 
     inputs = [Path(p) for p in args.inputs]
+    refs, split = getattr(args, "refs", None), getattr(args, "split", None)
+    if len(inputs) == 1 and args.poses is not None:
+        raise CliError(f"--poses: {inputs[0]} is a scene folder, whose poses are its scene.json's; "
+                       "give --poses with two images")
+    if len(inputs) == 2 and (refs is not None or split is not None):
+        raise CliError(f"{'--refs' if refs is not None else '--split'}: chooses the references of a scene folder; "
+                       "with two images, they are the references")
     if len(inputs) == 1:
         if not (inputs[0] / "scene.json").is_file():
             raise CliError(f"{inputs[0]} is not a scene folder (no scene.json); pass a folder or two images")
@@ -49,13 +59,14 @@ def load_pair(args: argparse.Namespace, min_width: int | None = None):
         except (KeyError, TypeError, AttributeError) as exc:  # a JSON value of another shape than the layout's
             what = f"lacks the key {exc}" if isinstance(exc, KeyError) else f"holds a value of the wrong type ({exc})"
             raise CliError(f"{inputs[0] / 'scene.json'}: {what}; expected {SCENE_LAYOUT}") from None
-        if args.split < 0 or (not args.refs and args.split and args.split >= len(scene.splits)):
+        split = split or 0
+        if split < 0 or (not refs and split and split >= len(scene.splits)):
             have = f"splits 0-{len(scene.splits) - 1}" if scene.splits else "no splits (its first two frames are used)"
-            raise CliError(f"--split {args.split}: {inputs[0]} has {have}")
-        if args.refs:
-            refs = tuple(args.refs.split(","))
+            raise CliError(f"--split {split}: {inputs[0]} has {have}")
+        if refs:
+            refs = tuple(refs.split(","))
         elif scene.splits:
-            refs = scene.splits[args.split].references
+            refs = scene.splits[split].references
         else:
             refs = tuple(list(scene.frames)[:2])
         if len(refs) != 2 or any(r not in scene.frames for r in refs):
@@ -67,7 +78,10 @@ def load_pair(args: argparse.Namespace, min_width: int | None = None):
         from ..errors import ServiceError
 
         try:
-            poses = parse_poses(Path(args.poses).read_bytes()) if args.poses is not None else None
+            text = Path(args.poses).read_bytes() if args.poses is not None else None
+            if text is not None and not without_bom(text).strip():
+                raise CliError(f"--poses {args.poses}: the file is empty; leave --poses out to estimate the poses")
+            poses = parse_poses(text)
         except ServiceError as exc:
             raise CliError(f"{args.poses}: {exc.message}") from None
         except OSError as exc:
@@ -222,7 +236,7 @@ def add_parser(sub) -> None:
     r.add_argument("--camera-height", type=float, help="estimated poses: metres of camera A above the floor (sets the scale)")
     r.add_argument("--baseline", type=float, help="estimated poses: metres between the cameras (sets the scale)")
     r.add_argument("--refine-poses", action="store_true", help="refine given poses against the images (upright model)")
-    r.add_argument("--split", type=int, default=0, help="scene folder: which split's references (default 0)")
+    r.add_argument("--split", type=int, help="scene folder: which split's references (default 0)")
     r.add_argument("--refs", help="scene folder: two frame names, e.g. 00,02 (overrides --split)")
     r.add_argument("-o", "--output", default="scene.ply",
                    help="output PLY (default scene.ply), or SPZ (a name ending in .spz: a fifth of the bytes)")

@@ -443,6 +443,28 @@ def test_reconstruct_refuses_bad_outputs_and_splits_before_any_work(tmp_path, ca
     assert {p: p.read_bytes() for p in room.rglob("*") if p.is_file()} == before
 
 
+@pytest.mark.parametrize("command", ["reconstruct", "refine"])
+@pytest.mark.parametrize("inputs, extra, says", [
+    (["room"], ["--poses", "{tmp}/missing.json"], "--poses: {room} is a scene folder"),  # dropped without a word
+    (["a", "b"], ["--refs", "00,02"], "--refs: chooses the references of a scene folder"),  # dropped as well
+    (["a", "b"], ["--split", "0"], "--split: chooses the references of a scene folder"),
+    (["a", "b"], ["--poses", "{tmp}/empty.json"], "the file is empty; leave --poses out"),  # poses were estimated
+])
+def test_flags_the_inputs_do_not_use_are_refused(tmp_path, capsys, command, inputs, extra, says):
+    (tmp_path / "empty.json").write_bytes(b" \n")
+    paths = {"room": str(SAMPLE), "a": str(SAMPLE / "images" / "00.png"), "b": str(SAMPLE / "images" / "02.png")}
+    if command == "reconstruct":
+        argv = ["reconstruct", *(paths[i] for i in inputs), *_no_model(tmp_path), "-o", str(tmp_path / "s.ply")]
+    else:
+        ply_with_nan(tmp_path / "in.ply", 10, [])
+        argv = ["refine", str(tmp_path / "in.ply"), *(paths[i] for i in inputs), "--out", str(tmp_path / "s.ply"),
+                "--iterations", "1", "--height", "16"]
+    assert cli.main([*argv, *(e.format(tmp=tmp_path) for e in extra)]) == 2
+    err = capsys.readouterr().err
+    assert says.format(room=SAMPLE) in err and "Traceback" not in err, err
+    assert not (tmp_path / "s.ply").exists()
+
+
 def test_reconstruct_split_message_names_the_folders_splits(tmp_path, capsys):
     room = _sample_copy(tmp_path)
     assert cli.main(["reconstruct", str(room), *_no_model(tmp_path), "--split", "5"]) == 2
