@@ -28,7 +28,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
         RefineRequest.model_validate(params)
     except ValidationError as exc:
         raise CliError(as_flags(describe_error(exc, prefix="refine"), params, prefix="refine.")) from None
-    check_output(args.out, "--out", (".ply", ".spz"), "a Gaussian PLY or SPZ")
+    check_output(args.out, "--out", (".ply", ".spz"), "a Gaussian PLY or SPZ", [args.ply, *args.inputs, args.poses])
     g = read_gaussians(args.ply)
     erp_a, erp_b, c2w_a, c2w_b, desc = load_pair(args)
     if c2w_a is None:
