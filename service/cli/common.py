@@ -157,20 +157,34 @@ def model_file(settings, no_build: bool) -> Path:
 def write_output(path: str | Path, data) -> None:
     """Write ``data`` (bytes, or a :class:`rasterizer.gaussians.Gaussians` as a PLY, or as SPZ when the name
     ends in ``.spz``) to ``path``, making its folders (as :func:`check_output` allowed); an OSError, or Gaussians
-    SPZ cannot hold, is a CliError naming the file."""
+    SPZ cannot hold, is a CliError naming the file.
+
+    Every format is written to a hidden temporary file beside ``path`` and renamed over it, so that a write that
+    fails (a full disk, a file size limit, Ctrl-C) leaves neither a truncated file nor a damaged older one; a
+    symbolic link is written through (its target replaced), as a plain write would."""
+    import os
+    import uuid
+
+    from rasterizer.ply import ply_bytes
     from rasterizer.spz import SpzError, spz_bytes
 
     out = Path(path)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         if isinstance(data, bytes):
-            out.write_bytes(data)
+            payload = data
         elif out.suffix.lower() == ".spz":
-            out.write_bytes(spz_bytes(data))
+            payload = spz_bytes(data)
         else:
-            from rasterizer.ply import write_ply
-
-            write_ply(out, data)
+            payload = ply_bytes(data)
+        target = out.resolve() if out.is_symlink() else out
+        tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex[:12]}.tmp")
+        try:
+            tmp.write_bytes(payload)
+            os.replace(tmp, target)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
     except OSError as exc:
         raise CliError(f"cannot write {out}: {exc.strerror or exc}") from None
     except SpzError as exc:
