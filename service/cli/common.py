@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -107,17 +108,23 @@ def check_suffix(path: str | Path, flag: str, suffixes: tuple[str, ...], what: s
     return suffix
 
 
-def check_output(path: str | Path, flag: str, suffixes: tuple[str, ...], what: str, inputs=()) -> str:
+def check_output(path: str | Path, flag: str, suffixes: tuple[str, ...], what: str, inputs=(), outputs=()) -> str:
     """``path``'s suffix (:func:`check_suffix`) once the output is known to be writable, before any work:
     a CliError naming ``flag`` for an empty name, a folder, a path under a file, a folder this user cannot
-    write in (probed with a temporary file), or one of the command's ``inputs`` (paths, None skipped), which
-    the output would overwrite."""
+    write in (probed with a temporary file), one of the command's ``inputs`` (paths, None skipped), which
+    the output would overwrite, or a path inside another of its ``outputs`` or above one: the second file
+    written would fail on the first, after the work and with the first left behind."""
     if not str(path).strip():
         raise CliError(f"{flag}: give a file name")
     out = Path(path)
     if out.is_dir():
         raise CliError(f"{flag} {path} is a folder; give a file name")
     suffix = check_suffix(path, flag, suffixes, what)
+    for other in outputs:
+        a, b = Path(os.path.abspath(out)), Path(os.path.abspath(other))
+        if a == b or a in b.parents or b in a.parents:
+            raise CliError(f"{flag} {path}: it and the output {other} cannot both be files (the same path, or one "
+                           "under the other); give the outputs separate names")
     if out.exists() and any(p is not None and Path(p).exists() and Path(p).samefile(out) for p in inputs):
         raise CliError(f"{flag} {path} is one of the command's inputs; give another file name")
     folder = out.absolute().parent

@@ -143,7 +143,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     inputs = [*args.inputs, args.poses, *(Path(p) / "scene.json" for p in args.inputs if Path(p).is_dir())]
     check_output(args.output, "-o", (".ply", ".spz"), "a Gaussian PLY or SPZ", inputs)
     if args.json is not None:
-        check_output(args.json, "--json", (".json",), "the summary", inputs)
+        check_output(args.json, "--json", (".json",), "the summary", inputs, outputs=[args.output])
     # the model and its threads are checked as serve checks them (1-256 threads), before any work
     settings = cli_settings(args, {"model_path": ("model", "--model"), "ort_threads": ("threads", "--threads")})
     # wide JPEGs at a reduced scale, as the API reads them for a model no wider than the pose features read; bad

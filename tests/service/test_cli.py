@@ -430,6 +430,8 @@ def _no_model(tmp_path: Path) -> list[str]:
     (["--json", "{tmp}/x.ply"], "must end in .json"),
     (["-o", "{room}/scene.json/x.ply"], "is a file, not a folder"),  # refused only after the reconstruction
     (["-o", ""], "-o: give a file name"),
+    (["-o", "{tmp}/n/x.json/s.ply", "--json", "{tmp}/n/x.json"], "give the outputs separate names"),  # the PLY
+    (["-o", "{tmp}/n/s.ply", "--json", "{tmp}/n/s.ply/x.json"], "give the outputs separate names"),  # was left
     (["--threads", "100000"], "--threads: Input should be less than or equal to 256"),  # took 16 GB of thread stacks
     (["--threads", "-1"], "--threads: Input should be greater than or equal to 1"),  # was taken as it came
 ])
