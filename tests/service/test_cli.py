@@ -321,6 +321,18 @@ def test_select_and_edit_with_a_store_that_is_a_file_is_a_one_line_error(tmp_pat
         assert "--store" in err and "scene store" in err and "Traceback" not in err
 
 
+def test_select_and_edit_in_a_folder_that_holds_no_store_make_none(tmp_path, capsys):
+    """A mistyped --store was made into an empty store (scenes/, tmp/, trash/), then said 'no scene with id'."""
+    (tmp_path / "elsewhere").mkdir()
+    for store in (tmp_path / "typo", tmp_path / "elsewhere"):
+        for argv in (["select", "0" * 32, "--view", "a", "--point", "0.5,0.5"],
+                     ["edit", "0" * 32, "--selection", "0" * 32, "--op", "remove"]):
+            assert cli.main([argv[0], "--store", str(store), *argv[1:]]) == 2
+            err = capsys.readouterr().err
+            assert f"--store {store}: no scene store there" in err and "Traceback" not in err, err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["elsewhere"]
+
+
 @pytest.mark.parametrize("argv, says", [
     (["select", "../../etc", "--view", "a", "--point", "0.5,0.5"], "invalid_scene_id"),  # was a traceback
     (["select", "0" * 32, "--view", "a", "--point", "0.5,0.5", "--negative", "1.5,0.5"],
@@ -338,6 +350,7 @@ def test_select_and_edit_with_a_store_that_is_a_file_is_a_one_line_error(tmp_pat
      "--offset: the translate op needs dx, dy, dz, each within +-1e+06"),
 ])
 def test_select_and_edit_errors_are_one_line_as_the_api_words_them(tmp_path, capsys, argv, says):
+    (tmp_path / "store" / "scenes").mkdir(parents=True)  # an empty store
     assert cli.main([argv[0], "--store", str(tmp_path / "store"), *argv[1:]]) == 2
     err = capsys.readouterr().err
     assert says in err and "Traceback" not in err
