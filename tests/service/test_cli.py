@@ -89,6 +89,44 @@ def test_export_without_torch_is_a_clear_error(monkeypatch, tmp_path, capsys):
     assert not (tmp_path / "m.onnx").exists()
 
 
+@pytest.mark.parametrize("failure, status", [(KeyboardInterrupt, 130), (ValueError("bad size"), 2)])
+def test_export_that_stops_half_way_leaves_no_partial_model(monkeypatch, tmp_path, capsys, failure, status):
+    """The exporter writes its output as it goes (torch's graph, then the weights inlined): a build that
+    failed or was interrupted left that half-written file at the path, over an earlier model."""
+    def half_then_fail(path, **kw):
+        Path(path).write_bytes(b"half a model")
+        raise failure
+
+    monkeypatch.setattr(cli_export, "load_export_model", lambda: half_then_fail)
+    (tmp_path / "m.onnx").write_bytes(b"the earlier model")
+    assert cli.main(["export", str(tmp_path / "m.onnx"), "--height", "64"]) == status
+    assert "Traceback" not in capsys.readouterr().err
+    assert [p.name for p in tmp_path.iterdir()] == ["m.onnx"]
+    assert (tmp_path / "m.onnx").read_bytes() == b"the earlier model"
+
+
+def test_export_renames_the_built_model_to_its_path(monkeypatch, tmp_path, capsys):
+    import json
+
+    import onnx
+    from onnx import TensorProto, helper
+
+    def build(path, **kw):
+        x = helper.make_tensor_value_info("x", TensorProto.FLOAT, [1])
+        model = helper.make_model(helper.make_graph([helper.make_node("Identity", ["x"], ["y"])], "g", [x],
+                                                    [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])]))
+        for key in ("name", "num_planes", "grids", "num_gaussians"):
+            model.metadata_props.add(key=key, value=key)
+        onnx.save(model, str(path))
+        return Path(path)
+
+    monkeypatch.setattr(cli_export, "load_export_model", lambda: build)
+    assert cli.main(["export", str(tmp_path / "sub" / "m.onnx")]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["path"] == str(tmp_path / "sub" / "m.onnx") and summary["name"] == "name"
+    assert [p.name for p in (tmp_path / "sub").iterdir()] == ["m.onnx"]
+
+
 @pytest.mark.parametrize("flag", ["--erp-encoder", "--readout"])
 def test_export_offers_no_experiment_switches(flag, capsys):
     with pytest.raises(SystemExit) as info:
