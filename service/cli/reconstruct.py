@@ -41,7 +41,7 @@ def load_pair(args: argparse.Namespace, min_width: int | None = None):
 
     inputs = [Path(p) for p in args.inputs]
     refs, split = getattr(args, "refs", None), getattr(args, "split", None)
-    if len(inputs) == 1 and args.poses is not None:
+    if len(inputs) == 1 and getattr(args, "poses", None) is not None:
         raise CliError(f"--poses: {inputs[0]} is a scene folder, whose poses are its scene.json's; "
                        "give --poses with two images")
     if len(inputs) == 2 and (refs is not None or split is not None):
