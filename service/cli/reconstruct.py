@@ -52,8 +52,8 @@ def load_pair(args: argparse.Namespace, min_width: int | None = None):
             raise CliError(f"{inputs[0]} is not a scene folder (no scene.json); pass a folder or two images")
         try:
             scene = load_scene(inputs[0])
-        except (PoseError, ValueError) as exc:
-            raise CliError(f"{inputs[0]}: {exc}") from None
+        except (PoseError, ValueError) as exc:  # each names the scene.json (and the frame)
+            raise CliError(str(exc)) from None
         except OSError as exc:
             raise CliError(f"cannot read {inputs[0] / 'scene.json'}: {exc.strerror or exc}") from None
         except (KeyError, TypeError, AttributeError) as exc:  # a JSON value of another shape than the layout's

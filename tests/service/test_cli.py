@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -516,6 +517,21 @@ def test_flags_the_inputs_do_not_use_are_refused(tmp_path, capsys, command, inpu
     err = capsys.readouterr().err
     assert says.format(room=SAMPLE) in err and "Traceback" not in err, err
     assert not (tmp_path / "s.ply").exists()
+
+
+def test_scene_folder_errors_name_its_scene_json_once(tmp_path, capsys):
+    """They read "ROOM: ROOM: split names unknown frames", and a bad pose did not say whose it was."""
+    room = _sample_copy(tmp_path)
+    scene = json.loads((room / "scene.json").read_text())
+    scene["splits"][0]["targets"] = ["zz"]
+    (room / "scene.json").write_text(json.dumps(scene))
+    assert cli.main(["reconstruct", str(room), *_no_model(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {room / 'scene.json'}: split names unknown frames ['zz']" in err and err.count(str(room)) == 1, err
+    scene["splits"][0]["targets"], scene["frames"][2]["c2w"][0][0] = ["01"], float("nan")
+    (room / "scene.json").write_text(json.dumps(scene))
+    assert cli.main(["reconstruct", str(room), *_no_model(tmp_path)]) == 2
+    assert f"error: {room / 'scene.json'}: frame '02': pose contains NaN" in capsys.readouterr().err
 
 
 def test_reconstruct_split_message_names_the_folders_splits(tmp_path, capsys):
