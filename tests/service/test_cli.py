@@ -676,6 +676,7 @@ def test_commands_that_do_not_serve_ignore_the_servers_host_rule(tmp_path, capsy
     monkeypatch.setenv("OMNISPLAT_HOST", "0.0.0.0")
     ply_with_nan(tmp_path / "g.ply", 10, [])
     assert cli.main(render_argv(tmp_path, "g.ply")) == 0
+    (tmp_path / "s" / "scenes").mkdir(parents=True)  # an empty store
     assert cli.main(["select", "0" * 32, "--store", str(tmp_path / "s"), "--view", "a", "--point", "0.5,0.5"]) == 2
     assert "scene_not_found" in capsys.readouterr().err  # the store opened; only the scene is missing
     assert cli.main(["serve", "--no-build", "--model", str(tmp_path / "m.onnx")]) == 2
