@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .geometry import as_c2w
+from .geometry import PoseError, as_c2w
 
 
 @dataclass(frozen=True)
@@ -66,28 +66,41 @@ def load_image(path: str | Path) -> np.ndarray:
 
 
 def load_scene(root: str | Path) -> SceneFolder:
-    """Parse ``root/scene.json``; poses are converted to OpenCV c2w and validated."""
+    """Parse ``root/scene.json``; poses are converted to OpenCV c2w and validated.
+
+    Every error names the scene.json (and the frame, for a pose): a ValueError for a file that is no JSON, a
+    frame name given twice, a split whose references are not a list of two known frames; a
+    :class:`rasterizer.geometry.PoseError` for a pose. A value of another shape than the layout's (a missing
+    key, a number where a list belongs) raises the KeyError or TypeError it meets.
+    """
     root = Path(root)
-    meta = json.loads((root / "scene.json").read_text(encoding="utf-8-sig"))  # a byte order mark is no error
+    path = root / "scene.json"
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8-sig"))  # a byte order mark is no error
+    except ValueError as exc:  # invalid JSON or UTF-8
+        raise ValueError(f"{path}: not a JSON file ({exc})") from None
     convention = pose_convention(meta)
     frames = {}
     for f in meta["frames"]:
         if f["name"] in frames:  # the second would replace the first without a word
-            raise ValueError(f"{root}: the frame name {f['name']!r} appears twice")
-        depth = f.get("depth")
-        frames[f["name"]] = Frame(
-            name=f["name"],
-            image_path=root / f["image"],
-            c2w=as_c2w(f["c2w"], convention),
-            depth_path=(root / depth) if depth else None,
-        )
+            raise ValueError(f"{path}: the frame name {f['name']!r} appears twice")
+        image, depth = root / f["image"], f.get("depth")
+        try:
+            c2w = as_c2w(f["c2w"], convention)
+        except PoseError as exc:
+            raise PoseError(f"{path}: frame {f['name']!r}: {exc}") from None
+        frames[f["name"]] = Frame(name=f["name"], image_path=image, c2w=c2w,
+                                  depth_path=(root / depth) if depth else None)
     splits = []
     for s in meta.get("splits", []):
-        refs = tuple(s["references"])
+        refs, targets = s["references"], s["targets"]
+        if not (isinstance(refs, list) and isinstance(targets, list)):  # a string would be read letter by letter
+            raise ValueError(f"{path}: a split's references and targets are lists of frame names, got {refs!r} "
+                             f"and {targets!r}")
         if len(refs) != 2:
-            raise ValueError(f"{root}: a split needs exactly two references, got {refs}")
-        missing = [n for n in refs + tuple(s["targets"]) if n not in frames]
+            raise ValueError(f"{path}: a split needs exactly two references, got {refs}")
+        missing = [n for n in refs + targets if n not in frames]
         if missing:
-            raise ValueError(f"{root}: split names unknown frames {missing}")
-        splits.append(Split(refs, tuple(s["targets"])))
+            raise ValueError(f"{path}: split names unknown frames {missing}")
+        splits.append(Split(tuple(refs), tuple(targets)))
     return SceneFolder(root, meta.get("name", root.name), frames, tuple(splits), meta)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import os
 import sys
 from pathlib import Path
 
@@ -30,8 +32,9 @@ def cli_settings(args=None, flags: dict | None = None, *, serving: bool = False,
     flags = flags or {}
     given = {field: getattr(args, dest) for field, (dest, _) in flags.items() if getattr(args, dest) is not None}
     values = {**given, **extra}
-    if "max_upload_bytes" in values:  # the flag is in MiB
-        values["max_upload_bytes"] = int(values["max_upload_bytes"] * 1024 * 1024)
+    if "max_upload_bytes" in values:  # the flag is in MiB; NaN and Inf are left for the field's own check
+        mib = values["max_upload_bytes"]
+        values["max_upload_bytes"] = int(mib * 1024 * 1024) if math.isfinite(mib) else mib
     if not serving:
         values.setdefault("host", "127.0.0.1")
     try:
@@ -48,8 +51,8 @@ def _setting_error(err: dict, args, flags: dict, given: dict) -> str:
     msg = str(err.get("msg", "invalid")).removeprefix("Value error, ")
     if field in given:
         dest, flag = flags[field]
-        units = (" bytes", " MiB") if field == "max_upload_bytes" else ("", "")  # the limit in bytes, the flag in MiB
-        return f"{flag}: {msg}{units[0]} (got {getattr(args, dest)!r}{units[1]})"
+        mib = field == "max_upload_bytes"  # a limit in the message is in bytes, the flag in MiB
+        return f"{flag}: {msg}{' bytes' * (mib and msg[-1:].isdigit())} (got {getattr(args, dest)!r}{' MiB' * mib})"
     if not field:  # a rule across settings (its message names them)
         return f"OMNISPLAT_* settings: {msg}"
     return f"OMNISPLAT_{field.upper()}: {msg} (got {err.get('input')!r})"
@@ -105,17 +108,23 @@ def check_suffix(path: str | Path, flag: str, suffixes: tuple[str, ...], what: s
     return suffix
 
 
-def check_output(path: str | Path, flag: str, suffixes: tuple[str, ...], what: str, inputs=()) -> str:
+def check_output(path: str | Path, flag: str, suffixes: tuple[str, ...], what: str, inputs=(), outputs=()) -> str:
     """``path``'s suffix (:func:`check_suffix`) once the output is known to be writable, before any work:
     a CliError naming ``flag`` for an empty name, a folder, a path under a file, a folder this user cannot
-    write in (probed with a temporary file), or one of the command's ``inputs`` (paths, None skipped), which
-    the output would overwrite."""
+    write in (probed with a temporary file), one of the command's ``inputs`` (paths, None skipped), which
+    the output would overwrite, or a path inside another of its ``outputs`` or above one: the second file
+    written would fail on the first, after the work and with the first left behind."""
     if not str(path).strip():
         raise CliError(f"{flag}: give a file name")
     out = Path(path)
     if out.is_dir():
         raise CliError(f"{flag} {path} is a folder; give a file name")
     suffix = check_suffix(path, flag, suffixes, what)
+    for other in outputs:
+        a, b = Path(os.path.abspath(out)), Path(os.path.abspath(other))
+        if a == b or a in b.parents or b in a.parents:
+            raise CliError(f"{flag} {path}: it and the output {other} cannot both be files (the same path, or one "
+                           "under the other); give the outputs separate names")
     if out.exists() and any(p is not None and Path(p).exists() and Path(p).samefile(out) for p in inputs):
         raise CliError(f"{flag} {path} is one of the command's inputs; give another file name")
     folder = out.absolute().parent
@@ -155,20 +164,34 @@ def model_file(settings, no_build: bool) -> Path:
 def write_output(path: str | Path, data) -> None:
     """Write ``data`` (bytes, or a :class:`rasterizer.gaussians.Gaussians` as a PLY, or as SPZ when the name
     ends in ``.spz``) to ``path``, making its folders (as :func:`check_output` allowed); an OSError, or Gaussians
-    SPZ cannot hold, is a CliError naming the file."""
+    SPZ cannot hold, is a CliError naming the file.
+
+    Every format is written to a hidden temporary file beside ``path`` and renamed over it, so that a write that
+    fails (a full disk, a file size limit, Ctrl-C) leaves neither a truncated file nor a damaged older one; a
+    symbolic link is written through (its target replaced), as a plain write would."""
+    import os
+    import uuid
+
+    from rasterizer.ply import ply_bytes
     from rasterizer.spz import SpzError, spz_bytes
 
     out = Path(path)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         if isinstance(data, bytes):
-            out.write_bytes(data)
+            payload = data
         elif out.suffix.lower() == ".spz":
-            out.write_bytes(spz_bytes(data))
+            payload = spz_bytes(data)
         else:
-            from rasterizer.ply import write_ply
-
-            write_ply(out, data)
+            payload = ply_bytes(data)
+        target = out.resolve() if out.is_symlink() else out
+        tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex[:12]}.tmp")
+        try:
+            tmp.write_bytes(payload)
+            os.replace(tmp, target)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
     except OSError as exc:
         raise CliError(f"cannot write {out}: {exc.strerror or exc}") from None
     except SpzError as exc:

@@ -29,14 +29,19 @@ def _point(text: str) -> list[float]:
 
 def _edit_store(args: argparse.Namespace):
     """The store the server's settings describe (budget, max scenes: OMNISPLAT_*), in ``--store`` if given.
-    It never clears unfinished writes: a running server may be writing them."""
+    It never clears unfinished writes: a running server may be writing them. A folder that holds no store
+    (no ``scenes/``: a mistyped path) is a CliError, not made into an empty store that then has no such scene."""
     from ..store import SceneStore
 
     settings = cli_settings(args, {"store_dir": ("store", "--store")})
+    where = f"--store {settings.store_dir}" if args.store is not None else f"the scene store {settings.store_dir}"
+    if not (settings.store_dir / "scenes").is_dir():
+        raise CliError(f"{where}: no scene store there (no scenes/ folder); give the folder that "
+                       "`omnisplat serve --store` keeps its scenes in")
     try:
         return SceneStore.from_settings(settings, clean_up=False)
     except OSError as exc:  # e.g. --store names a file
-        raise CliError(f"--store {settings.store_dir}: cannot open the scene store: {exc.strerror or exc}") from None
+        raise CliError(f"{where}: cannot open the scene store: {exc.strerror or exc}") from None
 
 
 def _edit_call(fn, *a):

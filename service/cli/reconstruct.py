@@ -30,32 +30,43 @@ def load_pair(args: argparse.Namespace, min_width: int | None = None):
 
     Two images without ``--poses`` give ``c2w_a = c2w_b = None``: the poses are estimated. The description names
     the inputs and, with poses, the ``convention`` they were written in (the poses returned are OpenCV c2w).
+    A flag the inputs do not use is refused, not dropped: ``--poses`` with a scene folder (its poses are in
+    scene.json), ``--refs`` / ``--split`` with two images, and an empty ``--poses`` file (an empty API field
+    means "estimate them"; a file named on the command line that holds nothing is a mistake).
     """
     from rasterizer.geometry import PoseError
     from rasterizer.scene_folder import load_scene
 
-    from ..inputs import parse_poses
+    from ..inputs import parse_poses, without_bom
 
     inputs = [Path(p) for p in args.inputs]
+    refs, split = getattr(args, "refs", None), getattr(args, "split", None)
+    if len(inputs) == 1 and getattr(args, "poses", None) is not None:
+        raise CliError(f"--poses: {inputs[0]} is a scene folder, whose poses are its scene.json's; "
+                       "give --poses with two images")
+    if len(inputs) == 2 and (refs is not None or split is not None):
+        raise CliError(f"{'--refs' if refs is not None else '--split'}: chooses the references of a scene folder; "
+                       "with two images, they are the references")
     if len(inputs) == 1:
         if not (inputs[0] / "scene.json").is_file():
             raise CliError(f"{inputs[0]} is not a scene folder (no scene.json); pass a folder or two images")
         try:
             scene = load_scene(inputs[0])
-        except (PoseError, ValueError) as exc:
-            raise CliError(f"{inputs[0]}: {exc}") from None
+        except (PoseError, ValueError) as exc:  # each names the scene.json (and the frame)
+            raise CliError(str(exc)) from None
         except OSError as exc:
             raise CliError(f"cannot read {inputs[0] / 'scene.json'}: {exc.strerror or exc}") from None
         except (KeyError, TypeError, AttributeError) as exc:  # a JSON value of another shape than the layout's
             what = f"lacks the key {exc}" if isinstance(exc, KeyError) else f"holds a value of the wrong type ({exc})"
             raise CliError(f"{inputs[0] / 'scene.json'}: {what}; expected {SCENE_LAYOUT}") from None
-        if args.split < 0 or (not args.refs and args.split and args.split >= len(scene.splits)):
+        split = split or 0
+        if split < 0 or (not refs and split and split >= len(scene.splits)):
             have = f"splits 0-{len(scene.splits) - 1}" if scene.splits else "no splits (its first two frames are used)"
-            raise CliError(f"--split {args.split}: {inputs[0]} has {have}")
-        if args.refs:
-            refs = tuple(args.refs.split(","))
+            raise CliError(f"--split {split}: {inputs[0]} has {have}")
+        if refs:
+            refs = tuple(refs.split(","))
         elif scene.splits:
-            refs = scene.splits[args.split].references
+            refs = scene.splits[split].references
         else:
             refs = tuple(list(scene.frames)[:2])
         if len(refs) != 2 or any(r not in scene.frames for r in refs):
@@ -67,7 +78,10 @@ def load_pair(args: argparse.Namespace, min_width: int | None = None):
         from ..errors import ServiceError
 
         try:
-            poses = parse_poses(Path(args.poses).read_bytes()) if args.poses is not None else None
+            text = Path(args.poses).read_bytes() if args.poses is not None else None
+            if text is not None and not without_bom(text).strip():
+                raise CliError(f"--poses {args.poses}: the file is empty; leave --poses out to estimate the poses")
+            poses = parse_poses(text)
         except ServiceError as exc:
             raise CliError(f"{args.poses}: {exc.message}") from None
         except OSError as exc:
@@ -129,7 +143,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     inputs = [*args.inputs, args.poses, *(Path(p) / "scene.json" for p in args.inputs if Path(p).is_dir())]
     check_output(args.output, "-o", (".ply", ".spz"), "a Gaussian PLY or SPZ", inputs)
     if args.json is not None:
-        check_output(args.json, "--json", (".json",), "the summary", inputs)
+        check_output(args.json, "--json", (".json",), "the summary", inputs, outputs=[args.output])
+    # the model and its threads are checked as serve checks them (1-256 threads), before any work
+    settings = cli_settings(args, {"model_path": ("model", "--model"), "ort_threads": ("threads", "--threads")})
     # wide JPEGs at a reduced scale, as the API reads them for a model no wider than the pose features read; bad
     # inputs fail before any model build
     erp_a, erp_b, c2w_a, c2w_b, source = load_pair(args, MAX_ERP_WIDTH)
@@ -164,13 +180,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         check_sweep_range(c2w_a, c2w_b, {"near": args.near, "far": args.far})
     except ServiceError as exc:
         raise CliError(option_message(exc.message)) from None
-    settings = cli_settings(args, {"model_path": ("model", "--model")})
     model = model_file(settings, args.no_build)
     say(f"loading model {model}")
     from ..encoder import EncoderInputError
 
     t0 = time.perf_counter()
-    encoder = load_encoder(model, args.threads)
+    encoder = load_encoder(model, settings.ort_threads)
     load_s = time.perf_counter() - t0
     if read_width(encoder.height) > MAX_ERP_WIDTH:  # a wider model reads more columns
         erp_a, erp_b, *_ = load_pair(args, read_width(encoder.height))
@@ -221,7 +236,7 @@ def add_parser(sub) -> None:
     r.add_argument("--camera-height", type=float, help="estimated poses: metres of camera A above the floor (sets the scale)")
     r.add_argument("--baseline", type=float, help="estimated poses: metres between the cameras (sets the scale)")
     r.add_argument("--refine-poses", action="store_true", help="refine given poses against the images (upright model)")
-    r.add_argument("--split", type=int, default=0, help="scene folder: which split's references (default 0)")
+    r.add_argument("--split", type=int, help="scene folder: which split's references (default 0)")
     r.add_argument("--refs", help="scene folder: two frame names, e.g. 00,02 (overrides --split)")
     r.add_argument("-o", "--output", default="scene.ply",
                    help="output PLY (default scene.ply), or SPZ (a name ending in .spz: a fifth of the bytes)")
@@ -230,7 +245,7 @@ def add_parser(sub) -> None:
     r.add_argument("--no-build", action="store_true", help="fail instead of building a missing model")
     r.add_argument("--near", type=float, help="nearest depth in metres (default from the baseline)")
     r.add_argument("--far", type=float, help="farthest depth in metres")
-    r.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
+    r.add_argument("--threads", type=int, help="onnxruntime threads, 1-256 (default 2)")
     c = r.add_argument_group("leave out what the scene does not need (default: min opacity and the smooth merge)")
     c.add_argument("--no-compaction", action="store_true", help="keep every pixel-aligned Gaussian")
     c.add_argument("--no-merge-smooth", action="store_true",

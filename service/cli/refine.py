@@ -28,7 +28,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
         RefineRequest.model_validate(params)
     except ValidationError as exc:
         raise CliError(as_flags(describe_error(exc, prefix="refine"), params, prefix="refine.")) from None
-    check_output(args.out, "--out", (".ply", ".spz"), "a Gaussian PLY or SPZ")
+    check_output(args.out, "--out", (".ply", ".spz"), "a Gaussian PLY or SPZ", [args.ply, *args.inputs, args.poses])
     g = read_gaussians(args.ply)
     erp_a, erp_b, c2w_a, c2w_b, desc = load_pair(args)
     if c2w_a is None:
@@ -66,7 +66,7 @@ def add_parser(sub) -> None:
     f.add_argument("inputs", nargs="+", help="scene folder, or two ERP images")
     f.add_argument("--poses", help="JSON file {\"convention\": ..., \"c2w\": [A, B]} (with two images)")
     f.add_argument("--refs", help="scene folder: the two reference frame names, 'A,B'")
-    f.add_argument("--split", type=int, default=0, help="scene folder: split whose references to use")
+    f.add_argument("--split", type=int, help="scene folder: split whose references to use (default 0)")
     f.add_argument("--out", type=Path, required=True, help="refined PLY (or SPZ: a name ending in .spz)")
     f.add_argument("--iterations", type=int, default=100)
     f.add_argument("--height", type=int, default=128, help="Yin/Yang working height h")

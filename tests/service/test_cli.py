@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -87,6 +88,44 @@ def test_export_without_torch_is_a_clear_error(monkeypatch, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "not available" in err and "'torch'" in err and "export extra" in err
     assert not (tmp_path / "m.onnx").exists()
+
+
+@pytest.mark.parametrize("failure, status", [(KeyboardInterrupt, 130), (ValueError("bad size"), 2)])
+def test_export_that_stops_half_way_leaves_no_partial_model(monkeypatch, tmp_path, capsys, failure, status):
+    """The exporter writes its output as it goes (torch's graph, then the weights inlined): a build that
+    failed or was interrupted left that half-written file at the path, over an earlier model."""
+    def half_then_fail(path, **kw):
+        Path(path).write_bytes(b"half a model")
+        raise failure
+
+    monkeypatch.setattr(cli_export, "load_export_model", lambda: half_then_fail)
+    (tmp_path / "m.onnx").write_bytes(b"the earlier model")
+    assert cli.main(["export", str(tmp_path / "m.onnx"), "--height", "64"]) == status
+    assert "Traceback" not in capsys.readouterr().err
+    assert [p.name for p in tmp_path.iterdir()] == ["m.onnx"]
+    assert (tmp_path / "m.onnx").read_bytes() == b"the earlier model"
+
+
+def test_export_renames_the_built_model_to_its_path(monkeypatch, tmp_path, capsys):
+    import json
+
+    import onnx
+    from onnx import TensorProto, helper
+
+    def build(path, **kw):
+        x = helper.make_tensor_value_info("x", TensorProto.FLOAT, [1])
+        model = helper.make_model(helper.make_graph([helper.make_node("Identity", ["x"], ["y"])], "g", [x],
+                                                    [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])]))
+        for key in ("name", "num_planes", "grids", "num_gaussians"):
+            model.metadata_props.add(key=key, value=key)
+        onnx.save(model, str(path))
+        return Path(path)
+
+    monkeypatch.setattr(cli_export, "load_export_model", lambda: build)
+    assert cli.main(["export", str(tmp_path / "sub" / "m.onnx")]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["path"] == str(tmp_path / "sub" / "m.onnx") and summary["name"] == "name"
+    assert [p.name for p in (tmp_path / "sub").iterdir()] == ["m.onnx"]
 
 
 @pytest.mark.parametrize("flag", ["--erp-encoder", "--readout"])
@@ -321,6 +360,18 @@ def test_select_and_edit_with_a_store_that_is_a_file_is_a_one_line_error(tmp_pat
         assert "--store" in err and "scene store" in err and "Traceback" not in err
 
 
+def test_select_and_edit_in_a_folder_that_holds_no_store_make_none(tmp_path, capsys):
+    """A mistyped --store was made into an empty store (scenes/, tmp/, trash/), then said 'no scene with id'."""
+    (tmp_path / "elsewhere").mkdir()
+    for store in (tmp_path / "typo", tmp_path / "elsewhere"):
+        for argv in (["select", "0" * 32, "--view", "a", "--point", "0.5,0.5"],
+                     ["edit", "0" * 32, "--selection", "0" * 32, "--op", "remove"]):
+            assert cli.main([argv[0], "--store", str(store), *argv[1:]]) == 2
+            err = capsys.readouterr().err
+            assert f"--store {store}: no scene store there" in err and "Traceback" not in err, err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["elsewhere"]
+
+
 @pytest.mark.parametrize("argv, says", [
     (["select", "../../etc", "--view", "a", "--point", "0.5,0.5"], "invalid_scene_id"),  # was a traceback
     (["select", "0" * 32, "--view", "a", "--point", "0.5,0.5", "--negative", "1.5,0.5"],
@@ -338,6 +389,7 @@ def test_select_and_edit_with_a_store_that_is_a_file_is_a_one_line_error(tmp_pat
      "--offset: the translate op needs dx, dy, dz, each within +-1e+06"),
 ])
 def test_select_and_edit_errors_are_one_line_as_the_api_words_them(tmp_path, capsys, argv, says):
+    (tmp_path / "store" / "scenes").mkdir(parents=True)  # an empty store
     assert cli.main([argv[0], "--store", str(tmp_path / "store"), *argv[1:]]) == 2
     err = capsys.readouterr().err
     assert says in err and "Traceback" not in err
@@ -430,6 +482,10 @@ def _no_model(tmp_path: Path) -> list[str]:
     (["--json", "{tmp}/x.ply"], "must end in .json"),
     (["-o", "{room}/scene.json/x.ply"], "is a file, not a folder"),  # refused only after the reconstruction
     (["-o", ""], "-o: give a file name"),
+    (["-o", "{tmp}/n/x.json/s.ply", "--json", "{tmp}/n/x.json"], "give the outputs separate names"),  # the PLY
+    (["-o", "{tmp}/n/s.ply", "--json", "{tmp}/n/s.ply/x.json"], "give the outputs separate names"),  # was left
+    (["--threads", "100000"], "--threads: Input should be less than or equal to 256"),  # took 16 GB of thread stacks
+    (["--threads", "-1"], "--threads: Input should be greater than or equal to 1"),  # was taken as it came
 ])
 def test_reconstruct_refuses_bad_outputs_and_splits_before_any_work(tmp_path, capsys, extra, says):
     room = _sample_copy(tmp_path)
@@ -439,6 +495,43 @@ def test_reconstruct_refuses_bad_outputs_and_splits_before_any_work(tmp_path, ca
     err = capsys.readouterr().err
     assert says in err and "does not exist" not in err and "Traceback" not in err, err  # before the model check
     assert {p: p.read_bytes() for p in room.rglob("*") if p.is_file()} == before
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "refine"])
+@pytest.mark.parametrize("inputs, extra, says", [
+    (["room"], ["--poses", "{tmp}/missing.json"], "--poses: {room} is a scene folder"),  # dropped without a word
+    (["a", "b"], ["--refs", "00,02"], "--refs: chooses the references of a scene folder"),  # dropped as well
+    (["a", "b"], ["--split", "0"], "--split: chooses the references of a scene folder"),
+    (["a", "b"], ["--poses", "{tmp}/empty.json"], "the file is empty; leave --poses out"),  # poses were estimated
+])
+def test_flags_the_inputs_do_not_use_are_refused(tmp_path, capsys, command, inputs, extra, says):
+    (tmp_path / "empty.json").write_bytes(b" \n")
+    paths = {"room": str(SAMPLE), "a": str(SAMPLE / "images" / "00.png"), "b": str(SAMPLE / "images" / "02.png")}
+    if command == "reconstruct":
+        argv = ["reconstruct", *(paths[i] for i in inputs), *_no_model(tmp_path), "-o", str(tmp_path / "s.ply")]
+    else:
+        ply_with_nan(tmp_path / "in.ply", 10, [])
+        argv = ["refine", str(tmp_path / "in.ply"), *(paths[i] for i in inputs), "--out", str(tmp_path / "s.ply"),
+                "--iterations", "1", "--height", "16"]
+    assert cli.main([*argv, *(e.format(tmp=tmp_path) for e in extra)]) == 2
+    err = capsys.readouterr().err
+    assert says.format(room=SAMPLE) in err and "Traceback" not in err, err
+    assert not (tmp_path / "s.ply").exists()
+
+
+def test_scene_folder_errors_name_its_scene_json_once(tmp_path, capsys):
+    """They read "ROOM: ROOM: split names unknown frames", and a bad pose did not say whose it was."""
+    room = _sample_copy(tmp_path)
+    scene = json.loads((room / "scene.json").read_text())
+    scene["splits"][0]["targets"] = ["zz"]
+    (room / "scene.json").write_text(json.dumps(scene))
+    assert cli.main(["reconstruct", str(room), *_no_model(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {room / 'scene.json'}: split names unknown frames ['zz']" in err and err.count(str(room)) == 1, err
+    scene["splits"][0]["targets"], scene["frames"][2]["c2w"][0][0] = ["01"], float("nan")
+    (room / "scene.json").write_text(json.dumps(scene))
+    assert cli.main(["reconstruct", str(room), *_no_model(tmp_path)]) == 2
+    assert f"error: {room / 'scene.json'}: frame '02': pose contains NaN" in capsys.readouterr().err
 
 
 def test_reconstruct_split_message_names_the_folders_splits(tmp_path, capsys):
@@ -519,6 +612,15 @@ def test_serve_setting_errors_name_the_flags_and_variables(tmp_path, capsys, mon
     monkeypatch.setenv("OMNISPLAT_MAX_REQUESTS", "many")
     assert cli.main(["serve", "--no-build"]) == 2
     assert "OMNISPLAT_MAX_REQUESTS: " in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value", ["nan", "inf"])
+def test_serve_max_upload_that_is_no_number_of_mib_is_a_one_line_error(tmp_path, capsys, value):
+    """The MiB flag is turned into bytes before the settings check it: NaN and Inf must reach that check."""
+    argv = ["serve", f"--max-upload-mb={value}", "--store", str(tmp_path / "s"), "--no-build"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"--max-upload-mb: Input should be a finite number (got {value} MiB)" in err and "Traceback" not in err, err
 
 
 def test_select_and_edit_on_a_server_store_keep_its_writes_and_take_its_settings(tmp_path, capsys, monkeypatch):
@@ -614,6 +716,7 @@ def test_commands_that_do_not_serve_ignore_the_servers_host_rule(tmp_path, capsy
     monkeypatch.setenv("OMNISPLAT_HOST", "0.0.0.0")
     ply_with_nan(tmp_path / "g.ply", 10, [])
     assert cli.main(render_argv(tmp_path, "g.ply")) == 0
+    (tmp_path / "s" / "scenes").mkdir(parents=True)  # an empty store
     assert cli.main(["select", "0" * 32, "--store", str(tmp_path / "s"), "--view", "a", "--point", "0.5,0.5"]) == 2
     assert "scene_not_found" in capsys.readouterr().err  # the store opened; only the scene is missing
     assert cli.main(["serve", "--no-build", "--model", str(tmp_path / "m.onnx")]) == 2

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -130,3 +131,18 @@ def test_refine_cli_drops_rows_holding_nan_and_says_so(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "dropped 1 of 60 Gaussians holding NaN or Inf" in captured.err and "row 3, scale_0..2" in captured.err
     assert json.loads(captured.out)["num_gaussians"] == 59 == len(read_ply(tmp_path / "o.ply"))
+
+
+def test_refine_cli_refuses_to_write_over_its_input(tmp_path, capsys):
+    """--out naming the PLY being refined replaced it, where reconstruct and render refuse an output that is
+    one of their inputs."""
+    from tests.service._support import ply_with_nan
+
+    ply_with_nan(tmp_path / "in.ply", 10, [])
+    before = (tmp_path / "in.ply").read_bytes()
+    room = str(Path(__file__).resolve().parents[2] / "samples" / "room")
+    assert main([str(tmp_path / "in.ply"), room, "--out", str(tmp_path / "in.ply"), "--height", "16",
+                 "--iterations", "1"]) == 2
+    err = capsys.readouterr().err
+    assert f"--out {tmp_path / 'in.ply'} is one of the command's inputs" in err and "Traceback" not in err, err
+    assert (tmp_path / "in.ply").read_bytes() == before

@@ -4,6 +4,7 @@ NaN rows or a short header, the render budget, and pose files read as the API re
 from __future__ import annotations
 
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -184,3 +185,23 @@ def test_render_reads_spz_as_it_reads_the_ply(tmp_path, capsys):
     assert cli.main(render_argv(tmp_path, "bad.spz")) == 2
     err = capsys.readouterr().err
     assert "cannot read" in err and "bad.spz" in err and "Traceback" not in err
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="needs a POSIX file size limit")
+def test_render_that_cannot_finish_its_file_leaves_no_partial_one(tmp_path):
+    """A write that stops half-way (here a 300-byte file size limit, as a full disk or Ctrl-C stops one) left a
+    truncated PNG at -o, over the earlier image: the image is written beside it and renamed when complete."""
+    import resource
+    import subprocess
+    from pathlib import Path
+
+    from tests.rasterizer._support import toy_scene
+
+    write_ply(tmp_path / "s.ply", toy_scene(2, n=200))
+    (tmp_path / "view.png").write_bytes(b"the earlier image")
+    argv = [sys.executable, "-m", "service.cli", *render_argv(tmp_path, "s.ply")]
+    run = subprocess.run(argv, cwd=Path(__file__).resolve().parents[2], capture_output=True, text=True, timeout=120,
+                         preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (300, 300)))
+    assert run.returncode == 2 and "cannot write" in run.stderr and "Traceback" not in run.stderr, run.stderr
+    assert (tmp_path / "view.png").read_bytes() == b"the earlier image"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.ply", "view.png"]
