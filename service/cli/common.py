@@ -169,7 +169,6 @@ def write_output(path: str | Path, data) -> None:
     Every format is written to a hidden temporary file beside ``path`` and renamed over it, so that a write that
     fails (a full disk, a file size limit, Ctrl-C) leaves neither a truncated file nor a damaged older one; a
     symbolic link is written through (its target replaced), as a plain write would."""
-    import os
     import uuid
 
     from rasterizer.ply import ply_bytes
