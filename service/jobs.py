@@ -28,7 +28,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from rasterizer.splat import RenderLimitError
 
@@ -65,6 +65,16 @@ class RefineRequest(BaseModel):
     patience: int = Field(5, ge=0, le=2000, description="stop after this many steps without held-out gain (0: off)")
     cross_check: bool = Field(True, description="cross-view guard: fit each reference alone and score the other; "
                                                 "keep the unrefined colours when that gets worse")
+
+    @field_validator("patience")
+    @classmethod
+    def _patience_needs_a_holdout(cls, patience: int, info: ValidationInfo) -> int:
+        """A ``patience`` the request gives (the default is not checked) beside ``holdout`` 0 is refused, as
+        parameters a request would not use are: the early stop watches the held-out pixels, and there are none."""
+        if patience > 0 and info.data.get("holdout") == 0:
+            raise ValueError("the early stop watches held-out pixels and holdout 0 holds none out; give holdout > 0, "
+                             "or leave patience out")
+        return patience
 
 
 class JobCancelled(Exception):

@@ -21,11 +21,11 @@ def cmd_refine(args: argparse.Namespace) -> int:
     from ..jobs import RefineRequest
     from ..options import describe_error
 
-    params = {"iterations": args.iterations, "height": args.height, "sh_degree": args.sh_degree,
-              "colour_reg": args.colour_reg, "holdout": args.holdout, "patience": args.patience,
-              "cross_check": not args.no_cross_check}
-    try:  # the API's bounds (POST /v1/scenes/{id}/refine): a NaN or a huge grid fails here, not in numpy
-        RefineRequest.model_validate(params)
+    given = {"iterations": args.iterations, "height": args.height, "sh_degree": args.sh_degree,
+             "colour_reg": args.colour_reg, "holdout": args.holdout, "patience": args.patience}
+    params = {**{k: v for k, v in given.items() if v is not None}, "cross_check": not args.no_cross_check}
+    try:  # the API's bounds and defaults (POST /v1/scenes/{id}/refine): a NaN or a huge grid fails here, not in numpy
+        req = RefineRequest.model_validate(params)
     except ValidationError as exc:
         raise CliError(as_flags(describe_error(exc, prefix="refine"), params, prefix="refine.")) from None
     check_output(args.out, "--out", (".ply", ".spz"), "a Gaussian PLY or SPZ", [args.ply, *args.inputs, args.poses])
@@ -34,14 +34,14 @@ def cmd_refine(args: argparse.Namespace) -> int:
     if c2w_a is None:
         raise CliError("refine needs the references' poses: give --poses FILE.json with two images, or a scene folder")
     t0 = time.perf_counter()
-    opts = RefineOptions(iterations=args.iterations, sh_degree=args.sh_degree, colour_reg=args.colour_reg,
-                         patience=args.patience, cross_check=not args.no_cross_check)
+    opts = RefineOptions(iterations=req.iterations, sh_degree=req.sh_degree, colour_reg=req.colour_reg,
+                         patience=req.patience, cross_check=req.cross_check)
     try:  # the footprints of the 2 x 2 Yin/Yang grids (h x 3h each) scale with --height squared
-        views = reference_views(g, [erp_a, erp_b], [c2w_a, c2w_b], height=args.height, holdout=args.holdout)
+        views = reference_views(g, [erp_a, erp_b], [c2w_a, c2w_b], height=req.height, holdout=req.holdout)
         t_fp = time.perf_counter() - t0
         res = refine(g, views, opts)
     except RenderLimitError as exc:  # the API's job fails with render_too_large
-        raise CliError(f"--height {args.height}: the reference views of these {len(g)} Gaussians are too large for "
+        raise CliError(f"--height {req.height}: the reference views of these {len(g)} Gaussians are too large for "
                        f"the renderer ({exc}); give a smaller --height") from None
     write_output(args.out, res.gaussians)
     first = res.history[0]
@@ -68,12 +68,14 @@ def add_parser(sub) -> None:
     f.add_argument("--refs", help="scene folder: the two reference frame names, 'A,B'")
     f.add_argument("--split", type=int, help="scene folder: split whose references to use (default 0)")
     f.add_argument("--out", type=Path, required=True, help="refined PLY (or SPZ: a name ending in .spz)")
-    f.add_argument("--iterations", type=int, default=100)
-    f.add_argument("--height", type=int, default=128, help="Yin/Yang working height h")
-    f.add_argument("--sh-degree", type=int, default=0, choices=(0, 1))
-    f.add_argument("--colour-reg", type=float, default=2.0)
-    f.add_argument("--holdout", type=float, default=0.1)
-    f.add_argument("--patience", type=int, default=5)
+    # defaults (None here): the API's, service.jobs.RefineRequest
+    f.add_argument("--iterations", type=int, help="conjugate-gradient steps (default 100)")
+    f.add_argument("--height", type=int, help="Yin/Yang working height h (default 128)")
+    f.add_argument("--sh-degree", type=int, choices=(0, 1), help="default 0")
+    f.add_argument("--colour-reg", type=float, help="default 2.0")
+    f.add_argument("--holdout", type=float, help="share of reference pixels held out for the early stop (default 0.1)")
+    f.add_argument("--patience", type=int, help="steps without held-out gain before stopping (default 5; needs a "
+                                                 "holdout)")
     f.add_argument("--no-cross-check", action="store_true",
                    help="skip the cross-view guard (fit each reference alone, score the other; reject if worse)")
     f.set_defaults(func=cmd_refine)

@@ -61,6 +61,17 @@ def test_refine_cli_takes_the_api_bounds_before_any_work(tmp_path, capsys, flag,
     assert f"{flag}:" in err and "Traceback" not in err
 
 
+def test_refine_cli_patience_without_a_holdout_is_refused_and_a_holdout_of_zero_alone_is_not(tmp_path, capsys):
+    """The CLI hands the API's check only the flags given, so --holdout 0 alone passes it (and fails later, on the
+    missing PLY), while --patience beside it is refused naming --patience."""
+    base = [str(tmp_path / "missing.ply"), str(tmp_path), "--out", str(tmp_path / "o.ply"), "--holdout", "0"]
+    assert main([*base, "--patience", "5"]) == 2
+    assert "--patience:" in capsys.readouterr().err
+    assert main(base) == 2
+    err = capsys.readouterr().err
+    assert "missing.ply" in err and "early stop" not in err, err
+
+
 def test_refine_cli_needs_poses_and_a_writable_output(tmp_path, capsys):
     write_ply(tmp_path / "in.ply", toy_scene(4, n=50))
     img = np.zeros((32, 64, 3), np.uint8)

@@ -124,6 +124,7 @@ def test_refine_default_body(client, scene_id):
     {"iterations": -1}, {"iterations": 10 ** 6}, {"height": 4}, {"sh_degree": 2}, {"colour_reg": -1},
     {"colour_reg": 0},  # no pull: the Gaussians no reference pixel sees have no equation (the fit did nothing)
     {"holdout": 0.9}, {"iterations": "many"}, {"unknown_option": 1},
+    {"holdout": 0, "patience": 5},  # the early stop would watch no held-out pixel: patience would do nothing
 ])
 def test_refine_rejects_bad_options(client, scene_id, body):
     r = client.post(f"/v1/scenes/{scene_id}/refine", json=body)
@@ -342,3 +343,14 @@ def test_a_failed_job_names_store_errors_as_the_api_does():
     assert job.error["code"] == "store_unavailable" and "disk is full" in job.error["message"]
     reg.mark_failed(job, StoreFull("the budget cannot take it"))
     assert job.error == {"code": "store_full", "message": "the budget cannot take it"}
+
+
+def test_a_holdout_of_zero_alone_takes_the_default_patience_without_complaint():
+    """Only a patience the request gives is refused beside holdout 0; the default one (what the request did not
+    ask for) stays, unused, as does patience 0."""
+    from service.jobs import RefineRequest
+
+    assert RefineRequest.model_validate({"holdout": 0}).patience == 5
+    assert RefineRequest.model_validate({"holdout": 0, "patience": 0}).patience == 0
+    with pytest.raises(ValueError, match="patience\n.*the early stop watches held-out pixels"):
+        RefineRequest.model_validate({"holdout": 0.0, "patience": 1})
