@@ -254,10 +254,13 @@ def as_c2w(matrix, convention: str = "opencv", *, tol: float = 1e-3) -> np.ndarr
     is re-orthonormalised (SVD) so later maths sees an exact rotation.
     """
     try:
-        m = np.asarray(matrix, dtype=np.float64)
+        raw = np.asarray(matrix)
     except (TypeError, ValueError):
+        raw = np.asarray(None, dtype=object)  # rows of different lengths
+    if raw.dtype.kind not in "iuf":  # text ("0.5", which numpy would convert), booleans, objects, ragged rows
         raise PoseError("pose is not a numeric 4x4 or 3x4 matrix (rows of different lengths, or entries that are "
-                        "not numbers)") from None
+                        "not numbers)")
+    m = raw.astype(np.float64)
     if m.shape == (3, 4):
         m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
     if m.shape != (4, 4):

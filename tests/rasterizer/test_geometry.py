@@ -129,6 +129,21 @@ def test_pose_validation():
         geo.as_c2w(good, "blender")
 
 
+@pytest.mark.parametrize("entries", [
+    [[str(v) for v in row] for row in np.eye(4)],  # "1.0": numpy would read the text as a number
+    np.eye(4).astype(bool).tolist(),
+    [[1, 0, 0, 0], [0, 1, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
+    [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, None], [0, 0, 0, 1]],
+])
+def test_a_pose_of_entries_that_are_not_numbers_is_refused(entries):
+    """Entries written as text, booleans, None or rows of different lengths are no pose, as the API's JSON check
+    says (the scene folders' and the CLI's pose files read through this one)."""
+    with pytest.raises(geo.PoseError, match="not a numeric 4x4 or 3x4 matrix"):
+        geo.as_c2w(entries)
+    assert np.allclose(geo.as_c2w(np.eye(4, dtype=np.float32)), np.eye(4))
+    assert np.allclose(geo.as_c2w(np.eye(4, dtype=int).tolist()), np.eye(4))
+
+
 def test_rigid_inverse_and_yang_pose():
     rng = np.random.default_rng(2)
     q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
