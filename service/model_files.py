@@ -79,6 +79,9 @@ def ensure_model(path: str | Path, *, build_if_missing: bool = True,
     path = Path(path)
     if path.is_file():
         return path
+    if path.exists():  # a folder (or a device) where the model file should be: never built over
+        kind = "a folder" if path.is_dir() else "not a regular file"
+        raise ModelUnavailable(f"model file {path} is {kind}; give the path of an .onnx file")
     if not build_if_missing:
         raise ModelUnavailable(f"model file {path} does not exist")
     try:

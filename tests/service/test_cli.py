@@ -415,6 +415,16 @@ def _importable(name: str) -> bool:
         return False
 
 
+@pytest.mark.parametrize("build", [True, False])
+def test_a_model_path_that_is_a_folder_is_said_to_be_one(tmp_path, build):
+    """A folder given as the model file is said to be a folder (not "does not exist"), and nothing is built there."""
+    from service.model_files import ModelUnavailable, ensure_model
+
+    with pytest.raises(ModelUnavailable, match="is a folder; give the path of an .onnx file"):
+        ensure_model(tmp_path, build_if_missing=build)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_ensure_model_builds_once_atomically(tmp_path):
     from service.model_files import ensure_model
 
