@@ -182,3 +182,18 @@ def room_erp(c2w: np.ndarray, height: int = 384, supersample: int = 1) -> np.nda
     tex = (0.55 * _noise(p, 0.08) + 0.45 * _noise(p, 0.3)) * shade[..., None]
     tex = tex.reshape(height, supersample, 2 * height, supersample, 3).mean((1, 3))
     return (np.clip(tex, 0, 1) * 255).astype(np.uint8)
+
+
+def random_gaussians(n: int, seed: int = 0):
+    """``n`` Gaussians of random positions, sizes 0.01-0.1, rotations, opacities and colours (store tests)."""
+    from rasterizer.gaussians import Gaussians
+
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    return Gaussians(rng.normal(size=(n, 3)), rng.uniform(0.01, 0.1, (n, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
+                     rng.uniform(0, 1, n), rng.normal(size=(n, 1, 3)))
+
+
+def same_gaussians(a, b) -> bool:
+    """Whether two Gaussians' five fields are equal to the bit."""
+    return all(np.array_equal(getattr(a, f), getattr(b, f)) for f in ("means", "scales", "quats", "opacities", "sh"))

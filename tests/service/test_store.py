@@ -11,7 +11,6 @@ import time
 import numpy as np
 import pytest
 
-from rasterizer.gaussians import Gaussians
 from service.errors import BadInput, translate
 from service.store import (
     InvalidSceneId,
@@ -24,16 +23,7 @@ from service.store import (
     stored_form,
 )
 
-
-def _gaussians(n: int, seed: int = 0) -> Gaussians:
-    rng = np.random.default_rng(seed)
-    q = rng.normal(size=(n, 4))
-    return Gaussians(rng.normal(size=(n, 3)), rng.uniform(0.01, 0.1, (n, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
-                     rng.uniform(0, 1, n), rng.normal(size=(n, 1, 3)))
-
-
-def _same(a: Gaussians, b: Gaussians) -> bool:
-    return all(np.array_equal(getattr(a, f), getattr(b, f)) for f in ("means", "scales", "quats", "opacities", "sh"))
+from ._support import random_gaussians, same_gaussians
 
 
 def test_content_id_is_stable_and_part_boundaries_matter():
@@ -70,7 +60,7 @@ def test_scene_ids_follow_the_inputs_and_the_code_that_builds_them(monkeypatch, 
 
 def test_put_get_and_restart(tmp_path):
     store = SceneStore(tmp_path)
-    g = _gaussians(100)
+    g = random_gaussians(100)
     sid = content_id("scene", "1")
     meta = store.put(sid, g, {"options": {"near": 1.0}, "value": np.float32(2.5)})
     assert meta["num_gaussians"] == 100 and meta["value"] == 2.5
@@ -78,17 +68,17 @@ def test_put_get_and_restart(tmp_path):
     # a fresh store over the same folder (a restart) sees the scene, byte for byte what the cache held
     again = SceneStore(tmp_path)
     assert again.exists(sid)
-    assert _same(again.gaussians(sid), stored_form(g)) and _same(store.gaussians(sid), stored_form(g))
+    assert same_gaussians(again.gaussians(sid), stored_form(g)) and same_gaussians(store.gaussians(sid), stored_form(g))
     assert again.meta(sid)["options"] == {"near": 1.0}
 
 
 def test_put_same_id_twice_keeps_first(tmp_path):
     store = SceneStore(tmp_path)
     sid = content_id("dup")
-    store.put(sid, _gaussians(10, 1), {"tag": "first"})
-    meta = store.put(sid, _gaussians(10, 2), {"tag": "second"})
+    store.put(sid, random_gaussians(10, 1), {"tag": "first"})
+    meta = store.put(sid, random_gaussians(10, 2), {"tag": "second"})
     assert meta["tag"] == "first"
-    assert _same(SceneStore(tmp_path).gaussians(sid), stored_form(_gaussians(10, 1)))
+    assert same_gaussians(SceneStore(tmp_path).gaussians(sid), stored_form(random_gaussians(10, 1)))
 
 
 def test_concurrent_writers_of_one_id(tmp_path):
@@ -98,7 +88,7 @@ def test_concurrent_writers_of_one_id(tmp_path):
 
     def write():
         try:
-            store.put(sid, _gaussians(5000), {"x": 1})
+            store.put(sid, random_gaussians(5000), {"x": 1})
         except Exception as exc:  # pragma: no cover - reported below
             errors.append(exc)
 
@@ -129,7 +119,7 @@ def test_crash_leftovers_are_invisible_and_cleaned(tmp_path):
 def test_delete(tmp_path):
     store = SceneStore(tmp_path)
     sid = content_id("del")
-    store.put(sid, _gaussians(3), {})
+    store.put(sid, random_gaussians(3), {})
     assert store.delete(sid) is True
     assert not store.exists(sid)
     assert store.delete(sid) is False
@@ -151,7 +141,7 @@ def test_malformed_ids_are_refused(tmp_path, bad):
 
 
 def test_lru_bounds(tmp_path):
-    g = _gaussians(1000)
+    g = random_gaussians(1000)
     nbytes = sum(getattr(g, f).nbytes for f in ("means", "scales", "quats", "opacities", "sh"))
     store = SceneStore(tmp_path, cache_scenes=2, cache_bytes=10 * nbytes)
     ids = [content_id("lru", str(i)) for i in range(4)]
@@ -171,16 +161,16 @@ def test_max_scenes_evicts_oldest(tmp_path):
     store = SceneStore(tmp_path, max_scenes=2)
     ids = [content_id("evict", str(i)) for i in range(3)]
     for i, sid in enumerate(ids):
-        store.put(sid, _gaussians(5), {})
+        store.put(sid, random_gaussians(5), {})
         os.utime(tmp_path / "scenes" / sid, (1000 + i, 1000 + i))
-    store.put(content_id("evict", "3"), _gaussians(5), {})
+    store.put(content_id("evict", "3"), random_gaussians(5), {})
     assert set(store.ids()) == {ids[2], content_id("evict", "3")}
 
 
 def test_corrupt_file_is_reported(tmp_path):
     store = SceneStore(tmp_path, cache_scenes=0)
     sid = content_id("corrupt")
-    store.put(sid, _gaussians(5), {})
+    store.put(sid, random_gaussians(5), {})
     (tmp_path / "scenes" / sid / "gaussians.npz").write_bytes(b"garbage")
     with pytest.raises(StoreCorrupt):
         store.gaussians(sid)
@@ -189,7 +179,7 @@ def test_corrupt_file_is_reported(tmp_path):
 def test_artifact_is_atomic_and_scoped(tmp_path):
     store = SceneStore(tmp_path)
     sid = content_id("art")
-    store.put(sid, _gaussians(5), {})
+    store.put(sid, random_gaussians(5), {})
     path = store.put_artifact(sid, "gaussians.ply", b"ply\n")
     assert path.read_bytes() == b"ply\n" and store.artifact(sid, "gaussians.ply") == path
     assert [p.name for p in path.parent.iterdir() if p.name.endswith(".tmp")] == []
@@ -211,7 +201,7 @@ def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
 
     monkeypatch.setattr(np, "savez", boom)
     with pytest.raises(OSError):
-        store.put(sid, _gaussians(5), {})
+        store.put(sid, random_gaussians(5), {})
     assert not store.exists(sid)
     assert list((tmp_path / "tmp").iterdir()) == [] and list((tmp_path / "scenes").iterdir()) == []
 
@@ -221,7 +211,7 @@ def test_start_up_keeps_young_unfinished_writes_by_default(tmp_path):
     or an artifact .tmp: a start-up removes only leftovers older than the grace; 0 removes all of them."""
     SceneStore(tmp_path)
     sid = content_id("young")
-    SceneStore(tmp_path).put(sid, _gaussians(5), {})
+    SceneStore(tmp_path).put(sid, random_gaussians(5), {})
     young, old = tmp_path / "tmp" / "young", tmp_path / "tmp" / "old"
     young.mkdir()
     old.mkdir()
@@ -254,11 +244,11 @@ def test_put_writes_again_when_its_staging_folder_vanishes(tmp_path, monkeypatch
     monkeypatch.setattr(np, "savez", clear_tmp_while_writing)
     budget = 1
     sid = content_id("vanish")
-    store.put(sid, _gaussians(5), {"x": 1}, artifacts={"references.npz": b"refs"})
+    store.put(sid, random_gaussians(5), {"x": 1}, artifacts={"references.npz": b"refs"})
     assert store.exists(sid) and store.artifact(sid, "references.npz").read_bytes() == b"refs" and len(cleared) == 1
     budget = 100
     with pytest.raises(StoreInterrupted, match="send it again"):
-        store.put(content_id("vanish", "2"), _gaussians(5), {})
+        store.put(content_id("vanish", "2"), random_gaussians(5), {})
     assert store.ids() == [sid] and list(store.tmp_dir.glob("*")) == []
 
 

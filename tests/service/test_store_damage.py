@@ -5,36 +5,25 @@ from __future__ import annotations
 import json
 import shutil
 
-import numpy as np
 import pytest
 
-from rasterizer.gaussians import Gaussians
 from service.store import SceneStore, StoreCorrupt, content_id, stored_form
 
-
-def _gaussians(n: int, seed: int = 0) -> Gaussians:
-    rng = np.random.default_rng(seed)
-    q = rng.normal(size=(n, 4))
-    return Gaussians(rng.normal(size=(n, 3)), rng.uniform(0.01, 0.1, (n, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
-                     rng.uniform(0, 1, n), rng.normal(size=(n, 1, 3)))
-
-
-def _same(a: Gaussians, b: Gaussians) -> bool:
-    return all(np.array_equal(getattr(a, f), getattr(b, f)) for f in ("means", "scales", "quats", "opacities", "sh"))
+from ._support import random_gaussians, same_gaussians
 
 
 def test_a_scene_folder_without_its_metadata_is_replaced_by_the_next_write_of_that_scene(tmp_path):
     """A folder whose meta.json was lost is no scene (404); writing the scene again stores it whole in its place
     instead of failing on the folder in the way."""
     store = SceneStore(tmp_path, min_free_bytes=0)
-    sid, g = content_id("meta lost"), _gaussians(20)
+    sid, g = content_id("meta lost"), random_gaussians(20)
     store.put(sid, g, {}, artifacts={"extra.bin": b"x"})
     (tmp_path / "scenes" / sid / "meta.json").unlink()
     restarted = SceneStore(tmp_path, min_free_bytes=0, cache_scenes=0)
     assert not restarted.exists(sid)
     meta = restarted.put(sid, g, {"note": "again"}, artifacts={"references.npz": b"r"})
     assert meta["id"] == sid and restarted.meta(sid)["note"] == "again"
-    assert _same(restarted.gaussians(sid), stored_form(g))
+    assert same_gaussians(restarted.gaussians(sid), stored_form(g))
     assert sorted(p.name for p in (tmp_path / "scenes" / sid).iterdir()) == ["gaussians.npz", "meta.json",
                                                                             "references.npz"]
     assert list((tmp_path / "tmp").iterdir()) == [] and list((tmp_path / "trash").iterdir()) == []
@@ -45,8 +34,8 @@ def test_files_of_another_scene_swapped_in_are_reported_not_served(tmp_path):
     scene (StoreCorrupt), never as that other scene's content under this id."""
     store = SceneStore(tmp_path, min_free_bytes=0)
     one, other = content_id("one"), content_id("other")
-    store.put(one, _gaussians(30), {})
-    store.put(other, _gaussians(40, 1), {})
+    store.put(one, random_gaussians(30), {})
+    store.put(other, random_gaussians(40, 1), {})
     folder, source = tmp_path / "scenes" / one, tmp_path / "scenes" / other
     shutil.copy(source / "gaussians.npz", folder / "gaussians.npz")
     with pytest.raises(StoreCorrupt, match="40 Gaussians"):
@@ -64,8 +53,8 @@ def test_a_second_writer_of_one_scene_evicts_nothing(tmp_path, monkeypatch):
     import service.store as store_module
 
     store = SceneStore(tmp_path, min_free_bytes=0, max_scenes=2)
-    old, sid, g = content_id("old"), content_id("twice"), _gaussians(10)
-    store.put(old, _gaussians(10, 1), {})
+    old, sid, g = content_id("old"), content_id("twice"), random_gaussians(10)
+    store.put(old, random_gaussians(10, 1), {})
     write = store_module._write_file
     other_writer: list[dict] = []
 
@@ -86,7 +75,7 @@ def test_delete_works_when_the_trash_folder_was_removed(tmp_path):
     'not found' for a scene that stays."""
     store = SceneStore(tmp_path, min_free_bytes=0)
     sid = content_id("deleted")
-    store.put(sid, _gaussians(5), {})
+    store.put(sid, random_gaussians(5), {})
     shutil.rmtree(tmp_path / "trash")
     assert store.delete(sid) and not store.exists(sid) and not (tmp_path / "scenes" / sid).exists()
     assert not store.delete(sid)
@@ -97,13 +86,13 @@ def test_a_folder_not_named_by_an_id_is_no_scene_for_the_budget(tmp_path):
     displaces real scenes nor, chosen for eviction, fails every later write with 'malformed scene id'."""
     store = SceneStore(tmp_path, min_free_bytes=0, max_scenes=2)
     first = content_id("first")
-    store.put(first, _gaussians(10), {})
+    store.put(first, random_gaussians(10), {})
     shutil.copytree(tmp_path / "scenes" / first, tmp_path / "scenes" / f"{first}.bak")
     store = SceneStore(tmp_path, min_free_bytes=0, max_scenes=2)
     assert store.ids() == [first]
     later = [content_id(f"later {k}") for k in range(2)]
     for k, sid in enumerate(later):
-        store.put(sid, _gaussians(10, k + 1), {})
+        store.put(sid, random_gaussians(10, k + 1), {})
     assert store.ids() == sorted(later) and (tmp_path / "scenes" / f"{first}.bak" / "meta.json").is_file()
 
 
@@ -116,8 +105,8 @@ def test_a_post_of_a_damaged_scene_builds_it_again_instead_of_answering_cached(t
 
     store = SceneStore(tmp_path, min_free_bytes=0)
     sid, other = content_id("damaged"), content_id("other")
-    store.put(sid, _gaussians(30), {})
-    store.put(other, _gaussians(40, 1), {})
+    store.put(sid, random_gaussians(30), {})
+    store.put(other, random_gaussians(40, 1), {})
     restarted = SceneStore(tmp_path, min_free_bytes=0, cache_scenes=0)
     assert stored_whole(restarted, sid)["num_gaussians"] == 30 and stored_whole(restarted, content_id("none")) is None
     folder = tmp_path / "scenes" / sid
@@ -129,5 +118,5 @@ def test_a_post_of_a_damaged_scene_builds_it_again_instead_of_answering_cached(t
     restarted = SceneStore(tmp_path, min_free_bytes=0, cache_scenes=0)
     assert stored_whole(restarted, sid) is None
     assert not restarted.exists(sid) and restarted.exists(other)
-    restarted.put(sid, _gaussians(30), {})
+    restarted.put(sid, random_gaussians(30), {})
     assert stored_whole(restarted, sid)["num_gaussians"] == 30
