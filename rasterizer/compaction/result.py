@@ -183,14 +183,18 @@ def _compact_with_shell(gaussians: Gaussians, provenance: Provenance, opts: Comp
     limit = count_limit(opts, gaussians.sh.shape[1])
     front_opts = opts
     capped = 0
+    widen = 1.0
     if limit is not None:  # the cap counts the shell too; a cap below the shell's size thins it evenly
         kept = np.flatnonzero(keep)
         if kept.size > limit:
             thin = np.zeros(count, bool)
             thin[kept[np.linspace(0, kept.size - 1, limit).astype(np.int64)]] = True
             capped, keep = kept.size - int(thin.sum()), thin
+            widen = float(np.sqrt(kept.size / max(limit, 1)))
         front_opts = replace(opts, max_count=limit - int(keep.sum()), max_bytes=None)
     kept_shell = shell if keep.all() else shell.subset(keep)
+    if widen > 1.0:  # each disc kept stands for the ones dropped around it: its side grows with their spacing
+        kept_shell = replace(kept_shell, scales=kept_shell.scales * np.float32(widen))
     front = gaussians.subset(slice(0, n - count))
     if limit is None:  # the shell written into the output's arrays with it
         res = _compact_layout(front, replace(provenance, shell=0), front_opts, confidence, tail=kept_shell)
