@@ -81,7 +81,9 @@ class SelectionRequest(BaseModel):
     def canonical(self) -> dict:
         if self.segment is not None:
             return {"segment": self.segment}
-        return {"view": self.view, "points": [list(p) for p in self.points], "negative": [list(p) for p in self.negative]}
+        # + 0.0 turns -0.0 (a point on the seam or a pole, as JSON may spell it) into 0.0: one place, one id
+        return {"view": self.view, "points": [[u + 0.0, v + 0.0] for u, v in self.points],
+                "negative": [[u + 0.0, v + 0.0] for u, v in self.negative]}
 
 
 def check_points(points: list[Point], name: str) -> None:
@@ -90,6 +92,12 @@ def check_points(points: list[Point], name: str) -> None:
         if not (math.isfinite(u) and math.isfinite(v) and 0.0 <= u <= 1.0 and 0.0 <= v <= 1.0):
             raise BadInput(f"{name}[{k}] = [{u}, {v}]: u and v must lie in [0, 1] (u = (col + 0.5) / W, "
                            "v = (row + 0.5) / H on the reference's ERP)", code="invalid_selection")
+
+
+def _unsigned_zeros(values: tuple[float, ...] | None) -> tuple[float, ...] | None:
+    """``values`` with -0.0 read as 0.0: the same colour or offset gives the same canonical request, so the same
+    edit id (the content hash would tell -0.0 from 0.0 and store one result twice)."""
+    return None if values is None else tuple(v + 0.0 for v in values)
 
 
 class EditRequest(BaseModel):
@@ -113,7 +121,7 @@ class EditRequest(BaseModel):
             raise ValueError("the recolor op needs r, g, b, each in [0, 1]")
         if op not in (None, "recolor") and color is not None:
             raise ValueError(f"only for the recolor op, not {op}")
-        return color
+        return _unsigned_zeros(color)
 
     @field_validator("offset")
     @classmethod
@@ -124,7 +132,7 @@ class EditRequest(BaseModel):
             raise ValueError(f"the translate op needs dx, dy, dz, each within +-{MAX_SCENE_EXTENT:g} (the scenes' extent)")
         if op not in (None, "translate") and offset is not None:
             raise ValueError(f"only for the translate op, not {op}")
-        return offset
+        return _unsigned_zeros(offset)
 
 
 class CorrespondencesMissing(ServiceError):
@@ -220,6 +228,7 @@ def create_selection(store: SceneStore, scene_id: str, request: dict) -> dict:
     from rasterizer.edit.scene import select_points, select_segment
     from rasterizer.edit.segment import SelectionError
 
+    request = SelectionRequest.model_validate(request).canonical()  # the CLI's request hashes as the API's does
     sel_id = content_id("selection/v1", scene_id, canonical_json(request))
     t0 = time.perf_counter()
     index = scene_index(store, scene_id)
@@ -385,6 +394,7 @@ def create_edit(store: SceneStore, scene_id: str, request: dict) -> tuple[dict, 
 
     Returns (its metadata, created). Idempotent: the same request on the same scene gives the same id.
     """
+    request = EditRequest.model_validate(request).model_dump(exclude_none=True)  # one canonical form, one id
     with store.hold(scene_id), scene_reads(store, scene_id):  # the budget never evicts the scene being edited
         return _create_edit(store, scene_id, request)
 

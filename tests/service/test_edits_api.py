@@ -298,3 +298,20 @@ def test_query_numbers_are_plain_decimals(client, scene, route, query):
     plain = query.replace("6_4", "64").replace("4_8", "48").replace("9_0", "90").replace("%EF%BC%96%EF%BC%94", "64")
     r = client.get(f"/v1/scenes/{scene}/{route}?c2w={IDENTITY}&{plain}")
     assert r.status_code == 200, r.text
+
+
+def test_minus_zero_names_the_same_selection_and_edit(client, scene):
+    """JSON's -0.0 is the number 0: a point on the seam, a colour channel or an offset of -0.0 asks for what 0.0 asks
+    for, so it gets the same selection and edit id (the content hash is idempotent), not a second stored copy."""
+    url = f"/v1/scenes/{scene}"
+    plus = client.post(f"{url}/selections", json={"view": "a", "points": [[0.0, 0.5]]})
+    minus = client.post(f"{url}/selections", json={"view": "a", "points": [[-0.0, 0.5]], "negative": [[0.5, -0.0]]})
+    assert plus.status_code == minus.status_code == 201, minus.text
+    signed = client.post(f"{url}/selections", json={"view": "a", "points": [[0.0, 0.5]], "negative": [[0.5, 0.0]]})
+    assert minus.json()["id"] == signed.json()["id"] and minus.json()["request"]["points"] == [[0.0, 0.5]]
+    sel = plus.json()["id"]
+    for op, key in (("recolor", "color"), ("translate", "offset")):
+        a = client.post(f"{url}/edits", json={"selection": sel, "op": op, key: [0.0, 1.0, 0.0]})
+        b = client.post(f"{url}/edits", json={"selection": sel, "op": op, key: [-0.0, 1.0, -0.0]})
+        assert a.status_code in (200, 201) and b.status_code in (200, 201), b.text
+        assert b.json()["id"] == a.json()["id"] and b.json()["cached"] is True
