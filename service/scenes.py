@@ -59,14 +59,16 @@ def links(store: SceneStore, scene_id: str, meta: dict) -> dict[str, str | None]
     """The URLs of a stored scene (:class:`service.schemas.Links`): itself, its renders, downloads and viewer; the
     selections, segments and edits of its objects when it keeps the correspondences they read (null otherwise:
     a refinement that changed the Gaussians' count drops them); the scene it was made from (an edit's or a
-    refinement's ``parent``; null for a reconstruction). ``meta``: the scene's metadata, which every caller holds."""
+    refinement's ``parent``; null for a reconstruction, and once that scene is deleted or evicted, so that every
+    link answers). ``meta``: the scene's metadata, which every caller holds."""
     base = f"/v1/scenes/{scene_id}"
     editable = store.artifact(scene_id, EDIT_ARTIFACT) is not None
     parent = meta.get("parent")
+    parent = parent if isinstance(parent, str) and store.exists(parent) else None
     return {"self": base, "render": f"{base}/render", "ply": f"{base}/gaussians.ply", "spz": f"{base}/gaussians.spz",
             "viewer": f"{base}/viewer", **{name: f"{base}/{name}" if editable else None
                                            for name in ("selections", "segments", "edits")},
-            "parent": f"/v1/scenes/{parent}" if isinstance(parent, str) else None}
+            "parent": None if parent is None else f"/v1/scenes/{parent}"}
 
 
 def scene_id_for(model_sha256: str, image_a: bytes, image_b: bytes, poses: Poses | None, options: dict) -> str:

@@ -315,3 +315,20 @@ def test_minus_zero_names_the_same_selection_and_edit(client, scene):
         b = client.post(f"{url}/edits", json={"selection": sel, "op": op, key: [-0.0, 1.0, -0.0]})
         assert a.status_code in (200, 201) and b.status_code in (200, 201), b.text
         assert b.json()["id"] == a.json()["id"] and b.json()["cached"] is True
+
+
+def test_a_parent_link_is_null_once_the_parent_is_deleted(client, scene):
+    """An edit of an edit keeps its parent's id in its metadata, but its links.parent is null once that scene is
+    deleted: every link of an answer leads to something that answers."""
+    sel = client.post(f"/v1/scenes/{scene}/selections", json={"view": "a", "points": [[0.95, 0.5]]}).json()
+    middle = client.post(f"/v1/scenes/{scene}/edits",
+                         json={"selection": sel["id"], "op": "recolor", "color": [0.2, 0.4, 0.6]}).json()
+    sel2 = client.post(f"/v1/scenes/{middle['id']}/selections", json={"view": "a", "points": [[0.95, 0.5]]}).json()
+    last = client.post(f"/v1/scenes/{middle['id']}/edits",
+                       json={"selection": sel2["id"], "op": "recolor", "color": [0.9, 0.1, 0.1]})
+    assert last.status_code == 201, last.text
+    last = last.json()
+    assert last["links"]["parent"] == f"/v1/scenes/{middle['id']}"
+    assert client.delete(f"/v1/scenes/{middle['id']}").status_code == 204
+    meta = client.get(f"/v1/scenes/{last['id']}").json()
+    assert meta["parent"] == middle["id"] and meta["links"]["parent"] is None
