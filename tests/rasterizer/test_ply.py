@@ -126,9 +126,8 @@ def _edited(data: bytes, old: bytes, new: bytes) -> bytes:
     (b"f_rest_8\n", b"f_rest_80\n", "lacks ['f_rest_8']"),
 ])
 def test_a_malformed_header_is_a_ply_error_naming_its_line(old, new, says):
-    """A header line without its fields was an IndexError, a negative count a numpy 'negative dimensions' error,
-    a property named twice or a gap in the f_rest numbering a bare numpy error: each is a PlyError that says
-    what is wrong."""
+    """A header line without its fields, a negative or non-integer count, a property named twice or a gap in the
+    f_rest numbering is a PlyError that says what is wrong (not an IndexError or a bare numpy error)."""
     data = _edited(ply_bytes(scene(np.random.default_rng(5), 3, 4)), old, new)
     with pytest.raises(PlyError, match=re.escape(says)):
         read_ply(data)

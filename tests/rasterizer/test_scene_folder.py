@@ -20,7 +20,7 @@ def _write(root, frames=("a", "b"), **meta):
 
 
 def test_a_split_whose_references_are_a_string_is_refused(tmp_path):
-    """"ab" was read letter by letter: the references of frames "a" and "b", without a word."""
+    """"ab" is no list of frame names: refused, not read letter by letter as frames "a" and "b"."""
     path = _write(tmp_path, splits=[{"references": "ab", "targets": []}])
     with pytest.raises(ValueError, match="lists of frame names, got 'ab'") as info:
         load_scene(tmp_path)

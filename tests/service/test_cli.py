@@ -361,7 +361,7 @@ def test_select_and_edit_with_a_store_that_is_a_file_is_a_one_line_error(tmp_pat
 
 
 def test_select_and_edit_in_a_folder_that_holds_no_store_make_none(tmp_path, capsys):
-    """A mistyped --store was made into an empty store (scenes/, tmp/, trash/), then said 'no scene with id'."""
+    """A mistyped --store is refused, not made into an empty store (scenes/, tmp/, trash/) that has no such scene."""
     (tmp_path / "elsewhere").mkdir()
     for store in (tmp_path / "typo", tmp_path / "elsewhere"):
         for argv in (["select", "0" * 32, "--view", "a", "--point", "0.5,0.5"],
@@ -492,10 +492,10 @@ def _no_model(tmp_path: Path) -> list[str]:
     (["--json", "{tmp}/x.ply"], "must end in .json"),
     (["-o", "{room}/scene.json/x.ply"], "is a file, not a folder"),  # refused only after the reconstruction
     (["-o", ""], "-o: give a file name"),
-    (["-o", "{tmp}/n/x.json/s.ply", "--json", "{tmp}/n/x.json"], "give the outputs separate names"),  # the PLY
-    (["-o", "{tmp}/n/s.ply", "--json", "{tmp}/n/s.ply/x.json"], "give the outputs separate names"),  # was left
-    (["--threads", "100000"], "--threads: Input should be less than or equal to 256"),  # took 16 GB of thread stacks
-    (["--threads", "-1"], "--threads: Input should be greater than or equal to 1"),  # was taken as it came
+    (["-o", "{tmp}/n/x.json/s.ply", "--json", "{tmp}/n/x.json"], "give the outputs separate names"),  # before any work:
+    (["-o", "{tmp}/n/s.ply", "--json", "{tmp}/n/s.ply/x.json"], "give the outputs separate names"),  # no PLY left behind
+    (["--threads", "100000"], "--threads: Input should be less than or equal to 256"),  # 16 GB of thread stacks
+    (["--threads", "-1"], "--threads: Input should be greater than or equal to 1"),
 ])
 def test_reconstruct_refuses_bad_outputs_and_splits_before_any_work(tmp_path, capsys, extra, says):
     room = _sample_copy(tmp_path)
@@ -510,9 +510,9 @@ def test_reconstruct_refuses_bad_outputs_and_splits_before_any_work(tmp_path, ca
 @pytest.mark.parametrize("command", ["reconstruct", "refine"])
 @pytest.mark.parametrize("inputs, extra, says", [
     (["room"], ["--poses", "{tmp}/missing.json"], "--poses: {room} is a scene folder"),  # dropped without a word
-    (["a", "b"], ["--refs", "00,02"], "--refs: chooses the references of a scene folder"),  # dropped as well
+    (["a", "b"], ["--refs", "00,02"], "--refs: chooses the references of a scene folder"),
     (["a", "b"], ["--split", "0"], "--split: chooses the references of a scene folder"),
-    (["a", "b"], ["--poses", "{tmp}/empty.json"], "the file is empty; leave --poses out"),  # poses were estimated
+    (["a", "b"], ["--poses", "{tmp}/empty.json"], "the file is empty; leave --poses out"),  # not "estimate them"
 ])
 def test_flags_the_inputs_do_not_use_are_refused(tmp_path, capsys, command, inputs, extra, says):
     (tmp_path / "empty.json").write_bytes(b" \n")
@@ -530,7 +530,7 @@ def test_flags_the_inputs_do_not_use_are_refused(tmp_path, capsys, command, inpu
 
 
 def test_scene_folder_errors_name_its_scene_json_once(tmp_path, capsys):
-    """They read "ROOM: ROOM: split names unknown frames", and a bad pose did not say whose it was."""
+    """Each error names scene.json once (not "ROOM: ROOM: ..."), and a bad pose names its frame."""
     room = _sample_copy(tmp_path)
     scene = json.loads((room / "scene.json").read_text())
     scene["splits"][0]["targets"] = ["zz"]
@@ -689,7 +689,7 @@ def test_bad_environment_settings_are_one_line_errors(tmp_path, capsys, monkeypa
     ("OMNISPLAT_MAX_IMAGE_PIXELS", "1024", "min_image_height 32 needs panoramas of at least 2048 pixels"),
 ])
 def test_settings_that_refuse_every_request_are_one_line_errors(tmp_path, capsys, monkeypatch, name, value, says):
-    """These settings started a server that refused every request (or every upload) it was sent."""
+    """Settings under which a server would refuse every request (or every upload) are start-up errors."""
     monkeypatch.setenv(name, value)
     assert cli.main(["serve", "--no-build", "--model", str(tmp_path / "m.onnx")]) == 2
     err = capsys.readouterr().err
@@ -744,9 +744,9 @@ def test_serve_with_a_model_file_that_is_no_model_is_a_one_line_error(tmp_path, 
 @pytest.mark.parametrize("source", ["default", "variable"])
 def test_serve_with_a_damaged_model_not_named_by_flag_is_a_one_line_error_naming_its_source(tmp_path, capsys,
                                                                                            monkeypatch, source):
-    """A damaged default model (in OMNISPLAT_MODELS_DIR) was not loaded before serving: the server started and its
-    /readyz answered 503 for good, since an existing file is never built again; one named by OMNISPLAT_MODEL_PATH
-    was reported as --model, a flag the user never gave."""
+    """A damaged default model (in OMNISPLAT_MODELS_DIR) is loaded before serving and refused in one line (a server
+    would answer /readyz 503 for good: an existing file is never built again); one named by OMNISPLAT_MODEL_PATH is
+    reported under that name, not as --model, a flag the user never gave."""
     if source == "default":
         path = tmp_path / "models" / default_model_name()
         monkeypatch.setenv("OMNISPLAT_MODELS_DIR", str(tmp_path / "models"))
