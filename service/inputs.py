@@ -284,11 +284,12 @@ _NON_FINITE = frozenset({"nan", "+nan", "-nan", "inf", "+inf", "-inf", "infinity
 _INTEGER = re.compile(r"[+-]?[0-9]+")
 
 
-def _plain(pattern: re.Pattern, kind: str):
+def _plain(pattern: re.Pattern, kind: str, words: frozenset[str] = frozenset()):
     """A query value's check before its type's own parsing: a text must be a plain ASCII decimal ``kind``, as
-    :data:`PLAIN_DECIMAL` (pydantic, as Python, also reads digit groups such as ``6_4`` as 64 and non-ASCII digits)."""
+    :data:`PLAIN_DECIMAL` (pydantic, as Python, also reads digit groups such as ``6_4`` as 64 and non-ASCII digits),
+    or one of ``words`` (NaN and infinity for a float: numbers, whose range the route's own check refuses)."""
     def check(value):
-        if isinstance(value, str) and not pattern.fullmatch(value.strip()):
+        if isinstance(value, str) and not (pattern.fullmatch(value.strip()) or value.strip().lower() in words):
             raise ValueError(f"expected a plain decimal {kind}, got {value[:40]!r}")
         return value
     return check
@@ -296,7 +297,7 @@ def _plain(pattern: re.Pattern, kind: str):
 
 #: Integer and number query parameters of the routes: plain ASCII decimals only, as the ``c2w`` query's numbers.
 QueryInt = Annotated[int, BeforeValidator(_plain(_INTEGER, "integer such as 1024"))]
-QueryFloat = Annotated[float, BeforeValidator(_plain(PLAIN_DECIMAL, "number such as 90 or 62.5"))]
+QueryFloat = Annotated[float, BeforeValidator(_plain(PLAIN_DECIMAL, "number such as 90 or 62.5", _NON_FINITE))]
 
 
 def parse_c2w_query(text: str) -> np.ndarray:
