@@ -16,8 +16,6 @@ send the key with the page's own request for the schema.
 
 from __future__ import annotations
 
-import base64
-import hashlib
 import re
 
 from fastapi import APIRouter, Request, Response
@@ -26,7 +24,7 @@ from fastapi.responses import FileResponse, HTMLResponse
 
 from ..access import DOCS_ASSETS_PREFIX as ASSETS_PREFIX
 from ..errors import NotFound, ServiceError
-from .viewer import node_modules_dir
+from .viewer import node_modules_dir, script_hash
 
 router = APIRouter(include_in_schema=False)
 
@@ -65,7 +63,7 @@ async def docs_page(request: Request) -> HTMLResponse:
                                swagger_favicon_url=ASSETS_PREFIX + "favicon-32x32.png",
                                oauth2_redirect_url="/docs/oauth2-redirect")
     inline = re.findall(rb"<script>(.*?)</script>", page.body, re.S)
-    hashes = " ".join(f"'sha256-{base64.b64encode(hashlib.sha256(code).digest()).decode()}'" for code in inline)
+    hashes = " ".join(script_hash(code) for code in inline)
     page.headers.update({**_HEADERS, "Content-Security-Policy": PAGE_CSP.format(inline=hashes),
                          "X-Frame-Options": "DENY"})
     return page

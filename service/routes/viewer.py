@@ -95,13 +95,16 @@ def _viewer_unavailable() -> ServiceError:
                         code="viewer_unavailable", status=503)
 
 
+def script_hash(code: bytes) -> str:
+    """The CSP source (``'sha256-...'``) that allows one inline script of exactly ``code`` (this page's import map,
+    the docs page's setup script)."""
+    return f"'sha256-{base64.b64encode(hashlib.sha256(code).digest()).decode()}'"
+
+
 def page_csp(template: str) -> str:
     """:data:`PAGE_CSP` for the page ``template``: its inline import map allowed by its SHA-256."""
     found = re.search(r'<script type="importmap">(.*?)</script>', template, re.S)
-    if found is None:
-        return PAGE_CSP.format(importmap="")
-    digest = base64.b64encode(hashlib.sha256(found.group(1).encode()).digest()).decode()
-    return PAGE_CSP.format(importmap=f"'sha256-{digest}'")
+    return PAGE_CSP.format(importmap="" if found is None else script_hash(found.group(1).encode()))
 
 
 def _page(scene_id: str, meta: dict, template: str) -> str:
