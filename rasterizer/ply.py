@@ -17,6 +17,7 @@ so 0, 1 and rank-deficient Gaussians stay finite on disk.
 from __future__ import annotations
 
 import os
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -119,16 +120,23 @@ def ply_bytes(g: Gaussians, *, drop_invalid: bool = True) -> bytes:
 
 
 def write_ply(path: str | os.PathLike, g: Gaussians, *, drop_invalid: bool = True) -> Path:
-    """Write ``g`` to ``path`` atomically (temp file + rename); returns the path. A symbolic link is written
-    through (its target replaced), as a plain write would, not replaced by a file."""
+    """Write ``g`` to ``path`` atomically (:func:`write_whole`); returns the path written."""
+    return write_whole(path, ply_bytes(g, drop_invalid=drop_invalid))
+
+
+def write_whole(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a hidden temporary file beside it, renamed over it when complete, so that a
+    write that fails (a full disk, a file size limit, Ctrl-C, ``path`` a folder) leaves neither a truncated file nor
+    a damaged older one; returns the path written. A symbolic link is written through (its target replaced), as a
+    plain write would, not replaced by a file."""
     path = Path(path)
     if path.is_symlink():
         path = path.resolve()
-    tmp = path.with_name(path.name + ".tmp")
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
     try:
-        tmp.write_bytes(ply_bytes(g, drop_invalid=drop_invalid))
+        tmp.write_bytes(data)
         os.replace(tmp, path)
-    except BaseException:  # e.g. ``path`` is a folder: no half-written temp file is left beside it
+    except BaseException:  # no half-written temp file is left beside it
         tmp.unlink(missing_ok=True)
         raise
     return path

@@ -168,10 +168,9 @@ def write_output(path: str | Path, data) -> None:
 
     Every format is written to a hidden temporary file beside ``path`` and renamed over it, so that a write that
     fails (a full disk, a file size limit, Ctrl-C) leaves neither a truncated file nor a damaged older one; a
-    symbolic link is written through (its target replaced), as a plain write would."""
-    import uuid
-
-    from rasterizer.ply import ply_bytes
+    symbolic link is written through (its target replaced), as a plain write would
+    (:func:`rasterizer.ply.write_whole`)."""
+    from rasterizer.ply import ply_bytes, write_whole
     from rasterizer.spz import SpzError, spz_bytes
 
     out = Path(path)
@@ -183,14 +182,7 @@ def write_output(path: str | Path, data) -> None:
             payload = spz_bytes(data)
         else:
             payload = ply_bytes(data)
-        target = out.resolve() if out.is_symlink() else out
-        tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex[:12]}.tmp")
-        try:
-            tmp.write_bytes(payload)
-            os.replace(tmp, target)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        write_whole(out, payload)
     except OSError as exc:
         raise CliError(f"cannot write {out}: {exc.strerror or exc}") from None
     except SpzError as exc:
