@@ -11,6 +11,7 @@ import hashlib
 import os
 import sys
 import time
+import uuid
 from pathlib import Path
 from typing import Callable
 
@@ -69,6 +70,23 @@ def _say(msg: str) -> None:
     print(f"[omnisplat] {msg}", file=sys.stderr, flush=True)
 
 
+def build_whole(path: str | Path, export_model: Callable[..., str | Path], **export_kwargs) -> Path:
+    """Build a model with ``export_model(temporary path, **export_kwargs)`` into a hidden file beside ``path`` and
+    rename it over ``path`` once complete (a symbolic link is written through); returns the path written. A
+    failed or interrupted build (minutes of torch) leaves neither a half-written model at ``path``, nor a damaged
+    earlier one, nor its temporary file (or an external-data file beside it)."""
+    path = Path(path)
+    target = path.resolve() if path.is_symlink() else path
+    tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex[:12]}.tmp.onnx")
+    try:
+        os.replace(Path(export_model(tmp, **export_kwargs)), target)
+    except BaseException:
+        for leftover in (tmp, tmp.with_name(tmp.name + ".data")):
+            leftover.unlink(missing_ok=True)
+        raise
+    return target
+
+
 def ensure_model(path: str | Path, *, build_if_missing: bool = True,
                  progress: Callable[[str], None] = _say, **export_kwargs) -> Path:
     """Return ``path`` if it exists; otherwise export the default model there (needs torch).
@@ -96,13 +114,8 @@ def ensure_model(path: str | Path, *, build_if_missing: bool = True,
     except OSError as exc:  # models_dir under a file, or a folder this user cannot make
         raise ModelUnavailable(f"model file {path} does not exist and cannot be built there: cannot make "
                                f"{path.parent} ({exc.strerror or exc})") from None
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.building.onnx")
     progress(f"building the ONNX model -> {path} (one-off, needs torch; this can take a minute)")
     start = time.perf_counter()
-    try:
-        built = Path(export_model(tmp, **export_kwargs))
-        os.replace(built, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    build_whole(path, export_model, **export_kwargs)
     progress(f"model built in {time.perf_counter() - start:.1f} s ({path.stat().st_size / 1e6:.1f} MB)")
     return path

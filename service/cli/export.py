@@ -27,28 +27,18 @@ def cmd_export(args: argparse.Namespace) -> int:
     if args.downscale is not None and args.downscale < 1:
         raise CliError(f"--downscale: must be 1 or more, got {args.downscale}")
     export_model = forward_import(load_export_model, HINT)
-    import os
-    import uuid
-
     import onnx
 
-    # built beside the output and renamed when complete: a failed or interrupted build (minutes of torch)
-    # leaves neither a half-written model at ``out`` nor a damaged earlier one
-    out = args.out.resolve() if args.out.is_symlink() else args.out
-    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex[:12]}.tmp.onnx")
+    from ..model_files import build_whole
+
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        export_model(tmp, height=args.height, width=2 * args.height, num_planes=args.num_planes,
-                     preset=args.preset, downscale=args.downscale)
-        os.replace(tmp, out)
-    except BaseException as exc:
-        for leftover in (tmp, tmp.with_name(tmp.name + ".data")):
-            leftover.unlink(missing_ok=True)
-        if isinstance(exc, ValueError):
-            raise CliError(str(exc)) from None
-        if isinstance(exc, OSError):
-            raise CliError(f"cannot write {args.out}: {exc.strerror or exc}") from None
-        raise
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        build_whole(args.out, export_model, height=args.height, width=2 * args.height, num_planes=args.num_planes,
+                    preset=args.preset, downscale=args.downscale)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    except OSError as exc:
+        raise CliError(f"cannot write {args.out}: {exc.strerror or exc}") from None
     path = args.out
     meta = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
     print(json.dumps({"path": str(path), "bytes": path.stat().st_size,
