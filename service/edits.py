@@ -81,9 +81,9 @@ class SelectionRequest(BaseModel):
     def canonical(self) -> dict:
         if self.segment is not None:
             return {"segment": self.segment}
-        # + 0.0 turns -0.0 (a point on the seam or a pole, as JSON may spell it) into 0.0: one place, one id
-        return {"view": self.view, "points": [[u + 0.0, v + 0.0] for u, v in self.points],
-                "negative": [[u + 0.0, v + 0.0] for u, v in self.negative]}
+        # a point on the seam or a pole may be spelt -0.0: one place, one id
+        return {"view": self.view, "points": [list(_unsigned_zeros(p)) for p in self.points],
+                "negative": [list(_unsigned_zeros(p)) for p in self.negative]}
 
 
 def check_points(points: list[Point], name: str) -> None:
@@ -95,8 +95,8 @@ def check_points(points: list[Point], name: str) -> None:
 
 
 def _unsigned_zeros(values: tuple[float, ...] | None) -> tuple[float, ...] | None:
-    """``values`` with -0.0 read as 0.0: the same colour or offset gives the same canonical request, so the same
-    edit id (the content hash would tell -0.0 from 0.0 and store one result twice)."""
+    """``values`` with -0.0 read as 0.0: the same point, colour or offset gives the same canonical request, so the
+    same selection or edit id (the content hash would tell -0.0 from 0.0 and store one result twice)."""
     return None if values is None else tuple(v + 0.0 for v in values)
 
 
